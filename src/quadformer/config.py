@@ -1,0 +1,290 @@
+"""Configuration of a simulated dataset: frozen dataclasses with SI units.
+
+Every field is validated at construction; an invalid value raises ``ConfigError``
+naming the field. ``SimConfig.from_dict`` builds a config from nested mappings (as read
+from a TOML file at the CLI edge) and rejects unknown keys.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any, Mapping
+
+MODELS = ("I", "II")
+NOISE_SHAPES = ("gaussian", "exponential", "laplace")
+ATTACK_KINDS = ("none", "bias", "ramp", "sinusoid", "intermittent", "replay", "freeze")
+MISSION_KINDS = ("hover", "circle", "lissajous", "minsnap")
+
+
+class ConfigError(ValueError):
+    """An invalid configuration value; the message names the field."""
+
+
+def _require(cond: bool, name: str, msg: str) -> None:
+    if not cond:
+        raise ConfigError(f"{name}: {msg}")
+
+
+def _positive(name: str, value: float) -> None:
+    _require(isinstance(value, (int, float)) and math.isfinite(value) and value > 0,
+             name, f"must be a positive finite number, got {value!r}")
+
+
+def _non_negative(name: str, value: float) -> None:
+    _require(isinstance(value, (int, float)) and math.isfinite(value) and value >= 0,
+             name, f"must be a non-negative finite number, got {value!r}")
+
+
+def _range(name: str, value: Any, lo: float = -math.inf) -> tuple[float, float]:
+    _require(isinstance(value, (tuple, list)) and len(value) == 2, name,
+             f"must be a pair (low, high), got {value!r}")
+    a, b = (float(v) for v in value)
+    _require(math.isfinite(a) and math.isfinite(b) and a <= b, name,
+             f"must satisfy low <= high with finite values, got {value!r}")
+    _require(a >= lo, name, f"values must be >= {lo}, got {value!r}")
+    return (a, b)
+
+
+@dataclass(frozen=True)
+class GPSConfig:
+    rate_hz: float = 10.0          # Hz, GPS solution rate
+    pos_std_h: float = 0.5         # m, white noise std, horizontal axes
+    pos_std_v: float = 1.0         # m, white noise std, vertical axis
+    vel_std: float = 0.1           # m/s, white noise std, each axis
+    gm_std: float = 0.5            # m, Gauss-Markov position error std (0 disables it)
+    gm_tau: float = 30.0           # s, Gauss-Markov time constant
+
+    def __post_init__(self) -> None:
+        _positive("gps.rate_hz", self.rate_hz)
+        _positive("gps.pos_std_h", self.pos_std_h)
+        _positive("gps.pos_std_v", self.pos_std_v)
+        _positive("gps.vel_std", self.vel_std)
+        _non_negative("gps.gm_std", self.gm_std)
+        _positive("gps.gm_tau", self.gm_tau)
+
+
+@dataclass(frozen=True)
+class VIOConfig:
+    rate_hz: float = 20.0          # Hz, stereo VIO output rate
+    vel_std: float = 0.05          # m/s, velocity noise std, each axis
+    att_std_deg: float = 0.5       # deg, attitude noise std, each axis
+    drift_fraction: float = 0.01   # position drift per metre travelled (odometry frame)
+
+    def __post_init__(self) -> None:
+        _positive("vio.rate_hz", self.rate_hz)
+        _positive("vio.vel_std", self.vel_std)
+        _positive("vio.att_std_deg", self.att_std_deg)
+        _non_negative("vio.drift_fraction", self.drift_fraction)
+
+
+@dataclass(frozen=True)
+class IMUConfig:
+    """IMU error model (rotorpy's: white noise scaled by sqrt(rate/2), bias random walk)."""
+    accel_noise_density: float = 0.02    # m/s^2/sqrt(Hz)
+    gyro_noise_density: float = 0.002    # rad/s/sqrt(Hz)
+    accel_bias_walk: float = 1e-3        # m/s^3/sqrt(Hz), bias random walk
+    gyro_bias_walk: float = 1e-4         # rad/s^2/sqrt(Hz), bias random walk
+    accel_bias_std: float = 0.05         # m/s^2, initial bias std (per flight)
+    gyro_bias_std: float = 0.005         # rad/s, initial bias std (per flight)
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            _non_negative(f"imu.{f.name}", getattr(self, f.name))
+
+
+@dataclass(frozen=True)
+class MissionConfig:
+    kinds: tuple[str, ...] = MISSION_KINDS   # sampled uniformly per flight
+    speed: tuple[float, float] = (1.0, 8.0)       # m/s, cruise speed range
+    altitude: tuple[float, float] = (5.0, 30.0)   # m, altitude range
+    max_accel: float = 3.0                        # m/s^2, bound used to size curves
+
+    def __post_init__(self) -> None:
+        kinds = tuple(self.kinds)
+        _require(len(kinds) > 0, "mission.kinds", "must name at least one mission kind")
+        for k in kinds:
+            _require(k in MISSION_KINDS, "mission.kinds",
+                     f"unknown mission kind {k!r}; choose from {', '.join(MISSION_KINDS)}")
+        object.__setattr__(self, "kinds", kinds)
+        object.__setattr__(self, "speed", _range("mission.speed", self.speed, lo=0.1))
+        object.__setattr__(self, "altitude", _range("mission.altitude", self.altitude, lo=1.0))
+        _positive("mission.max_accel", self.max_accel)
+
+
+# Per-kind defaults of the attack distributions; None in AttackConfig means "use these".
+_ATTACK_DEFAULTS: dict[str, dict[str, tuple[float, float]]] = {
+    "bias": {"duration": (5.0, 20.0), "magnitude": (1.5, 6.0)},
+    "ramp": {"duration": (10.0, 30.0), "rate": (0.2, 1.0)},
+    "sinusoid": {"duration": (10.0, 30.0), "magnitude": (1.5, 6.0), "frequency": (0.05, 0.5)},
+    "intermittent": {"duration": (10.0, 30.0), "magnitude": (1.5, 6.0), "period": (2.0, 6.0)},
+    "replay": {"duration": (10.0, 30.0), "delay": (3.0, 10.0)},
+    "freeze": {"duration": (5.0, 20.0)},
+    "none": {},
+}
+_GENERIC = {"duration": (5.0, 20.0), "magnitude": (1.5, 6.0), "rate": (0.2, 1.0),
+            "frequency": (0.05, 0.5), "period": (2.0, 6.0), "delay": (3.0, 10.0)}
+
+
+@dataclass(frozen=True)
+class AttackConfig:
+    """False data injection on GPS, y = g(x) + v + d. Ranges are sampled uniformly per flight."""
+    kind: str = "none"
+    fraction: float = 0.5                              # share of flights attacked (one window each)
+    onset: tuple[float, float] = (10.0, 40.0)          # s
+    duration: tuple[float, float] | None = None        # s (per-kind default)
+    magnitude: tuple[float, float] | None = None       # m, offset norm (bias, sinusoid, intermittent)
+    rate: tuple[float, float] | None = None            # m/s, drift rate (ramp)
+    frequency: tuple[float, float] | None = None       # Hz (sinusoid)
+    period: tuple[float, float] | None = None          # s, on/off period (intermittent)
+    delay: tuple[float, float] | None = None           # s, replay delay
+    axes: str | None = None    # fixed attacked axes, e.g. "x" or "xz"; None: random sparse subset
+
+    def __post_init__(self) -> None:
+        _require(self.kind in ATTACK_KINDS, "attack.kind",
+                 f"unknown attack {self.kind!r}; choose from {', '.join(ATTACK_KINDS)}")
+        _require(isinstance(self.fraction, (int, float)) and 0.0 <= self.fraction <= 1.0,
+                 "attack.fraction", f"must be in [0, 1], got {self.fraction!r}")
+        object.__setattr__(self, "onset", _range("attack.onset", self.onset, lo=0.0))
+        defaults = _ATTACK_DEFAULTS[self.kind]
+        for name, generic in _GENERIC.items():
+            value = getattr(self, name)
+            if value is None:
+                value = defaults.get(name, generic)
+            lo = 1e-6 if name in ("duration", "frequency", "period", "delay") else 0.0
+            object.__setattr__(self, name, _range(f"attack.{name}", value, lo=lo))
+        if self.axes is not None:
+            axes = str(self.axes).lower()
+            _require(len(axes) > 0 and set(axes) <= set("xyz") and len(set(axes)) == len(axes),
+                     "attack.axes", f"must be a subset of 'xyz' such as 'x' or 'xy', got {self.axes!r}")
+            _require(("x" in axes) or ("y" in axes), "attack.axes",
+                     f"must include a horizontal axis (x or y), got {self.axes!r}")
+            if self.kind == "ramp":
+                _require("z" not in axes, "attack.axes", "a ramp drifts along a horizontal direction: use x and/or y")
+            object.__setattr__(self, "axes", axes)
+
+
+@dataclass(frozen=True)
+class EKFConfig:
+    """Error-state EKF tuning. None: matched to the sensor configuration."""
+    gps_pos_std_h: float | None = None    # m; default sqrt(white^2 + gauss_markov^2)
+    gps_pos_std_v: float | None = None    # m
+    gps_vel_std: float | None = None      # m/s
+    vio_vel_std: float | None = None      # m/s
+    vio_att_std_deg: float | None = None  # deg
+    # Initial estimation error (the filter has converged on the ground before the mission).
+    init_pos_std: float = 0.3             # m
+    init_vel_std: float = 0.05            # m/s
+    init_att_std_deg: float = 1.0         # deg
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if v is not None:
+                _positive(f"ekf.{f.name}", v)
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    model: str = "I"                 # "I": hummingbird in calm air; "II": PX4 SIH quad in Dryden wind
+    noise: str = "gaussian"          # GPS and VIO noise shape
+    attack: AttackConfig = field(default_factory=AttackConfig)
+    flights: int = 8
+    duration: float = 60.0           # s per flight
+    seed: int = 0
+    dt: float = 0.01                 # s, simulation, IMU and EKF propagation step (100 Hz)
+    batch_size: int = 256            # flights simulated together (does not change the data)
+    gps: GPSConfig = field(default_factory=GPSConfig)
+    vio: VIOConfig = field(default_factory=VIOConfig)
+    imu: IMUConfig = field(default_factory=IMUConfig)
+    mission: MissionConfig = field(default_factory=MissionConfig)
+    ekf: EKFConfig = field(default_factory=EKFConfig)
+
+    def __post_init__(self) -> None:
+        _require(self.model in MODELS, "model", f"unknown model {self.model!r}; choose from I, II")
+        _require(self.noise in NOISE_SHAPES, "noise",
+                 f"unknown noise shape {self.noise!r}; choose from {', '.join(NOISE_SHAPES)}")
+        _require(isinstance(self.flights, int) and not isinstance(self.flights, bool) and self.flights >= 1,
+                 "flights", f"must be an integer >= 1, got {self.flights!r}")
+        _positive("duration", self.duration)
+        _positive("dt", self.dt)
+        _require(isinstance(self.seed, int) and self.seed >= 0, "seed", f"must be a non-negative integer, got {self.seed!r}")
+        _require(isinstance(self.batch_size, int) and self.batch_size >= 1, "batch_size",
+                 f"must be an integer >= 1, got {self.batch_size!r}")
+        for name, rate in (("gps.rate_hz", self.gps.rate_hz), ("vio.rate_hz", self.vio.rate_hz)):
+            ratio = 1.0 / (rate * self.dt)
+            _require(abs(ratio - round(ratio)) < 1e-9 and round(ratio) >= 1, name,
+                     f"the sensor period must be a whole number of simulation steps (dt={self.dt} s)")
+        _require(self.steps_per_gps * self.n_gps == self.n_steps, "duration",
+                 f"must be a whole number of GPS periods ({1.0 / self.gps.rate_hz} s), got {self.duration}")
+        if self.attack.kind != "none":
+            _require(self.attack.onset[1] < self.duration, "attack.onset",
+                     f"the latest onset ({self.attack.onset[1]} s) must be before the end of the flight "
+                     f"(duration {self.duration} s)")
+
+    # Derived step counts.
+    @property
+    def n_steps(self) -> int:
+        return int(round(self.duration / self.dt))
+
+    @property
+    def steps_per_gps(self) -> int:
+        return int(round(1.0 / (self.gps.rate_hz * self.dt)))
+
+    @property
+    def steps_per_vio(self) -> int:
+        return int(round(1.0 / (self.vio.rate_hz * self.dt)))
+
+    @property
+    def n_gps(self) -> int:
+        return int(round(self.duration * self.gps.rate_hz))
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "SimConfig":
+        return _build(cls, data, prefix="")
+
+    def replace(self, **changes: Any) -> "SimConfig":
+        return dataclasses.replace(self, **changes)
+
+
+def _build(cls: type, data: Mapping[str, Any], prefix: str) -> Any:
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{prefix.rstrip('.') or 'config'}: expected a table, got {data!r}")
+    known = {f.name: f for f in fields(cls)}
+    kwargs: dict[str, Any] = {}
+    for key, value in data.items():
+        if key not in known:
+            raise ConfigError(f"{prefix}{key}: unknown setting; known: {', '.join(sorted(known))}")
+        sub = _NESTED.get((cls.__name__, key))
+        if sub is not None:
+            kwargs[key] = _build(sub, value, prefix=f"{prefix}{key}.")
+        elif isinstance(value, list):
+            kwargs[key] = tuple(value)
+        else:
+            kwargs[key] = value
+    return cls(**kwargs)
+
+
+_NESTED: dict[tuple[str, str], type] = {
+    ("SimConfig", "attack"): AttackConfig,
+    ("SimConfig", "gps"): GPSConfig,
+    ("SimConfig", "vio"): VIOConfig,
+    ("SimConfig", "imu"): IMUConfig,
+    ("SimConfig", "mission"): MissionConfig,
+    ("SimConfig", "ekf"): EKFConfig,
+}
+
+
+def merge(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
+    """Deep-merge two nested mappings (override wins)."""
+    out = dict(base)
+    for k, v in override.items():
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
+            out[k] = merge(out[k], v)
+        else:
+            out[k] = v
+    return out

@@ -1,0 +1,180 @@
+"""Error-state extended Kalman filter, batched over flights (torch, float64).
+
+Nominal state: position p, velocity v (world, ENU, m and m/s), attitude q (unit
+quaternion, xyzw, body to world), accelerometer bias ba and gyro bias bg. Error state
+(15): dp, dv, dtheta (local angle error, q_true = q * Exp(dtheta)), dba, dbg.
+
+Pure functions: ``predict`` and ``update`` return new states. Every measurement used here
+observes a subset of the error state directly (H is a selection), which ``update``
+exploits; S is factorised by Cholesky and never inverted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import roma
+import torch
+
+ERROR_STATES = ("px", "py", "pz", "vx", "vy", "vz", "thx", "thy", "thz",
+                "bax", "bay", "baz", "bgx", "bgy", "bgz")
+GRAVITY = torch.tensor([0.0, 0.0, -9.81], dtype=torch.float64)
+GPS_IDX = torch.arange(0, 6)
+VIO_IDX = torch.arange(3, 9)
+
+
+@dataclass(frozen=True)
+class EKFState:
+    p: torch.Tensor    # (B,3)
+    v: torch.Tensor    # (B,3)
+    q: torch.Tensor    # (B,4) xyzw
+    ba: torch.Tensor   # (B,3)
+    bg: torch.Tensor   # (B,3)
+    P: torch.Tensor    # (B,15,15)
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Per-step process noise and measurement noise standard deviations."""
+    accel_std: float      # m/s^2 per IMU sample
+    gyro_std: float       # rad/s per IMU sample
+    accel_walk: float     # m/s^2 per IMU sample (bias random walk)
+    gyro_walk: float      # rad/s per IMU sample
+    gps_std: torch.Tensor  # (6,) position m, velocity m/s
+    vio_std: torch.Tensor  # (6,) velocity m/s, attitude rad
+
+
+@dataclass(frozen=True)
+class Innovation:
+    r: torch.Tensor      # (B,m) raw innovation z - h(x)
+    w: torch.Tensor      # (B,m) whitened L^-1 r with S = L L^T
+    nis: torch.Tensor    # (B,) r^T S^-1 r
+    s_std: torch.Tensor  # (B,m) sqrt(diag S)
+
+
+def init_state(p, v, q, ba, bg, P0) -> EKFState:
+    t = lambda x: torch.as_tensor(x, dtype=torch.float64).clone()  # noqa: E731
+    return EKFState(t(p), t(v), t(q), t(ba), t(bg), t(P0))
+
+
+def _skew(x: torch.Tensor) -> torch.Tensor:
+    z = torch.zeros_like(x[:, 0])
+    return torch.stack([torch.stack([z, -x[:, 2], x[:, 1]], -1),
+                        torch.stack([x[:, 2], z, -x[:, 0]], -1),
+                        torch.stack([-x[:, 1], x[:, 0], z], -1)], -2)
+
+
+def predict(s: EKFState, accel: torch.Tensor, gyro: torch.Tensor, dt: float, nm: NoiseModel) -> EKFState:
+    """Propagate with one IMU sample (specific force, body rate) over dt seconds."""
+    B = s.p.shape[0]
+    R = roma.unitquat_to_rotmat(s.q)
+    f = accel - s.ba
+    w = gyro - s.bg
+    a = torch.einsum("bij,bj->bi", R, f) + GRAVITY
+    p = s.p + s.v * dt + 0.5 * a * dt * dt
+    v = s.v + a * dt
+    q = roma.quat_normalize(roma.quat_product(s.q, roma.rotvec_to_unitquat(w * dt)))
+
+    eye3 = torch.eye(3, dtype=torch.float64).expand(B, 3, 3)
+    F = torch.eye(15, dtype=torch.float64).repeat(B, 1, 1)
+    F[:, 0:3, 3:6] = eye3 * dt
+    F[:, 3:6, 6:9] = -R @ _skew(f) * dt
+    F[:, 3:6, 9:12] = -R * dt
+    F[:, 6:9, 6:9] = roma.rotvec_to_rotmat(-w * dt)
+    F[:, 6:9, 12:15] = -eye3 * dt
+    P = F @ s.P @ F.transpose(1, 2)
+    q_diag = torch.tensor([(nm.accel_std * dt) ** 2] * 3 + [(nm.gyro_std * dt) ** 2] * 3
+                          + [nm.accel_walk ** 2] * 3 + [nm.gyro_walk ** 2] * 3, dtype=torch.float64)
+    d = torch.arange(3, 15)
+    P[:, d, d] += q_diag
+    return EKFState(p, v, q, s.ba, s.bg, P)
+
+
+def update(s: EKFState, r: torch.Tensor, idx: torch.Tensor, std: torch.Tensor,
+           mask: torch.Tensor | None = None) -> tuple[EKFState, Innovation]:
+    """Kalman update with a measurement observing error states ``idx`` directly.
+
+    r: (B,m) innovation; std: (m,) measurement noise std. ``mask`` (B,) selects the flights
+    whose state is corrected; the innovation statistics are computed for all flights.
+    """
+    B, m = r.shape
+    Rm = torch.diag(std.to(torch.float64) ** 2)
+    PHt = s.P[:, :, idx]                                   # (B,15,m)
+    S = PHt[:, idx, :] + Rm                                # (B,m,m)
+    S = 0.5 * (S + S.transpose(1, 2))
+    L = torch.linalg.cholesky(S)
+    wht = torch.linalg.solve_triangular(L, r.unsqueeze(-1), upper=False).squeeze(-1)
+    innov = Innovation(r, wht, (wht * wht).sum(-1), torch.sqrt(torch.diagonal(S, dim1=1, dim2=2)))
+
+    Kt = torch.cholesky_solve(PHt.transpose(1, 2), L)      # (B,m,15) = S^-1 H P
+    K = Kt.transpose(1, 2)                                 # (B,15,m)
+    dx = (K @ r.unsqueeze(-1)).squeeze(-1)                 # (B,15)
+    A = torch.eye(15, dtype=torch.float64).repeat(B, 1, 1)
+    A[:, :, idx] -= K
+    P = A @ s.P @ A.transpose(1, 2) + K @ Rm @ Kt          # Joseph form
+    P = 0.5 * (P + P.transpose(1, 2))
+
+    p = s.p + dx[:, 0:3]
+    v = s.v + dx[:, 3:6]
+    q = roma.quat_normalize(roma.quat_product(s.q, roma.rotvec_to_unitquat(dx[:, 6:9])))
+    ba = s.ba + dx[:, 9:12]
+    bg = s.bg + dx[:, 12:15]
+    new = EKFState(p, v, q, ba, bg, P)
+    if mask is not None:
+        new = _select(mask, new, s)
+    return new, innov
+
+
+def _select(mask: torch.Tensor, a: EKFState, b: EKFState) -> EKFState:
+    m1 = mask.view(-1, 1)
+    return EKFState(torch.where(m1, a.p, b.p), torch.where(m1, a.v, b.v), torch.where(m1, a.q, b.q),
+                    torch.where(m1, a.ba, b.ba), torch.where(m1, a.bg, b.bg),
+                    torch.where(mask.view(-1, 1, 1), a.P, b.P))
+
+
+def gps_update(s: EKFState, pos: torch.Tensor, vel: torch.Tensor, nm: NoiseModel, mask=None):
+    r = torch.cat([pos - s.p, vel - s.v], dim=-1)
+    return update(s, r, GPS_IDX, nm.gps_std, mask)
+
+
+def vio_update(s: EKFState, vel: torch.Tensor, q_meas: torch.Tensor, nm: NoiseModel, mask=None):
+    dtheta = roma.unitquat_to_rotvec(roma.quat_product(roma.quat_conjugation(s.q), q_meas))
+    r = torch.cat([vel - s.v, dtheta], dim=-1)
+    return update(s, r, VIO_IDX, nm.vio_std, mask)
+
+
+def state_error(s: EKFState, p, v, q) -> torch.Tensor:
+    """True minus estimated (dp, dv, dtheta): (B,9), for NEES."""
+    dth = roma.unitquat_to_rotvec(roma.quat_product(roma.quat_conjugation(s.q), q))
+    return torch.cat([p - s.p, v - s.v, dth], dim=-1)
+
+
+def nees(s: EKFState, p, v, q) -> torch.Tensor:
+    """Normalised estimation error squared over position, velocity and attitude (9 dof)."""
+    e = state_error(s, p, v, q)
+    L = torch.linalg.cholesky(s.P[:, :9, :9])
+    z = torch.linalg.solve_triangular(L, e.unsqueeze(-1), upper=False).squeeze(-1)
+    return (z * z).sum(-1)
+
+
+def noise_model(imu_cfg, gps_cfg, vio_cfg, ekf_cfg, imu_rate_hz: float) -> NoiseModel:
+    """Filter noise matched to the sensor configuration unless ``ekf_cfg`` overrides it."""
+    scale = float(np.sqrt(imu_rate_hz / 2.0))
+    h = ekf_cfg.gps_pos_std_h or float(np.hypot(gps_cfg.pos_std_h, gps_cfg.gm_std))
+    vv = ekf_cfg.gps_pos_std_v or float(np.hypot(gps_cfg.pos_std_v, gps_cfg.gm_std))
+    gv = ekf_cfg.gps_vel_std or gps_cfg.vel_std
+    vvel = ekf_cfg.vio_vel_std or vio_cfg.vel_std
+    vatt = np.deg2rad(ekf_cfg.vio_att_std_deg or vio_cfg.att_std_deg)
+    return NoiseModel(
+        accel_std=imu_cfg.accel_noise_density * scale,
+        gyro_std=imu_cfg.gyro_noise_density * scale,
+        accel_walk=imu_cfg.accel_bias_walk / scale,
+        gyro_walk=imu_cfg.gyro_bias_walk / scale,
+        gps_std=torch.tensor([h, h, vv, gv, gv, gv], dtype=torch.float64),
+        vio_std=torch.tensor([vvel] * 3 + [vatt] * 3, dtype=torch.float64),
+    )
+
+
+def with_state(s: EKFState, **kw) -> EKFState:
+    return replace(s, **kw)

@@ -1,0 +1,159 @@
+"""The closed loop for one batch of flights.
+
+At every 100 Hz step: the SE(3) controller flies on the EKF estimate, rotorpy integrates
+the vehicle in its wind, the IMU samples the motion and the EKF propagates. VIO updates the
+EKF at 20 Hz; at 10 Hz the GPS fix (honest, then attacked) updates it and the innovation
+statistics are recorded as residues. A spoofed fix therefore moves the real vehicle.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import roma
+import torch
+
+from quadformer.attacks import AttackBatch, sample_attacks
+from quadformer.config import SimConfig
+from quadformer.estimator.eskf import (
+    ERROR_STATES, EKFState, gps_update, init_state, noise_model, predict, vio_update,
+)
+from quadformer.missions import MissionBatch, sample_missions
+from quadformer.plant import Plant, sample_wind
+from quadformer.plant._vehicle import DrydenWind, WindBatch
+from quadformer.rng import Stream, batch_generators
+from quadformer.sensors import GPS, IMU, VIO, ChunkedNoise
+
+GPS_AXES = ("px", "py", "pz", "vx", "vy", "vz")
+VIO_AXES = ("vx", "vy", "vz", "thx", "thy", "thz")
+XYZ = ("x", "y", "z")
+
+# Recorded per GPS step: name -> number of columns (column names built in ``column_names``).
+RECORDS = {
+    "true_pos": 3, "true_vel": 3, "est_pos": 3, "est_vel": 3, "gps_pos": 3, "gps_vel": 3,
+    "vio_pos": 3, "atk_d": 3, "wind": 3,
+    "res_gps_r": 6, "res_gps_w": 6, "res_gps_s": 6, "res_gps_nis": 1,
+    "res_vio_r": 6, "res_vio_nis": 1, "res_vio_nis_mean": 1,
+}
+
+
+def column_names(name: str) -> list[str]:
+    n = RECORDS[name]
+    if n == 1:
+        return [name]
+    axes = GPS_AXES if name.startswith("res_gps") else VIO_AXES if name.startswith("res_vio") else XYZ
+    return [f"{name}_{a}" for a in axes]
+
+
+class BatchResult(dict):
+    """Arrays of one batch: RECORDS entries (B, n_gps, k) plus labels and scenario info."""
+
+
+def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
+                   progress: Callable[[float], None] | None = None, record_nees: bool = False) -> BatchResult:
+    B = len(flights)
+    dt, n_steps, spg, spv, n_gps = cfg.dt, cfg.n_steps, cfg.steps_per_gps, cfg.steps_per_vio, cfg.n_gps
+    scn = batch_generators(cfg.seed, flights, Stream.SCENARIO)
+    missions = sample_missions(scn, cfg.mission, cfg.duration)
+    wind = sample_wind(scn, cfg.model)
+    ba0 = np.stack([g.standard_normal(3) for g in scn]) * cfg.imu.accel_bias_std
+    bg0 = np.stack([g.standard_normal(3) for g in scn]) * cfg.imu.gyro_bias_std
+    init_err = np.stack([g.standard_normal(9) for g in scn])
+    attacks = sample_attacks(scn, cfg.attack, attacked, cfg.duration)
+
+    p0, v0, _ = (torch.from_numpy(x[:, 0]) for x in missions.evaluate(np.array([0.0])))
+    plant = Plant(cfg.model, p0.numpy(), v0.numpy())
+    dryden = DrydenWind(wind, missions.altitude)
+    wind_draws = ChunkedNoise(batch_generators(cfg.seed, flights, Stream.WIND), "uniform", 3)
+    imu = IMU(cfg.imu, 1.0 / dt, batch_generators(cfg.seed, flights, Stream.IMU), ba0, bg0)
+    gps = GPS(cfg.gps, cfg.noise, batch_generators(cfg.seed, flights, Stream.GPS))
+    vio = VIO(cfg.vio, cfg.noise, batch_generators(cfg.seed, flights, Stream.VIO), p0)
+    nm = noise_model(cfg.imu, cfg.gps, cfg.vio, cfg.ekf, 1.0 / dt)
+
+    e = cfg.ekf
+    std0 = np.array([e.init_pos_std] * 3 + [e.init_vel_std] * 3 + [np.deg2rad(e.init_att_std_deg)] * 3
+                    + [cfg.imu.accel_bias_std] * 3 + [cfg.imu.gyro_bias_std] * 3)
+    err = torch.from_numpy(init_err * std0[:9])
+    q0 = plant.state["q"]
+    ekf = init_state(p0 + err[:, 0:3], v0 + err[:, 3:6],
+                     roma.quat_product(q0, roma.rotvec_to_unitquat(err[:, 6:9])),
+                     torch.zeros(B, 3), torch.zeros(B, 3),
+                     torch.diag(torch.from_numpy(std0**2)).repeat(B, 1, 1))
+
+    rec = {k: np.zeros((B, n_gps, n), dtype=np.float64) for k, n in RECORDS.items()}
+    label = np.zeros((B, n_gps), dtype=bool)
+    nees = np.zeros((B, n_gps)) if record_nees else None
+    history = torch.zeros(B, n_gps, 6, dtype=torch.float64)
+    zeros_b = torch.zeros(B, dtype=torch.float64)
+    rates_est = torch.zeros(B, 3, dtype=torch.float64)
+    vio_r = torch.zeros(B, 6, dtype=torch.float64)
+    vio_nis = torch.zeros(B, dtype=torch.float64)
+    vio_nis_sum = torch.zeros(B, dtype=torch.float64)
+    vio_count = 0
+    vio_pos = torch.zeros(B, 3, dtype=torch.float64)
+    block = 100
+    ref_block = None
+
+    for k in range(n_steps):
+        if k % block == 0:
+            tb = (k + np.arange(block)) * dt
+            ref_block = [torch.from_numpy(x) for x in missions.evaluate(tb)]
+        i = k % block
+        ref = {"x": ref_block[0][:, i], "x_dot": ref_block[1][:, i], "x_ddot": ref_block[2][:, i],
+               "yaw": zeros_b, "yaw_dot": zeros_b}
+        est = {"x": ekf.p, "v": ekf.v, "q": ekf.q, "w": rates_est}
+        ctrl = plant.control(est, ref)
+        w_vec = dryden.update(dt, wind_draws.next())
+        v_prev, w_prev, q_prev = plant.state["v"], plant.state["w"], plant.state["q"]
+        state = plant.step(ctrl, w_vec, dt)
+
+        acc = (state["v"] - v_prev) / dt
+        rates = 0.5 * (w_prev + state["w"])
+        q_mid = roma.quat_normalize(q_prev + torch.sign((q_prev * state["q"]).sum(-1, keepdim=True)) * state["q"])
+        accel, gyro = imu.measure(acc, rates, roma.unitquat_to_rotmat(q_mid))
+        ekf = predict(ekf, accel, gyro, dt, nm)
+        rates_est = gyro - ekf.bg
+
+        if (k + 1) % spv == 0:
+            v_m, q_m, vio_pos = vio.measure(state["x"], state["v"], state["q"])
+            ekf, inn = vio_update(ekf, v_m, q_m, nm)
+            vio_r, vio_nis = inn.r, inn.nis
+            vio_nis_sum = vio_nis_sum + inn.nis
+            vio_count += 1
+
+        if (k + 1) % spg == 0:
+            j = (k + 1) // spg - 1
+            t = (k + 1) * dt
+            pos_h, vel_h = gps.measure(state["x"], state["v"])
+            history[:, j] = torch.cat([pos_h, vel_h], -1)
+            pos_g, vel_g, active, d_pos, _ = attacks.apply(t, j, pos_h, vel_h, history, cfg.gps.rate_hz)
+            ekf, inn = gps_update(ekf, pos_g, vel_g, nm)
+            label[:, j] = active
+            for name, val in (
+                ("true_pos", state["x"]), ("true_vel", state["v"]), ("est_pos", ekf.p), ("est_vel", ekf.v),
+                ("gps_pos", pos_g), ("gps_vel", vel_g), ("vio_pos", vio_pos), ("wind", w_vec),
+                ("res_gps_r", inn.r), ("res_gps_w", inn.w), ("res_gps_s", inn.s_std),
+                ("res_gps_nis", inn.nis[:, None]), ("res_vio_r", vio_r), ("res_vio_nis", vio_nis[:, None]),
+                ("res_vio_nis_mean", (vio_nis_sum / max(vio_count, 1))[:, None]),
+            ):
+                rec[name][:, j] = val.numpy()
+            rec["atk_d"][:, j] = d_pos
+            vio_nis_sum = torch.zeros_like(vio_nis_sum)
+            vio_count = 0
+            if nees is not None:
+                from quadformer.estimator.eskf import nees as _nees
+                nees[:, j] = _nees(ekf, state["x"], state["v"], state["q"]).numpy()
+            if progress is not None and (k + 1) % int(round(1.0 / dt)) == 0:
+                progress(B)   # one simulated second of B flights
+
+    t_gps = (np.arange(n_gps) + 1) / cfg.gps.rate_hz
+    ref_pos = missions.evaluate(t_gps)[0]
+    out = BatchResult(rec)
+    out.update(flights=np.asarray(flights), t=t_gps, label=label, ref_pos=ref_pos,
+               missions=missions, wind_params=wind, attacks=attacks, nees=nees)
+    return out
+
+
+__all__ = ["simulate_batch", "column_names", "RECORDS", "BatchResult", "ERROR_STATES",
+           "EKFState", "MissionBatch", "AttackBatch", "WindBatch"]
