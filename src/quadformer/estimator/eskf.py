@@ -17,6 +17,9 @@ import numpy as np
 import roma
 import torch
 
+from quadformer.estimator._linalg import bmm, matvec
+from quadformer.estimator.so3 import exp_quat, exp_rotmat, log_quat
+
 ERROR_STATES = ("px", "py", "pz", "vx", "vy", "vz", "thx", "thy", "thz",
                 "bax", "bay", "baz", "bgx", "bgy", "bgz")
 GRAVITY = torch.tensor([0.0, 0.0, -9.81], dtype=torch.float64)
@@ -71,19 +74,22 @@ def predict(s: EKFState, accel: torch.Tensor, gyro: torch.Tensor, dt: float, nm:
     R = roma.unitquat_to_rotmat(s.q)
     f = accel - s.ba
     w = gyro - s.bg
-    a = torch.einsum("bij,bj->bi", R, f) + GRAVITY
+    a = matvec(R, f) + GRAVITY
     p = s.p + s.v * dt + 0.5 * a * dt * dt
     v = s.v + a * dt
-    q = roma.quat_normalize(roma.quat_product(s.q, roma.rotvec_to_unitquat(w * dt)))
+    q = roma.quat_normalize(roma.quat_product(s.q, exp_quat(w * dt)))
 
     eye3 = torch.eye(3, dtype=torch.float64).expand(B, 3, 3)
     F = torch.eye(15, dtype=torch.float64).repeat(B, 1, 1)
+    Rf = -bmm(R, _skew(f))
     F[:, 0:3, 3:6] = eye3 * dt
-    F[:, 3:6, 6:9] = -R @ _skew(f) * dt
+    F[:, 0:3, 6:9] = Rf * (0.5 * dt * dt)      # from p += v dt + a dt^2 / 2
+    F[:, 0:3, 9:12] = -R * (0.5 * dt * dt)
+    F[:, 3:6, 6:9] = Rf * dt
     F[:, 3:6, 9:12] = -R * dt
-    F[:, 6:9, 6:9] = roma.rotvec_to_rotmat(-w * dt)
-    F[:, 6:9, 12:15] = -eye3 * dt
-    P = F @ s.P @ F.transpose(1, 2)
+    F[:, 6:9, 6:9] = exp_rotmat(-w * dt)
+    F[:, 6:9, 12:15] = -(eye3 - 0.5 * _skew(w * dt)) * dt   # right Jacobian of Exp, first order
+    P = bmm(bmm(F, s.P), F.transpose(1, 2))
     q_diag = torch.tensor([(nm.accel_std * dt) ** 2] * 3 + [(nm.gyro_std * dt) ** 2] * 3
                           + [nm.accel_walk ** 2] * 3 + [nm.gyro_walk ** 2] * 3, dtype=torch.float64)
     d = torch.arange(3, 15)
@@ -99,7 +105,8 @@ def update(s: EKFState, r: torch.Tensor, idx: torch.Tensor, std: torch.Tensor,
     whose state is corrected; the innovation statistics are computed for all flights.
     """
     B, m = r.shape
-    Rm = torch.diag(std.to(torch.float64) ** 2)
+    std = std.to(torch.float64)
+    Rm = torch.diag(std**2)
     PHt = s.P[:, :, idx]                                   # (B,15,m)
     S = PHt[:, idx, :] + Rm                                # (B,m,m)
     S = 0.5 * (S + S.transpose(1, 2))
@@ -109,15 +116,15 @@ def update(s: EKFState, r: torch.Tensor, idx: torch.Tensor, std: torch.Tensor,
 
     Kt = torch.cholesky_solve(PHt.transpose(1, 2), L)      # (B,m,15) = S^-1 H P
     K = Kt.transpose(1, 2)                                 # (B,15,m)
-    dx = (K @ r.unsqueeze(-1)).squeeze(-1)                 # (B,15)
+    dx = matvec(K, r)                                      # (B,15)
     A = torch.eye(15, dtype=torch.float64).repeat(B, 1, 1)
     A[:, :, idx] -= K
-    P = A @ s.P @ A.transpose(1, 2) + K @ Rm @ Kt          # Joseph form
+    P = bmm(bmm(A, s.P), A.transpose(1, 2)) + bmm(K * std**2, Kt)   # Joseph form
     P = 0.5 * (P + P.transpose(1, 2))
 
     p = s.p + dx[:, 0:3]
     v = s.v + dx[:, 3:6]
-    q = roma.quat_normalize(roma.quat_product(s.q, roma.rotvec_to_unitquat(dx[:, 6:9])))
+    q = roma.quat_normalize(roma.quat_product(s.q, exp_quat(dx[:, 6:9])))
     ba = s.ba + dx[:, 9:12]
     bg = s.bg + dx[:, 12:15]
     new = EKFState(p, v, q, ba, bg, P)
@@ -139,14 +146,14 @@ def gps_update(s: EKFState, pos: torch.Tensor, vel: torch.Tensor, nm: NoiseModel
 
 
 def vio_update(s: EKFState, vel: torch.Tensor, q_meas: torch.Tensor, nm: NoiseModel, mask=None):
-    dtheta = roma.unitquat_to_rotvec(roma.quat_product(roma.quat_conjugation(s.q), q_meas))
+    dtheta = log_quat(roma.quat_product(roma.quat_conjugation(s.q), q_meas))
     r = torch.cat([vel - s.v, dtheta], dim=-1)
     return update(s, r, VIO_IDX, nm.vio_std, mask)
 
 
 def state_error(s: EKFState, p, v, q) -> torch.Tensor:
     """True minus estimated (dp, dv, dtheta): (B,9), for NEES."""
-    dth = roma.unitquat_to_rotvec(roma.quat_product(roma.quat_conjugation(s.q), q))
+    dth = log_quat(roma.quat_product(roma.quat_conjugation(s.q), q))
     return torch.cat([p - s.p, v - s.v, dth], dim=-1)
 
 

@@ -119,7 +119,11 @@ def _minsnap(rng: np.random.Generator, v: float, alt: float, duration: float, cf
         step = np.array([d * np.cos(heading), d * np.sin(heading), z - points[-1][2]])
         points.append(points[-1] + step)
         total += float(np.linalg.norm(step))
-    traj = MinSnap(np.array(points), v_avg=v, v_max=2.0 * v, verbose=False)
+    points = np.array(points)
+    first, last = points[1] - points[0], points[-1] - points[-2]
+    # the flight starts at cruise speed along the first leg and never stops at a waypoint
+    traj = MinSnap(points, v_avg=v, v_max=1.2 * v, v_start=v * first / np.linalg.norm(first),
+                   v_end=v * last / np.linalg.norm(last), verbose=False)
     return traj.x_poly, traj.t_keyframes
 
 

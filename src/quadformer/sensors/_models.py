@@ -16,6 +16,8 @@ import roma
 import torch
 
 from quadformer.config import GPSConfig, IMUConfig, VIOConfig
+from quadformer.estimator._linalg import matvec
+from quadformer.estimator.so3 import exp_quat
 from quadformer.sensors.noise import batch_noise
 
 GRAVITY = torch.tensor([0.0, 0.0, -9.81], dtype=torch.float64)
@@ -65,7 +67,7 @@ class IMU:
         n = self.noise.next()
         self.accel_bias = self.accel_bias + self.accel_walk * n[:, 0:3]
         self.gyro_bias = self.gyro_bias + self.gyro_walk * n[:, 3:6]
-        f = torch.einsum("bji,bj->bi", rot, acc_world - GRAVITY)
+        f = matvec(rot.transpose(-1, -2), acc_world - GRAVITY)
         accel = f + self.accel_bias + self.accel_std * n[:, 6:9]
         gyro = rates_body + self.gyro_bias + self.gyro_std * n[:, 9:12]
         return accel, gyro
@@ -113,5 +115,5 @@ class VIO:
         self.drift = self.drift + self.cfg.drift_fraction * travelled * unit
         self.last_pos = pos.clone()
         vel_m = vel + self.cfg.vel_std * n[:, 0:3]
-        q_m = roma.quat_product(q, roma.rotvec_to_unitquat(self.att_std * n[:, 3:6]))
+        q_m = roma.quat_product(q, exp_quat(self.att_std * n[:, 3:6]))
         return vel_m, q_m, pos - self.origin + self.drift

@@ -16,6 +16,7 @@ import torch
 
 from quadformer.attacks import AttackBatch, sample_attacks
 from quadformer.config import SimConfig
+from quadformer.estimator.so3 import exp_quat
 from quadformer.estimator.eskf import (
     ERROR_STATES, EKFState, gps_update, init_state, noise_model, predict, vio_update,
 )
@@ -77,7 +78,7 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     err = torch.from_numpy(init_err * std0[:9])
     q0 = plant.state["q"]
     ekf = init_state(p0 + err[:, 0:3], v0 + err[:, 3:6],
-                     roma.quat_product(q0, roma.rotvec_to_unitquat(err[:, 6:9])),
+                     roma.quat_product(q0, exp_quat(err[:, 6:9])),
                      torch.zeros(B, 3), torch.zeros(B, 3),
                      torch.diag(torch.from_numpy(std0**2)).repeat(B, 1, 1))
 

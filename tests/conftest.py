@@ -1,0 +1,29 @@
+"""Shared fixtures: small but real simulated datasets, simulated once per session."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from quadformer.config import AttackConfig, GPSConfig, SimConfig
+from quadformer.simulation import simulate
+from quadformer.simulation.closed_loop import simulate_batch
+
+torch.set_num_threads(2)
+
+
+@pytest.fixture(scope="session")
+def bias_dataset():
+    """Model II in wind, laplace noise, bias attacks on half of 6 flights of 24 s."""
+    cfg = SimConfig(model="II", noise="laplace", flights=6, duration=24.0, seed=3,
+                    attack=AttackConfig(kind="bias", onset=(6.0, 10.0), duration=(6.0, 10.0)))
+    return simulate(cfg)
+
+
+@pytest.fixture(scope="session")
+def consistency_run():
+    """Gaussian white noise only, no attack: the filter's own assumptions hold."""
+    cfg = SimConfig(model="I", noise="gaussian", flights=16, duration=30.0, seed=11,
+                    gps=GPSConfig(gm_std=0.0))
+    return simulate_batch(cfg, np.arange(16), np.zeros(16, dtype=bool), record_nees=True)
