@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import itertools
 import json
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -37,21 +40,75 @@ def dataset_summary(ds: Dataset) -> dict[str, Any]:
     return s
 
 
-def simulate_grid(base: SimConfig, out: Path | None = None, progress: bool = True,
-                  overwrite: bool = False) -> list[dict[str, Any]]:
-    """Simulate every paper configuration with ``base``'s other settings."""
-    rows = []
-    for model, noise, attack in PAPER_GRID:
-        cfg = base.replace(model=model, noise=noise, attack=base.attack.__class__(
-            **{**base.attack.__dict__, "kind": attack, "duration": None, "magnitude": None, "rate": None,
-               "frequency": None, "period": None, "delay": None}))
-        name = config_name(model, noise, attack)
-        ds = simulate(cfg, progress=progress)
-        if out is not None:
-            write_dataset(ds, Path(out) / name, overwrite=overwrite)
-        rows.append({"config": name, "model": model, "noise": noise, "attack": attack, **dataset_summary(ds)})
-    if out is not None:
-        (Path(out) / "summary.json").write_text(json.dumps(rows, indent=2))
+def config_seed(seed: int, model: str, noise: str, attack: str) -> int:
+    """Each configuration's own dataset seed, derived from ``seed``: configurations do not
+    share missions or noise realisations (which would make them near copies)."""
+    idx = PAPER_GRID.index((model, noise, attack))
+    return int(np.random.SeedSequence(seed, spawn_key=(0xC0F, idx)).generate_state(1)[0])
+
+
+def grid_config(base: SimConfig, model: str, noise: str, attack: str) -> SimConfig:
+    """``base`` with one paper configuration and its derived seed; attack ranges take that
+    attack's defaults."""
+    atk = {**base.attack.__dict__, "kind": attack, "duration": None, "magnitude": None, "rate": None,
+           "frequency": None, "period": None, "delay": None}
+    return base.replace(model=model, noise=noise, attack=base.attack.__class__(**atk),
+                        seed=config_seed(base.seed, model, noise, attack))
+
+
+def _simulate_one(cfg: SimConfig, out: Path, overwrite: bool, threads: int) -> dict[str, Any]:
+    from quadformer.simulation.dataset import set_threads
+
+    set_threads(threads)
+    ds = simulate(cfg, progress=False)
+    write_dataset(ds, out, overwrite=overwrite)
+    return dataset_summary(ds)
+
+
+def simulate_jobs(jobs: list[tuple[str, SimConfig, Path]], progress: bool = True, overwrite: bool = False,
+                  workers: int | None = None) -> dict[str, dict[str, Any]]:
+    """Simulate (name, config, output directory) jobs in ``workers`` processes (default: one
+    per core, at most one per job); the data do not depend on it. Returns summaries by name."""
+    if not jobs:
+        return {}
+    workers = workers or min(len(jobs), os.cpu_count() or 1)
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    summaries: dict[str, dict[str, Any]] = {}
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=len(jobs), unit="dataset", desc="simulate")
+    try:
+        if workers == 1:
+            for name, cfg, path in jobs:
+                summaries[name] = _simulate_one(cfg, path, overwrite, threads)
+                if bar is not None:
+                    bar.update(1)
+        else:
+            ctx = multiprocessing.get_context("spawn")
+            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+                futures = {pool.submit(_simulate_one, cfg, path, overwrite, threads): name
+                           for name, cfg, path in jobs}
+                for fut in futures:
+                    summaries[futures[fut]] = fut.result()
+                    if bar is not None:
+                        bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    return summaries
+
+
+def simulate_grid(base: SimConfig, out: Path, progress: bool = True, overwrite: bool = False,
+                  workers: int | None = None) -> list[dict[str, Any]]:
+    """Simulate every paper configuration with ``base``'s other settings into out/<config>/."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [(config_name(*c), grid_config(base, *c), out / config_name(*c)) for c in PAPER_GRID]
+    summaries = simulate_jobs(jobs, progress=progress, overwrite=overwrite, workers=workers)
+    rows = [{"config": config_name(*c), "model": c[0], "noise": c[1], "attack": c[2],
+             **summaries[config_name(*c)]} for c in PAPER_GRID]
+    (out / "summary.json").write_text(json.dumps(rows, indent=2))
     return rows
 
 

@@ -1,0 +1,122 @@
+"""The detector contract shared by every method (scikit-learn / pyod style).
+
+- ``__init__`` stores keyword arguments only.
+- ``fit(X, y=None)`` learns from training flights and returns self; ``y`` (labels per
+  step, -1 where unknown) is optional, for methods that use labels.
+- ``decision_function(X)`` returns one score per row, higher meaning more anomalous. It is
+  causal: the score of a step uses that flight's steps up to it only.
+- ``threshold_`` is set by ``calibrate`` on validation flights; ``predict`` gives 0/1.
+
+``X`` is a DataFrame of GPS steps with ``flight_id``, ``t`` and the ``res_*`` residues,
+rows grouped by flight and ordered in time (as in a dataset's ``flights.parquet``).
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+import pandas as pd
+
+
+class NotFittedError(RuntimeError):
+    """A detector used before ``fit``."""
+
+
+class Detector:
+    name: ClassVar[str] = "detector"
+    #: hyper-parameter grid searched on validation flights (same rule for every method)
+    param_grid: ClassVar[dict[str, list[Any]]] = {}
+    uses_labels: ClassVar[bool] = False
+
+    def __init__(self, **params: Any):
+        self._params = dict(params)
+
+    # -- parameters -------------------------------------------------------------------
+    def get_params(self) -> dict[str, Any]:
+        sig = inspect.signature(type(self).__init__)
+        out = {k: getattr(self, k) for k in sig.parameters if k not in ("self", "params", "kwargs")}
+        return out
+
+    def set_params(self, **params: Any) -> "Detector":
+        return type(self)(**{**self.get_params(), **params})
+
+    # -- contract ---------------------------------------------------------------------
+    def fit(self, X: pd.DataFrame, y: np.ndarray | None = None) -> "Detector":
+        raise NotImplementedError
+
+    def decision_function(self, X: pd.DataFrame) -> np.ndarray:
+        raise NotImplementedError
+
+    def predict(self, X: pd.DataFrame) -> np.ndarray:
+        self._check_fitted()
+        if getattr(self, "threshold_", None) is None:
+            raise NotFittedError(f"{self.name}: no threshold; call calibrate() on validation flights first")
+        return (self.decision_function(X) > self.threshold_).astype(np.int8)
+
+    def _check_fitted(self) -> None:
+        if not getattr(self, "fitted_", False):
+            raise NotFittedError(f"{self.name}: call fit() before scoring")
+
+    # -- persistence ------------------------------------------------------------------
+    def learned_state(self) -> dict[str, Any]:
+        """Learned attributes (ending in ``_``) as JSON-ready values."""
+        out = {}
+        for k, v in vars(self).items():
+            if k.endswith("_") and not k.startswith("_"):
+                out[k] = v.tolist() if isinstance(v, np.ndarray) else v
+        return out
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        """Restore what ``learned_state`` returned."""
+        for k, v in state.items():
+            setattr(self, k, np.asarray(v) if isinstance(v, list) else v)
+
+    def save(self, path: str | Path) -> Path:
+        """JSON with the method name, parameters and learned state (written atomically)."""
+        path = Path(path)
+        doc = {"method": self.name, "params": self.get_params(), "state": self.learned_state(),
+               "format_version": 1}
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(doc, indent=2, default=_json_default))
+        tmp.replace(path)
+        return path
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def flight_slices(X: pd.DataFrame) -> list[tuple[Any, np.ndarray]]:
+    """(flight_id, row indices) per flight, in order of appearance."""
+    fid = X["flight_id"].to_numpy()
+    if fid.size == 0:
+        return []
+    change = np.nonzero(np.diff(fid))[0] + 1
+    starts = np.concatenate([[0], change])
+    ends = np.concatenate([change, [fid.size]])
+    seen = fid[starts]
+    if len(set(seen.tolist())) != len(seen):
+        raise ValueError("rows of each flight must be contiguous (group rows by flight_id)")
+    return [(seen[i], np.arange(starts[i], ends[i])) for i in range(len(starts))]
+
+
+def check_residues(X: pd.DataFrame, columns: list[str]) -> np.ndarray:
+    """The residue columns as floats; a clear error for missing columns or non-finite values."""
+    missing = [c for c in ["flight_id", *columns] if c not in X.columns]
+    if missing:
+        raise ValueError(f"missing columns: {', '.join(missing)}")
+    arr = X[columns].to_numpy(dtype=float)
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        row, col = np.argwhere(bad)[0]
+        raise ValueError(f"non-finite residue in column {columns[col]} at row {row} "
+                         f"(flight {X['flight_id'].iloc[row]}); drop or repair such steps first")
+    return arr

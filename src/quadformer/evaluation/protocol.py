@@ -1,0 +1,152 @@
+"""The evaluation protocol, identical for every method.
+
+1. Flights are split train / validation / test (60/20/20) by flight, fixed by the seed and
+   stratified by whether the flight is attacked.
+2. Learning methods see the labels of a fraction of the training flights (default 20%);
+   the other training steps carry label -1 (unknown). Classical methods may use the same.
+3. For every point of a method's hyper-parameter grid: fit on train, score validation,
+   take the threshold that maximises validation F1. The grid point with the best validation
+   F1 wins (first on ties). Test flights are scored once, with that threshold.
+4. Also reported: the threshold meeting a false-alarm budget (default one alarm per
+   flight-hour) on the clean validation flights.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from quadformer.detectors import Detector, make
+from quadformer.detectors.base import flight_slices
+from quadformer.evaluation.metrics import runs
+
+
+@dataclass(frozen=True)
+class Split:
+    train: np.ndarray
+    val: np.ndarray
+    test: np.ndarray
+    labelled: np.ndarray   # training flights whose labels the methods may use
+
+
+def split_flights(scenarios: pd.DataFrame, seed: int, fractions=(0.6, 0.2, 0.2),
+                  label_fraction: float = 0.2) -> Split:
+    """Split flights (not windows) by seed, stratified by attacked / clean."""
+    if not np.isclose(sum(fractions), 1.0) or min(fractions) <= 0:
+        raise ValueError(f"split fractions must be positive and sum to 1, got {fractions}")
+    if not 0.0 <= label_fraction <= 1.0:
+        raise ValueError(f"label_fraction must be in [0, 1], got {label_fraction}")
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0x5917,)))
+    parts: dict[str, list] = {"train": [], "val": [], "test": [], "labelled": []}
+    for attacked in (True, False):
+        ids = np.sort(scenarios.loc[scenarios["attacked"] == attacked, "flight_id"].to_numpy())
+        ids = rng.permutation(ids)
+        n = len(ids)
+        n_val = int(round(fractions[1] * n))
+        n_test = int(round(fractions[2] * n))
+        n_train = n - n_val - n_test
+        tr = ids[:n_train]
+        parts["train"] += list(tr)
+        parts["val"] += list(ids[n_train:n_train + n_val])
+        parts["test"] += list(ids[n_train + n_val:])
+        parts["labelled"] += list(tr[: int(round(label_fraction * len(tr)))])
+    return Split(*(np.sort(np.array(parts[k], dtype=int)) for k in ("train", "val", "test", "labelled")))
+
+
+def training_labels(train: pd.DataFrame, labelled: np.ndarray) -> np.ndarray:
+    """Labels of the labelled training flights, -1 elsewhere."""
+    y = train["label"].to_numpy().astype(np.int8).copy()
+    y[~train["flight_id"].isin(labelled).to_numpy()] = -1
+    return y
+
+
+def best_f1_threshold(scores: np.ndarray, labels: np.ndarray) -> tuple[float, float]:
+    """Threshold maximising point-wise F1 for the rule ``alarm = score > threshold``.
+
+    Exact: every distinct score is a candidate; the threshold is placed halfway to the next
+    lower distinct score. Returns (threshold, F1).
+    """
+    s = np.asarray(scores, float)
+    y = np.asarray(labels, bool)
+    if y.sum() == 0:
+        return float(np.max(s)) if s.size else 0.0, 0.0
+    order = np.argsort(-s, kind="stable")
+    s_sorted, y_sorted = s[order], y[order]
+    tp = np.cumsum(y_sorted)
+    fp = np.cumsum(~y_sorted)
+    last = np.nonzero(np.r_[s_sorted[1:] != s_sorted[:-1], True])[0]   # end of each tie group
+    tp, fp = tp[last], fp[last]
+    f1 = 2 * tp / (tp + fp + y.sum())
+    i = int(np.argmax(f1))
+    hi = s_sorted[last[i]]
+    lo = s_sorted[last[i] + 1] if last[i] + 1 < s.size else hi - 1.0
+    return float(0.5 * (hi + lo)), float(f1[i])
+
+
+def budget_threshold(scores: np.ndarray, flight_ids: np.ndarray, clean_flights: np.ndarray,
+                     hours: float, per_hour: float = 1.0) -> float:
+    """Lowest threshold with at most ``per_hour * hours`` alarm runs on the clean flights."""
+    mask = np.isin(flight_ids, clean_flights)
+    s, fid = np.asarray(scores)[mask], np.asarray(flight_ids)[mask]
+    if s.size == 0:
+        return float("inf")
+    allowed = int(np.floor(per_hour * hours))
+    top = float(np.max(s))
+    if allowed == 0:
+        return top
+    cands = np.unique(np.quantile(s, np.linspace(0.9, 1.0, 201)))[::-1]
+    best = top
+    for c in cands:
+        n = sum(len(runs(s[fid == f] > c)) for f in np.unique(fid))
+        if n > allowed:
+            break
+        best = float(c)
+    return best
+
+
+@dataclass
+class Tuned:
+    detector: Detector
+    params: dict[str, Any]
+    threshold: float
+    val_f1: float
+    budget_threshold: float
+    grid: list[dict[str, Any]] = field(default_factory=list)
+
+
+def grid_points(grid: dict[str, list[Any]]) -> list[dict[str, Any]]:
+    keys = list(grid)
+    return [dict(zip(keys, vals)) for vals in itertools.product(*(grid[k] for k in keys))] or [{}]
+
+
+def tune(method: str, train: pd.DataFrame, y_train: np.ndarray, val: pd.DataFrame,
+         gps_rate_hz: float = 10.0, budget_per_hour: float = 1.0,
+         grid: dict[str, list[Any]] | None = None, **fixed: Any) -> Tuned:
+    """Steps 3 and 4 of the protocol for one method."""
+    from quadformer.detectors import get
+
+    cls = get(method)
+    grid = cls.param_grid if grid is None else grid
+    y_val = val["label"].to_numpy()
+    best: Tuned | None = None
+    tried = []
+    for point in grid_points(grid):
+        det = make(method, **{**fixed, **point}).fit(train, y_train)
+        s = det.decision_function(val)
+        thr, f1 = best_f1_threshold(s, y_val)
+        tried.append({**point, "val_f1": f1, "threshold": thr})
+        if best is None or f1 > best.val_f1:
+            best = Tuned(det, {**fixed, **point}, thr, f1, float("nan"))
+            best_scores = s
+    assert best is not None
+    fid = val["flight_id"].to_numpy()
+    clean = np.setdiff1d(np.unique(fid), np.unique(fid[y_val == 1]))
+    hours = sum(len(i) for f, i in flight_slices(val) if f in set(clean.tolist())) / gps_rate_hz / 3600
+    best.budget_threshold = budget_threshold(best_scores, fid, clean, hours, budget_per_hour)
+    best.detector.threshold_ = best.threshold
+    best.grid = tried
+    return best
