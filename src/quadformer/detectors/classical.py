@@ -58,10 +58,24 @@ class Chi2Gate(_NominalNIS):
     def decision_function(self, X: pd.DataFrame) -> np.ndarray:
         return self._z(X)
 
+    def stream(self) -> "PointwiseStream":
+        self._check_fitted()
+        return PointwiseStream(self.nis_scale_)
+
     @staticmethod
     def gate_threshold(sigma: float = 5.0) -> float:
         """NIS of the 6-dof chi-square at the same tail probability as a `sigma` gate."""
         return float(stats.chi2.isf(2 * stats.norm.sf(sigma), DOF))
+
+
+class PointwiseStream:
+    """Online use of the gate: ``update(nis) -> score``."""
+
+    def __init__(self, scale: float):
+        self.scale = scale
+
+    def update(self, nis: float) -> float:
+        return float(nis) / self.scale
 
 
 class _Recursive(_NominalNIS):

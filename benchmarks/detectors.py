@@ -1,0 +1,74 @@
+"""Detector speed: offline scoring throughput and online per-step latency.
+
+For each method: fit on the training flights of a simulated dataset (Model II, laplace,
+bias), then
+- offline: GPS steps scored per second by ``decision_function`` on all flights;
+- online: latency of one ``stream().update(...)`` call per GPS step, p50 and p99, one thread.
+The last line printed is one JSON object.
+
+    python benchmarks/detectors.py [--methods chi2,cusum,sprt,bht] [--flights 40]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--methods", default=None)
+    ap.add_argument("--flights", type=int, default=40)
+    ap.add_argument("--data", type=Path, default=None, help="existing dataset directory (else simulated)")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+
+    from quadformer.config import AttackConfig, SimConfig
+    from quadformer.detectors import available, make
+    from quadformer.simulation import load_dataset, simulate
+
+    if args.data:
+        ds = load_dataset(args.data)
+    else:
+        ds = simulate(SimConfig(model="II", noise="laplace", flights=args.flights, batch_size=args.flights,
+                                attack=AttackConfig(kind="bias")))
+    f = ds.flights
+    ids = np.sort(f.flight_id.unique())
+    train = f[f.flight_id.isin(ids[: len(ids) // 2])].reset_index(drop=True)
+    methods = available() if args.methods is None else args.methods.split(",")
+    out = []
+    for m in methods:
+        det = make(m).fit(train, train.label.to_numpy())
+        reps = []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            det.decision_function(f)
+            reps.append(time.perf_counter() - t0)
+        steps_per_s = len(f) / min(reps)
+        flight = f[f.flight_id == ids[-1]]
+        lat = []
+        if hasattr(det, "stream"):
+            stream = det.stream()
+            for v in np.tile(flight.res_gps_nis.to_numpy(), 5):
+                t0 = time.perf_counter_ns()
+                stream.update(v)
+                lat.append(time.perf_counter_ns() - t0)
+        lat_us = np.array(lat) / 1e3
+        r = {"method": m, "offline_steps_per_s": round(steps_per_s),
+             "flight_hours_per_s": round(steps_per_s / 36000, 2),
+             "online_p50_us": round(float(np.percentile(lat_us, 50)), 2) if lat else None,
+             "online_p99_us": round(float(np.percentile(lat_us, 99)), 2) if lat else None}
+        print(f"{m}: {r['offline_steps_per_s']} steps/s offline, online p50 {r['online_p50_us']} us, "
+              f"p99 {r['online_p99_us']} us", flush=True)
+        out.append(r)
+    print(json.dumps({"benchmark": "detectors", "steps": len(f), "results": out}))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,62 @@
+"""The split, the calibration rule and the tuning protocol."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from quadformer.evaluation.protocol import best_f1_threshold, budget_threshold, split_flights, tune
+from quadformer.evaluation.metrics import pointwise
+
+
+def _scenarios(n=50, attacked=25):
+    return pd.DataFrame({"flight_id": np.arange(n), "attacked": np.arange(n) < attacked})
+
+
+def test_split_by_flight_is_disjoint_stratified_and_seeded():
+    sc = _scenarios()
+    sp = split_flights(sc, seed=1)
+    allf = np.concatenate([sp.train, sp.val, sp.test])
+    assert sorted(allf.tolist()) == list(range(50))
+    assert len(sp.train) == 30 and len(sp.val) == 10 and len(sp.test) == 10
+    for part in (sp.train, sp.val, sp.test):
+        assert 0 < np.isin(part, np.arange(25)).sum() < len(part)   # attacked and clean in each
+    assert set(sp.labelled) <= set(sp.train) and len(sp.labelled) == 6
+    again = split_flights(sc, seed=1)
+    assert np.array_equal(again.test, sp.test)
+    assert not np.array_equal(split_flights(sc, seed=2).test, sp.test)
+    with pytest.raises(ValueError, match="fractions"):
+        split_flights(sc, 0, fractions=(0.5, 0.5, 0.5))
+
+
+def test_best_f1_threshold_hand_case_and_exhaustive():
+    s = np.array([0.1, 0.4, 0.35, 0.8])
+    y = np.array([0, 0, 1, 1])
+    thr, f1 = best_f1_threshold(s, y)
+    assert f1 == pytest.approx(0.8) and thr == pytest.approx(0.225)
+    assert pointwise(y, s > thr)[2] == pytest.approx(0.8)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        y = rng.random(200) < 0.3
+        s = np.round(rng.random(200) + y * 0.5, 2)          # ties on purpose
+        thr, f1 = best_f1_threshold(s, y)
+        brute = max(pointwise(y, s > c)[2] for c in np.r_[np.unique(s), -1.0])
+        assert f1 == pytest.approx(brute)
+        assert pointwise(y, s > thr)[2] == pytest.approx(f1)
+
+
+def test_budget_threshold_allows_no_alarm_on_short_clean_time():
+    s = np.array([0.1, 0.5, 0.2, 0.9, 0.3])
+    fid = np.array([0, 0, 0, 1, 1])
+    assert budget_threshold(s, fid, np.array([0]), hours=0.1) == 0.5
+    assert np.all(s[fid == 0] <= 0.5)
+
+
+def test_tuning_reads_validation_only(bias_dataset):
+    """Thresholds come from validation flights; test labels play no part."""
+    f = bias_dataset.flights
+    train, val = f[f.flight_id < 3].reset_index(drop=True), f[f.flight_id >= 3].reset_index(drop=True)
+    y = train.label.to_numpy()
+    tuned = tune("cusum", train, y, val)
+    s = tuned.detector.decision_function(val)
+    assert tuned.threshold == pytest.approx(best_f1_threshold(s, val.label.to_numpy())[0])
+    assert tuned.val_f1 == max(g["val_f1"] for g in tuned.grid)
