@@ -82,9 +82,9 @@ class DrydenWind:
         sig = torch.as_tensor(wind.gust_std, dtype=torch.float64)
         self.mean = torch.as_tensor(wind.mean, dtype=torch.float64)
         self.axes = [
-            _DrydenAxis(lx_ft / 3.281, sig[:, 0], B),
-            _DrydenAxis(lx_ft / 3.281, sig[:, 1], B),
-            _DrydenAxis(lz_ft / 3.281, sig[:, 2], B),
+            _dryden_axis(lx_ft / 3.281, sig[:, 0], B),
+            _dryden_axis(lx_ft / 3.281, sig[:, 1], B),
+            _dryden_axis(lz_ft / 3.281, sig[:, 2], B),
         ]
 
     def update(self, dt: float, uniforms: torch.Tensor) -> torch.Tensor:
@@ -93,7 +93,7 @@ class DrydenWind:
         return self.mean + g
 
 
-def _DrydenAxis(length: torch.Tensor, sigma: torch.Tensor, batch: int) -> _DrawnGust:
+def _dryden_axis(length: torch.Tensor, sigma: torch.Tensor, batch: int) -> _DrawnGust:
     gust = _DrawnGust(1.0, length, sigma, batch_size=batch, device="cpu")
     gust.u_km1 = gust.u_km1.double()
     gust.u_km2 = gust.u_km2.double()

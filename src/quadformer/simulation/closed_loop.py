@@ -14,15 +14,13 @@ import numpy as np
 import roma
 import torch
 
-from quadformer.attacks import AttackBatch, sample_attacks
+from quadformer.attacks import sample_attacks
 from quadformer.config import SimConfig
 from quadformer.estimator.so3 import exp_quat
-from quadformer.estimator.eskf import (
-    ERROR_STATES, EKFState, gps_update, init_state, noise_model, predict, vio_update,
-)
-from quadformer.missions import MissionBatch, sample_missions
+from quadformer.estimator.eskf import gps_update, init_state, nees, noise_model, predict, vio_update
+from quadformer.missions import sample_missions
 from quadformer.plant import Plant, sample_wind
-from quadformer.plant._vehicle import DrydenWind, WindBatch
+from quadformer.plant._vehicle import DrydenWind
 from quadformer.rng import Stream, batch_generators
 from quadformer.sensors import GPS, IMU, VIO, ChunkedNoise
 
@@ -84,7 +82,7 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
 
     rec = {k: np.zeros((B, n_gps, n), dtype=np.float64) for k, n in RECORDS.items()}
     label = np.zeros((B, n_gps), dtype=bool)
-    nees = np.zeros((B, n_gps)) if record_nees else None
+    nees_rec = np.zeros((B, n_gps)) if record_nees else None
     history = torch.zeros(B, n_gps, 6, dtype=torch.float64)
     zeros_b = torch.zeros(B, dtype=torch.float64)
     rates_est = torch.zeros(B, 3, dtype=torch.float64)
@@ -142,9 +140,8 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
             rec["atk_d"][:, j] = d_pos
             vio_nis_sum = torch.zeros_like(vio_nis_sum)
             vio_count = 0
-            if nees is not None:
-                from quadformer.estimator.eskf import nees as _nees
-                nees[:, j] = _nees(ekf, state["x"], state["v"], state["q"]).numpy()
+            if nees_rec is not None:
+                nees_rec[:, j] = nees(ekf, state["x"], state["v"], state["q"]).numpy()
             if progress is not None and (k + 1) % int(round(1.0 / dt)) == 0:
                 progress(B)   # one simulated second of B flights
 
@@ -152,9 +149,6 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     ref_pos = missions.evaluate(t_gps)[0]
     out = BatchResult(rec)
     out.update(flights=np.asarray(flights), t=t_gps, label=label, ref_pos=ref_pos,
-               missions=missions, wind_params=wind, attacks=attacks, nees=nees)
+               missions=missions, wind_params=wind, attacks=attacks, nees=nees_rec)
     return out
 
-
-__all__ = ["simulate_batch", "column_names", "RECORDS", "BatchResult", "ERROR_STATES",
-           "EKFState", "MissionBatch", "AttackBatch", "WindBatch"]

@@ -27,6 +27,9 @@ from quadformer.rng import attacked_flights
 from quadformer.simulation.closed_loop import RECORDS, BatchResult, column_names, simulate_batch
 
 FORMAT_VERSION = 1
+# Column groups of flights.parquet after flight_id, t, label, attack_type.
+COLUMN_ORDER = ("true_pos", "true_vel", "ref_pos", "est_pos", "est_vel", "gps_pos", "gps_vel", "vio_pos",
+                "atk_d", "wind", *[k for k in RECORDS if k.startswith("res_")])
 PACKAGES = ("quadformer", "numpy", "torch", "rotorpy", "pandas", "pyarrow", "roma", "scipy")
 
 
@@ -64,18 +67,11 @@ def _batch_frames(cfg: SimConfig, r: BatchResult) -> tuple[pd.DataFrame, pd.Data
         "label": r["label"].reshape(-1).astype(np.int8),
     }
     cols["attack_type"] = np.where(cols["label"] == 1, kind, "none")
-    for name in RECORDS:
-        if name.startswith("res_"):
-            continue
-        for i, c in enumerate(column_names(name)):
-            cols[c] = r[name][..., i].reshape(-1)
-        if name == "true_vel":
-            for i, c in enumerate(("ref_pos_x", "ref_pos_y", "ref_pos_z")):
-                cols[c] = r["ref_pos"][..., i].reshape(-1)
-    for name in RECORDS:
-        if name.startswith("res_"):
-            for i, c in enumerate(column_names(name)):
-                cols[c] = r[name][..., i].reshape(-1)
+    arrays = {**{k: v for k, v in r.items() if k in RECORDS}, "ref_pos": r["ref_pos"]}
+    for name in COLUMN_ORDER:
+        names = column_names(name) if name in RECORDS else [f"{name}_{a}" for a in "xyz"]
+        for i, c in enumerate(names):
+            cols[c] = arrays[name][..., i].reshape(-1)
     flights = pd.DataFrame(cols)
     flights["attack_type"] = flights["attack_type"].astype("string")
 
