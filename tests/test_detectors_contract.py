@@ -4,10 +4,17 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from quadformer.detectors import NotFittedError, available, load, make
+from quadformer.detectors import NotFittedError, available, load
+from quadformer.detectors import make as _make
 from quadformer.detectors.classical import Chi2Gate
 
 METHODS = available()
+# Short training keeps the suite fast; the contract does not depend on it.
+FAST = {"cnn": {"epochs": 3}, "lstm": {"epochs": 3}}
+
+
+def make(method, **kw):
+    return _make(method, **{**FAST.get(method, {}), **kw})
 
 
 @pytest.fixture(scope="module")
@@ -18,8 +25,8 @@ def data(bias_dataset):
     return train, train.label.to_numpy(), test
 
 
-def test_classical_methods_registered():
-    assert {"chi2", "cusum", "sprt", "bht"} <= set(METHODS)
+def test_methods_registered():
+    assert {"chi2", "cusum", "sprt", "bht", "svm", "cnn", "lstm"} <= set(METHODS)
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -27,7 +34,7 @@ def test_init_stores_params_and_fit_returns_self(method, data):
     train, y, test = data
     det = make(method)
     assert not hasattr(det, "fitted_")
-    assert make(method, **det.get_params()).get_params() == det.get_params()
+    assert _make(method, **det.get_params()).get_params() == det.get_params()
     with pytest.raises(NotFittedError):
         det.decision_function(test)
     assert det.fit(train, y) is det
@@ -47,7 +54,8 @@ def test_same_data_same_scores_and_flight_independence(method, data):
     assert np.array_equal(a, b)
     det = make(method).fit(train, y)
     one = det.decision_function(test[test.flight_id == 5].reset_index(drop=True))
-    assert np.array_equal(one, a[test.flight_id.to_numpy() == 5])
+    # a flight scores the same alone or with others, up to rounding (float32 networks, BLAS): 1e-6
+    assert np.allclose(one, a[test.flight_id.to_numpy() == 5], rtol=1e-6, atol=1e-6)
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -58,7 +66,8 @@ def test_causal(method, data):
     flight = test[test.flight_id == 4].reset_index(drop=True)
     full = det.decision_function(flight)
     for k in (1, 37, 120):
-        assert np.array_equal(det.decision_function(flight.iloc[:k]), full[:k])
+        # up to rounding that depends on how many rows are scored together (float32 networks): 1e-6
+        assert np.allclose(det.decision_function(flight.iloc[:k]), full[:k], rtol=1e-6, atol=1e-6)
 
 
 @pytest.mark.parametrize("method", METHODS)

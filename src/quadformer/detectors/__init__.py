@@ -1,6 +1,7 @@
 """Attack detectors under one contract, registered by name."""
 
-from quadformer.detectors import classical  # noqa: F401  (registers the classical methods)
+from quadformer.detectors import classical, svm  # noqa: F401  (registration)
+from quadformer.detectors import neural  # noqa: F401  (registration)
 from quadformer.detectors.base import Detector, NotFittedError, flight_slices
 from quadformer.detectors.registry import available, get, load, make, register
 

@@ -80,10 +80,17 @@ class Detector:
         path = Path(path)
         doc = {"method": self.name, "params": self.get_params(), "state": self.learned_state(),
                "format_version": 1}
+        self.save_extra(path)
         tmp = path.with_name(path.name + ".tmp")
         tmp.write_text(json.dumps(doc, indent=2, default=_json_default))
         tmp.replace(path)
         return path
+
+    def save_extra(self, path: Path) -> None:
+        """Hook: files saved beside the JSON document (e.g. network weights)."""
+
+    def load_extra(self, path: Path) -> None:
+        """Hook: read what ``save_extra`` wrote."""
 
 
 def _json_default(o: Any) -> Any:

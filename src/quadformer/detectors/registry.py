@@ -55,4 +55,5 @@ def load(path: str | Path) -> Detector:
         raise ValueError(f"{path}: not a saved detector (no 'method')")
     det = make(doc["method"], **doc.get("params", {}))
     det.load_state(doc.get("state", {}))
+    det.load_extra(path)
     return det

@@ -1,0 +1,6 @@
+"""Neural detectors: modules, the shared training loop, and their detector classes."""
+
+from quadformer.detectors.neural.detector import CNNDetector, LSTMDetector, WindowClassifier
+from quadformer.detectors.neural.training import TrainConfig, train
+
+__all__ = ["CNNDetector", "LSTMDetector", "TrainConfig", "WindowClassifier", "train"]

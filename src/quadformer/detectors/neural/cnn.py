@@ -1,0 +1,24 @@
+"""1D convolutional network over a residue window (local features)."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+class CNN1d(nn.Module):
+    def __init__(self, n_features: int, channels: int = 32, kernel: int = 5):
+        super().__init__()
+        pad = kernel // 2
+        self.body = nn.Sequential(
+            nn.Conv1d(n_features, channels, kernel, padding=pad), nn.ReLU(),
+            nn.Conv1d(channels, channels, kernel, padding=2 * pad, dilation=2), nn.ReLU(),
+            nn.Conv1d(channels, channels, kernel, padding=4 * pad, dilation=4), nn.ReLU(),
+        )
+        self.head = nn.Linear(2 * channels + channels, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """x: (batch, W, features) -> logit of the window's last step (batch,)."""
+        h = self.body(x.transpose(1, 2))                         # (B, C, W)
+        pooled = torch.cat([h.mean(-1), h.amax(-1), h[..., -1]], dim=-1)
+        return self.head(pooled).squeeze(-1)

@@ -1,0 +1,114 @@
+"""Causal windows over residue sequences and per-feature normalisation.
+
+The window of step k of a flight holds that flight's steps k-W+1 .. k (zero-padded before
+the flight starts, zero being the training mean after normalisation), so a score computed
+from it uses data up to k only. Windows are views into one padded array: nothing is copied
+until a batch is gathered.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from quadformer.detectors.base import check_residues, flight_slices
+
+# Default inputs of the learned detectors: raw and whitened GPS innovations, GPS NIS and the
+# VIO innovation statistics. The predicted innovation std (res_gps_s_*) is left out: it varies
+# slowly with the flight's conditions and lets a network recognise flights instead of attacks.
+RESIDUE_FEATURES = (
+    [f"res_gps_r_{a}" for a in ("px", "py", "pz", "vx", "vy", "vz")]
+    + [f"res_gps_w_{a}" for a in ("px", "py", "pz", "vx", "vy", "vz")]
+    + ["res_gps_nis"]
+    + [f"res_vio_r_{a}" for a in ("vx", "vy", "vz", "thx", "thy", "thz")]
+    + ["res_vio_nis", "res_vio_nis_mean"]
+)
+
+
+class Normalizer:
+    """Per-feature robust centring and scaling (median, IQR), then asinh compression.
+
+    Residues are heavy-tailed (an attack multiplies the NIS by tens to thousands); asinh keeps
+    them ordered without letting a few steps dominate training. Fitted on training rows only.
+    """
+
+    def fit(self, values: np.ndarray) -> "Normalizer":
+        self.mean_ = np.median(values, axis=0)
+        q75, q25 = np.percentile(values, [75, 25], axis=0)
+        std = (q75 - q25) / 1.349
+        self.std_ = np.where(std > 1e-12, std, 1.0)
+        return self
+
+    def transform(self, values: np.ndarray) -> np.ndarray:
+        return np.arcsinh((values - self.mean_) / self.std_).astype(np.float32)
+
+    def state(self) -> dict:
+        return {"mean": self.mean_.tolist(), "std": self.std_.tolist()}
+
+    @classmethod
+    def from_state(cls, state: dict) -> "Normalizer":
+        n = cls()
+        n.mean_ = np.asarray(state["mean"], dtype=float)
+        n.std_ = np.asarray(state["std"], dtype=float)
+        return n
+
+
+class Windows:
+    """All causal windows of the rows of X: ``windows[idx]`` -> (len(idx), W, features)."""
+
+    def __init__(self, X: pd.DataFrame, features: list[str], normalizer: Normalizer, width: int):
+        values = normalizer.transform(check_residues(X, features))
+        d = values.shape[1]
+        parts, ends = [], np.empty(len(X), dtype=np.int64)
+        offset = 0
+        for _, idx in flight_slices(X):
+            parts.append(np.zeros((width - 1, d), dtype=np.float32))
+            parts.append(values[idx])
+            offset += width - 1
+            ends[idx] = offset + np.arange(len(idx))
+            offset += len(idx)
+        self._data = np.concatenate(parts) if parts else np.zeros((0, d), dtype=np.float32)
+        self._start = ends - (width - 1)
+        self.width = width
+        self.n_features = d
+
+    def __len__(self) -> int:
+        return len(self._start)
+
+    def __getitem__(self, idx: np.ndarray) -> np.ndarray:
+        offs = self._start[np.asarray(idx)][:, None] + np.arange(self.width)[None, :]
+        return self._data[offs]
+
+
+class AxisSymmetry:
+    """Training augmentation: a spoof's direction is random, so a detector should not care
+    which way an innovation points. Each training window gets a random sign per axis (applied
+    to the GPS position/velocity innovations, raw and whitened, and the VIO velocity
+    innovation of that axis) and a random swap of the two horizontal axes. Normalised
+    features are centred (median 0) and asinh is odd, so a sign flip there is one in the data.
+    """
+
+    def __init__(self, features: list[str]):
+        pos = {c: i for i, c in enumerate(features)}
+        self.axes = []
+        for a in "xyz":
+            names = [f"res_gps_r_p{a}", f"res_gps_r_v{a}", f"res_gps_w_p{a}", f"res_gps_w_v{a}", f"res_vio_r_v{a}"]
+            self.axes.append([pos[n] for n in names if n in pos])
+        self.perm = np.arange(len(features))
+        for i, j in zip(self.axes[0], self.axes[1]):
+            self.perm[i], self.perm[j] = j, i
+
+    def __call__(self, xb, rng: np.random.Generator):
+        import torch
+
+        n = xb.shape[0]
+        sign = torch.ones(n, 1, xb.shape[-1], dtype=xb.dtype)
+        flips = torch.from_numpy(rng.choice([-1.0, 1.0], size=(n, 3)).astype(np.float32))
+        for a, idx in enumerate(self.axes):
+            if idx:
+                sign[:, 0, idx] = flips[:, a:a + 1]
+        xb = xb * sign
+        swap = torch.from_numpy(rng.random(n) < 0.5)
+        if swap.any():
+            xb[swap] = xb[swap][..., torch.from_numpy(self.perm)]
+        return xb
