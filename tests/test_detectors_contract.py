@@ -10,7 +10,9 @@ from quadformer.detectors.classical import Chi2Gate
 
 METHODS = available()
 # Short training keeps the suite fast; the contract does not depend on it.
-FAST = {"cnn": {"epochs": 3}, "lstm": {"epochs": 3}}
+_TINY_QF = {"window": 16, "d_model": 16, "heads": 2, "epochs": 1, "steps_per_epoch": 3, "batch_size": 32}
+FAST = {"cnn": {"epochs": 3}, "lstm": {"epochs": 3},
+        **{m: _TINY_QF for m in ("quadformer", "quadformer-noprior", "quadformer-nosup", "quadformer-nodisc")}}
 
 
 def make(method, **kw):
@@ -26,7 +28,8 @@ def data(bias_dataset):
 
 
 def test_methods_registered():
-    assert {"chi2", "cusum", "sprt", "bht", "svm", "cnn", "lstm"} <= set(METHODS)
+    assert {"chi2", "cusum", "sprt", "bht", "svm", "cnn", "lstm", "quadformer", "quadformer-noprior",
+            "quadformer-nosup", "quadformer-nodisc"} <= set(METHODS)
 
 
 @pytest.mark.parametrize("method", METHODS)

@@ -120,9 +120,14 @@ def simulate(
 
 
 def _methods(text: Optional[str]) -> list[str]:
-    from quadformer.detectors import available, get
+    from quadformer.detectors import available, defaults, get
 
-    names = available() if text in (None, "all") else [m.strip() for m in text.split(",") if m.strip()]
+    if text is None:
+        names = defaults()
+    elif text == "all":
+        names = available()
+    else:
+        names = [m.strip() for m in text.split(",") if m.strip()]
     for m in names:
         try:
             get(m)
@@ -144,7 +149,8 @@ def _print_tables(results: dict) -> None:
 @app.command()
 def benchmark(
     profile: str = typer.Option("demo", help="demo (20 flights/config), quick (60) or paper (600)."),
-    methods: Optional[str] = typer.Option(None, help="Comma-separated detector names (default: all registered)."),
+    methods: Optional[str] = typer.Option(None, help="Comma-separated detector names; default: every registered "
+                                          "detector except ablations; 'all': every one."),
     out: Path = typer.Option(Path("runs/benchmark"), "--out", help="Output directory."),
     cache: Path = typer.Option(Path("runs/cache"), help="Dataset cache directory."),
     seed: int = typer.Option(0, help="Split seed."),

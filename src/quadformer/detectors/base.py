@@ -127,3 +127,20 @@ def check_residues(X: pd.DataFrame, columns: list[str]) -> np.ndarray:
         raise ValueError(f"non-finite residue in column {columns[col]} at row {row} "
                          f"(flight {X['flight_id'].iloc[row]}); drop or repair such steps first")
     return arr
+
+
+def labelled_split(X: pd.DataFrame, y: np.ndarray | None, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row indices (train, held-out) of the labelled flights, split by flight."""
+    if y is None:
+        raise ValueError("this detector needs labels: pass y (label per step, -1 where unknown)")
+    y = np.asarray(y)
+    fids = [f for f, idx in flight_slices(X) if np.all(y[idx] >= 0)]
+    if not fids:
+        raise ValueError("no labelled training flight: raise the label fraction")
+    rng = np.random.default_rng(seed)
+    fids = list(rng.permutation(fids))
+    n_hold = max(1, len(fids) // 5) if len(fids) >= 3 else 0
+    hold = set(fids[:n_hold])
+    fid = X["flight_id"].to_numpy()
+    lab = y >= 0
+    return np.nonzero(lab & ~np.isin(fid, list(hold)))[0], np.nonzero(lab & np.isin(fid, list(hold)))[0]

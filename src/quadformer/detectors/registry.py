@@ -15,20 +15,31 @@ from typing import Callable
 from quadformer.detectors.base import Detector
 
 _REGISTRY: dict[str, type[Detector]] = {}
+_EXTRA: set[str] = set()
 
 
-def register(name: str) -> Callable[[type[Detector]], type[Detector]]:
+def register(name: str, default: bool = True) -> Callable[[type[Detector]], type[Detector]]:
+    """Register a detector; ``default=False`` (ablations) keeps it out of the default
+    method list, though ``--methods NAME`` or ``--methods all`` still run it."""
     def deco(cls: type[Detector]) -> type[Detector]:
         if name in _REGISTRY and _REGISTRY[name] is not cls:
             raise ValueError(f"a detector named {name!r} is already registered")
         cls.name = name
         _REGISTRY[name] = cls
+        if not default:
+            _EXTRA.add(name)
         return cls
     return deco
 
 
 def available() -> list[str]:
+    """Every registered detector."""
     return list(_REGISTRY)
+
+
+def defaults() -> list[str]:
+    """The detectors a benchmark runs when no method is named."""
+    return [n for n in _REGISTRY if n not in _EXTRA]
 
 
 def get(name: str) -> type[Detector]:

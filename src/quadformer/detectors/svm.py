@@ -12,8 +12,7 @@ import numpy as np
 import pandas as pd
 from sklearn.svm import SVC
 
-from quadformer.detectors.base import Detector, check_residues
-from quadformer.detectors.neural.detector import labelled_split
+from quadformer.detectors.base import Detector, check_residues, labelled_split
 from quadformer.detectors.registry import register
 from quadformer.detectors.windows import RESIDUE_FEATURES, Normalizer, Windows
 

@@ -59,15 +59,17 @@ class Windows:
     def __init__(self, X: pd.DataFrame, features: list[str], normalizer: Normalizer, width: int):
         values = normalizer.transform(check_residues(X, features))
         d = values.shape[1]
-        parts, ends = [], np.empty(len(X), dtype=np.int64)
+        parts, rows, ends = [], [], np.empty(len(X), dtype=np.int64)
         offset = 0
         for _, idx in flight_slices(X):
             parts.append(np.zeros((width - 1, d), dtype=np.float32))
             parts.append(values[idx])
+            rows += [np.full(width - 1, -1), idx]
             offset += width - 1
             ends[idx] = offset + np.arange(len(idx))
             offset += len(idx)
         self._data = np.concatenate(parts) if parts else np.zeros((0, d), dtype=np.float32)
+        self._rows = np.concatenate(rows) if rows else np.zeros(0, dtype=np.int64)
         self._start = ends - (width - 1)
         self.width = width
         self.n_features = d
@@ -75,9 +77,15 @@ class Windows:
     def __len__(self) -> int:
         return len(self._start)
 
+    def _offsets(self, idx: np.ndarray) -> np.ndarray:
+        return self._start[np.asarray(idx)][:, None] + np.arange(self.width)[None, :]
+
     def __getitem__(self, idx: np.ndarray) -> np.ndarray:
-        offs = self._start[np.asarray(idx)][:, None] + np.arange(self.width)[None, :]
-        return self._data[offs]
+        return self._data[self._offsets(idx)]
+
+    def rows(self, idx: np.ndarray) -> np.ndarray:
+        """Row indices of X in each window (len(idx), W); -1 for the padding."""
+        return self._rows[self._offsets(idx)]
 
 
 class AxisSymmetry:

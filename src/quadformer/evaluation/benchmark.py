@@ -90,6 +90,7 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
         args = (test.flight_id.to_numpy(), test.t.to_numpy(), test.label.to_numpy(), s)
         res = evaluate(*args, s > tuned.threshold, gps_rate_hz=rate, offsets=offsets)
         at_budget = evaluate(*args, s > tuned.budget_threshold, gps_rate_hz=rate, offsets=offsets)
+        res.update(onset_and_types(tuned.detector, test, s > tuned.threshold))
         out[m] = {**res, "threshold": tuned.threshold, "params": tuned.params, "val_f1": tuned.val_f1,
                   "budget": {**at_budget, "threshold": tuned.budget_threshold,
                              "alarms_per_hour_allowed": budget_per_hour},
@@ -98,6 +99,40 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
         scores[f"alarm_{m}"] = (s > tuned.threshold).astype(np.int8)
     split = {"train": len(sp.train), "val": len(sp.val), "test": len(sp.test), "labelled": len(sp.labelled)}
     return {"split": split, "methods": out}, scores
+
+
+def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray) -> dict[str, Any]:
+    """For detectors that estimate onsets and attack types: onset error of each detected
+    window (estimated minus true onset, s) and a confusion count of the type predicted at the
+    first alarm of each alarm run (true type ``none`` for a false alarm)."""
+    out: dict[str, Any] = {}
+    if hasattr(det, "onset_times"):
+        errors = []
+        for fid, t_alarm, t_onset in det.onset_times(test, alarms):
+            g = test[test.flight_id == fid]
+            lab = g.label.to_numpy() == 1
+            if not lab.any():
+                continue
+            t = g.t.to_numpy()
+            # the window this alarm run belongs to: the first labelled run starting before the alarm ends
+            starts = t[lab & ~np.r_[False, lab[:-1]]]
+            ends = t[lab & ~np.r_[lab[1:], False]]
+            for s0, e0 in zip(starts, ends):
+                if s0 <= t_alarm <= e0:
+                    errors.append(t_onset - s0)
+        out["onset_error_median_s"] = float(np.median(errors)) if errors else None
+        out["onset_error_p95_s"] = float(np.percentile(np.abs(errors), 95)) if errors else None
+    if hasattr(det, "predict_type"):
+        pred = det.predict_type(test)
+        true = np.where(test.label.to_numpy() == 1, test.attack_type.astype(str).to_numpy(), "none")
+        a = np.asarray(alarms, bool)
+        first = a & ~np.r_[False, a[:-1]] | (a & (test.flight_id.to_numpy() != np.r_[-1, test.flight_id.to_numpy()[:-1]]))
+        conf: dict[str, dict[str, int]] = {}
+        for tt, pp in zip(true[first], pred[first]):
+            conf.setdefault(tt, {}).setdefault(str(pp), 0)
+            conf[tt][str(pp)] += 1
+        out["type_confusion"] = conf
+    return out
 
 
 def run_benchmark(profile: str | Profile, methods: list[str], out: Path, cache_dir: Path,

@@ -134,14 +134,18 @@ def tune(method: str, train: pd.DataFrame, y_train: np.ndarray, val: pd.DataFram
     y_val = val["label"].to_numpy()
     best: Tuned | None = None
     tried = []
+    post_grid = getattr(cls, "post_grid", {})
     for point in grid_points(grid):
-        det = make(method, **{**fixed, **point}).fit(train, y_train)
-        s = det.decision_function(val)
-        thr, f1 = best_f1_threshold(s, y_val)
-        tried.append({**point, "val_f1": f1, "threshold": thr})
-        if best is None or f1 > best.val_f1:
-            best = Tuned(det, {**fixed, **point}, thr, f1, float("nan"))
-            best_scores = s
+        fitted = make(method, **{**fixed, **point}).fit(train, y_train)
+        # post-processing parameters (e.g. an alarm rule) need no refit
+        for post in grid_points(post_grid):
+            det = fitted.with_post(**post) if post else fitted
+            s = det.decision_function(val)
+            thr, f1 = best_f1_threshold(s, y_val)
+            tried.append({**point, **post, "val_f1": f1, "threshold": thr})
+            if best is None or f1 > best.val_f1:
+                best = Tuned(det, {**fixed, **point, **post}, thr, f1, float("nan"))
+                best_scores = s
     assert best is not None
     fid = val["flight_id"].to_numpy()
     clean = np.setdiff1d(np.unique(fid), np.unique(fid[y_val == 1]))

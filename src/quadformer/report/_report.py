@@ -86,8 +86,35 @@ def extra_table(results: dict[str, Any]) -> pd.DataFrame:
                 "offset at det. (m)": r["offset_at_detection_median_m"],
                 "F1 @budget": r["budget"]["f1"], "FA/h @budget": r["budget"]["false_alarms_per_hour"],
                 "F1 point-adjusted (inflated)": r["f1_point_adjusted"],
+                "onset error med (s)": r.get("onset_error_median_s"),
             })
     return pd.DataFrame(rows)
+
+
+def ablation_table(results: dict[str, Any]) -> pd.DataFrame | None:
+    names = [m for m in results["methods_run"] if m.startswith("quadformer")]
+    if len(names) < 2:
+        return None
+    df = pd.DataFrame({c["name"]: {m: c["methods"][m]["f1"] for m in names} for c in results["configs"]})
+    df["mean"] = df.mean(axis=1)
+    return df
+
+
+def confusion_table(results: dict[str, Any], method: str) -> pd.DataFrame | None:
+    total: dict[str, dict[str, int]] = {}
+    found = False
+    for c in results["configs"]:
+        conf = c["methods"].get(method, {}).get("type_confusion")
+        if conf is None:
+            continue
+        found = True
+        for t, row in conf.items():
+            for p, n in row.items():
+                total.setdefault(t, {}).setdefault(p, 0)
+                total[t][p] += n
+    if not found:
+        return None
+    return pd.DataFrame(total).T.fillna(0).astype(int)
 
 
 def _png(fig) -> str:
@@ -215,6 +242,19 @@ def write_report(results: dict[str, Any], out: Path) -> Path:
     parts.append(extra.to_html(index=False, float_format=lambda v: f"{v:.2f}", na_rep="-", border=0, classes="t"))
     for key, b64 in figs.items():
         parts.append(f"<h3>{html.escape(key)}</h3><img src='data:image/png;base64,{b64}'/>")
+    abl = ablation_table(results)
+    if abl is not None:
+        _write(out / "ablation.csv", abl.to_csv())
+        parts.append("<h2>QUADFormer ablations: point-wise F1 (test)</h2><p>noprior: no prior branch; nosup: no "
+                     "supervised terms (no labels); nodisc: no discrepancy term.</p>")
+        parts.append(abl.to_html(float_format=lambda v: f"{v:.2f}", na_rep="-", border=0, classes="t"))
+    for m in results["methods_run"]:
+        conf = confusion_table(results, m)
+        if conf is not None:
+            parts.append(f"<h2>{html.escape(m)}: attack type predicted at the first alarm of each alarm run</h2>"
+                         "<p>Rows: true type (none: a false alarm); columns: predicted type; all test flights "
+                         "of all configurations.</p>")
+            parts.append(conf.to_html(border=0, classes="t"))
     parts.append("<h2>Versions</h2><pre>" + html.escape(str(results.get("versions", {}))) + "</pre>")
     style = ("<style>body{font-family:sans-serif;max-width:1200px;margin:auto}"
              "table.t{border-collapse:collapse;font-size:12px}table.t td,table.t th{padding:2px 6px;"

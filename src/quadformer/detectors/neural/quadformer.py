@@ -1,0 +1,357 @@
+"""QUADFormer: the transformer attack detector and classifier.
+
+Loss (semi-supervised), on each mini-batch of causal windows:
+
+- Windows not known to end in an attack (most training windows are unlabelled and treated
+  as mostly normal): reconstruction MSE of the normalised residues, plus the association
+  discrepancy trained by the minimax strategy with stop-gradients in one backward pass,
+  ``lambda_dis * [Dis(P, sg(S)) - Dis(sg(P), S)]``: the prior learns to match the series
+  (minimise) while the series learns to move away from the local prior (maximise). Normal
+  steps can spread their association and end far from the prior; attacked steps, whose
+  informative neighbours are the other attacked steps, cannot. Weight 1: the two terms are
+  of the same order as the reconstruction error of normalised inputs.
+- Windows of labelled flights: cross-entropy of the per-step classifier (none / attack
+  types), weight ``lambda_ce`` = 1, and a margin term ``lambda_margin`` = 0.1 times
+  relu(margin + mean Dis(attacked) - mean Dis(normal)), which pushes the discrepancy of
+  attacked steps below that of normal ones by ``margin``; small, because the classifier
+  already carries the labels and the term only shapes the unsupervised statistic.
+
+Score of step k (from the window ending at k, so causal): the classifier's attack log-odds
+plus the log of the discrepancy-weighted reconstruction error at k,
+``err[k] * exp(-Dis[k] / tau)`` (tau: training median of Dis), relative to its training
+median. Only the last position of a window is needed, which scoring exploits. Alarm rule (onset
+criterion): at least ``k`` of the last ``n`` scores above the threshold; the decision
+function is the k-th largest of the last n scores, so ``score > threshold`` is exactly
+that rule. The onset is estimated by going back from the alarm to where the score last rose
+above ``lower_`` (the 90th percentile of training scores on normal steps).
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+from torch import nn
+
+from quadformer.config import ATTACK_KINDS
+from quadformer.detectors.base import Detector, check_residues, flight_slices, labelled_split
+from quadformer.detectors.neural.quadformer_net import QUADFormerNet, discrepancy
+from quadformer.detectors.neural.training import TrainConfig, train
+from quadformer.detectors.registry import register
+from quadformer.detectors.windows import RESIDUE_FEATURES, AxisSymmetry, Normalizer, Windows
+
+CLASSES = ATTACK_KINDS          # "none" first
+
+
+class QUADFormer(Detector):
+    uses_labels = True
+    param_grid: dict[str, list[Any]] = {}
+    post_grid = {"k": [1, 2, 3], "n": [3, 5]}
+
+    def __init__(self, window: int = 64, d_model: int = 64, heads: int = 4, layers: int = 2,
+                 epochs: int = 15, batch_size: int = 64, lr: float = 1e-3, lambda_dis: float = 1.0,
+                 lambda_ce: float = 1.0, lambda_margin: float = 0.1, margin: float = 0.5,
+                 use_prior: bool = True, supervised: bool = True, use_discrepancy: bool = True,
+                 k: int = 2, n: int = 3, augment: bool = True, steps_per_epoch: int = 60,
+                 seed: int = 0, device: str = "cpu", progress: bool = False) -> None:
+        self.window = window
+        self.d_model = d_model
+        self.heads = heads
+        self.layers = layers
+        self.epochs = epochs
+        self.batch_size = batch_size
+        self.lr = lr
+        self.lambda_dis = lambda_dis
+        self.lambda_ce = lambda_ce
+        self.lambda_margin = lambda_margin
+        self.margin = margin
+        self.use_prior = use_prior
+        self.supervised = supervised
+        self.use_discrepancy = use_discrepancy
+        self.k = k
+        self.n = n
+        self.augment = augment
+        self.steps_per_epoch = steps_per_epoch
+        self.seed = seed
+        self.device = device
+        self.progress = progress
+
+    # -- model ------------------------------------------------------------------------------
+    @property
+    def _disc(self) -> bool:
+        return self.use_prior and self.use_discrepancy
+
+    def _build(self) -> nn.Module:
+        return QUADFormerNet(len(self.features_), len(CLASSES), self.window, self.d_model, self.heads,
+                             self.layers, use_prior=self.use_prior)
+
+    def get_params(self) -> dict[str, Any]:
+        sig = inspect.signature(QUADFormer.__init__)
+        return {k: getattr(self, k) for k in sig.parameters if k != "self"}
+
+    def with_post(self, **post: Any) -> "QUADFormer":
+        import copy
+        other = copy.copy(self)
+        for k, v in post.items():
+            setattr(other, k, v)
+        return other
+
+    # -- training ---------------------------------------------------------------------------
+    def fit(self, X: pd.DataFrame, y: np.ndarray | None = None) -> "QUADFormer":
+        if self.k > self.n:
+            raise ValueError(f"k ({self.k}) must not exceed n ({self.n})")
+        self.features_ = [c for c in RESIDUE_FEATURES if c in X.columns]
+        self.normalizer_ = Normalizer().fit(check_residues(X, self.features_))
+        win = Windows(X, self.features_, self.normalizer_, self.window)
+        n_rows = len(X)
+        y = np.full(n_rows, -1) if y is None else np.asarray(y)
+        cls = np.full(n_rows, -1, dtype=np.int64)
+        known = y >= 0
+        if self.supervised:
+            if not known.any():
+                raise ValueError("no labelled training flight: raise the label fraction or use quadformer-nosup")
+            types = X["attack_type"].astype(str).to_numpy() if "attack_type" in X.columns else None
+            cls[known & (y == 0)] = 0
+            att = known & (y == 1)
+            cls[att] = [CLASSES.index(t) if types is not None and t in CLASSES[1:] else 1 for t in
+                        (types[att] if types is not None else np.full(att.sum(), "bias"))]
+        unl = np.nonzero(~(known & (y == 1)))[0]       # windows treated as mostly normal
+        lab_tr, lab_ho = labelled_split(X, y, self.seed) if self.supervised else (np.zeros(0, int),) * 2
+        dev = torch.device(self.device)
+        augment = AxisSymmetry(self.features_) if self.augment else None
+        rng = np.random.default_rng(self.seed + 1)
+        cls_t = torch.from_numpy(np.r_[cls, -1])         # index -1 -> padding -> ignored
+        ce = nn.CrossEntropyLoss(ignore_index=-1)
+        half = self.batch_size // 2 if self.supervised else self.batch_size
+        holdout = lab_ho if len(lab_ho) else np.zeros(0, int)
+
+        def loss_fn(model, idx):
+            training = model.training
+            if training:   # idx indexes nothing fixed: draw a mixed batch
+                u = unl[rng.integers(len(unl), size=half)]
+                lab = lab_tr[rng.integers(len(lab_tr), size=self.batch_size - half)] if self.supervised else u[:0]
+            else:
+                u, lab = holdout[idx - n_train_eff], holdout[idx - n_train_eff]
+            rows = np.concatenate([u, lab])
+            xb = torch.from_numpy(win[rows])
+            if augment is not None and training:
+                xb = augment(xb, rng)
+            xb = xb.to(dev)
+            out = model(xb)
+            nu = len(u)
+            loss = ((out["recon"][:nu] - xb[:nu]) ** 2).mean()
+            # minimax: the prior descends the discrepancy, the series ascends it (one pass with
+            # a gradient-reversed series). Its value is the discrepancy itself; the held-out
+            # loss watched by early stopping leaves it out (reconstruction + CE + margin).
+            if self._disc and training:
+                loss = loss + self.lambda_dis * discrepancy(out["series"], out["priors"], "minimax")[:nu].mean()
+            if self.supervised and len(lab):
+                wr = win.rows(lab)
+                target = cls_t[torch.from_numpy(np.where(wr >= 0, wr, n_rows))].to(dev)
+                logits = out["logits"][nu:]
+                loss = loss + self.lambda_ce * ce(logits.reshape(-1, logits.shape[-1]), target.reshape(-1))
+                if self._disc and self.lambda_margin > 0:
+                    d = discrepancy(out["series"], out["priors"])[nu:]
+                    att, nor = target > 0, target == 0
+                    if att.any() and nor.any():
+                        loss = loss + self.lambda_margin * torch.relu(self.margin + d[att].mean() - d[nor].mean())
+            return loss
+
+        n_train_eff = self.steps_per_epoch * self.batch_size
+        cfg = TrainConfig(epochs=self.epochs, batch_size=self.batch_size, lr=self.lr, seed=self.seed,
+                          device=self.device, progress=self.progress, max_steps_per_epoch=self.steps_per_epoch)
+        self.model_, result = train(self._build, loss_fn, n_train_eff, len(holdout), cfg)
+        self.history_ = result.history
+        self.fitted_ = True
+        # reference level of the unsupervised statistic, and the onset back-tracking level
+        normal = np.nonzero(~(known & (y == 1)))[0]
+        pick = np.random.default_rng(self.seed + 2).choice(normal, min(len(normal), 4000), replace=False)
+        parts = self._parts(win, np.sort(pick))
+        self.dis_scale_ = float(max(np.median(parts["dis"]), 1e-6)) if self._disc else 1.0
+        self.anomaly_ref_ = float(np.median(self._anomaly(parts)))
+        self.lower_ = float(np.percentile(self._raw(parts), 90))
+        return self
+
+    # -- scoring ----------------------------------------------------------------------------
+    def _parts(self, win: Windows, idx: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-step ingredients of the score for windows idx (their last position)."""
+        out = {"err": [], "dis": [], "p_attack": [], "type": []}
+        dev = torch.device(self.device)
+        with torch.no_grad():
+            for i in range(0, len(idx), 1024):
+                xb = torch.from_numpy(win[idx[i:i + 1024]]).to(dev)
+                o = self.model_(xb, last_only=True)
+                out["err"].append(((o["recon"][:, -1] - xb[:, -1]) ** 2).mean(-1).double().cpu().numpy())
+                d = discrepancy(o["series"], o["priors"])[:, -1] if self._disc else torch.zeros(len(xb))
+                out["dis"].append(d.double().cpu().numpy())
+                prob = torch.softmax(o["logits"][:, -1], dim=-1)
+                out["p_attack"].append((1 - prob[:, 0]).double().cpu().numpy())
+                out["type"].append((prob[:, 1:].argmax(-1) + 1).cpu().numpy())
+        return {k: np.concatenate(v) if v else np.zeros(0) for k, v in out.items()}
+
+    def _anomaly(self, parts: dict[str, np.ndarray]) -> np.ndarray:
+        """Log of the discrepancy-weighted reconstruction error, err * exp(-Dis / tau), tau the
+        training median of the discrepancy (small discrepancy: association like the local prior)."""
+        log_a = np.log(np.maximum(parts["err"], 1e-12))
+        if self._disc:
+            log_a = log_a - parts["dis"] / self.dis_scale_
+        return log_a
+
+    def _raw(self, parts: dict[str, np.ndarray]) -> np.ndarray:
+        s = self._anomaly(parts) - self.anomaly_ref_
+        if self.supervised:
+            p = np.clip(parts["p_attack"], 1e-6, 1 - 1e-6)
+            s = s + np.log(p) - np.log1p(-p)
+        return s
+
+    def raw_scores(self, X: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+        """Per-step raw score and predicted attack type index (before the k-of-n rule).
+
+        The last result is cached (shared with ``with_post`` copies), so tuning the alarm rule
+        does not run the network again."""
+        self._check_fitted()
+        key = (id(X), len(X), tuple(X.columns))
+        cache = self.__dict__.setdefault("_cache", {})
+        if cache.get("key") != key:
+            win = Windows(X, self.features_, self.normalizer_, self.window)
+            parts = self._parts(win, np.arange(len(win)))
+            cache.update(key=key, value=(self._raw(parts), parts["type"].astype(int)))
+        return cache["value"]
+
+    def decision_function(self, X: pd.DataFrame) -> np.ndarray:
+        raw, _ = self.raw_scores(X)
+        return kth_of_last_n(raw, X, self.k, self.n)
+
+    def predict_type(self, X: pd.DataFrame) -> np.ndarray:
+        """Predicted attack type at each step (meaningful where an alarm is raised)."""
+        _, t = self.raw_scores(X)
+        return np.array(CLASSES, dtype=object)[t]
+
+    def onset_times(self, X: pd.DataFrame, alarms: np.ndarray) -> list[tuple[Any, float, float]]:
+        """(flight, alarm time, estimated onset time) for each alarm run."""
+        raw, _ = self.raw_scores(X)
+        t = X["t"].to_numpy()
+        out = []
+        for fid, idx in flight_slices(X):
+            a = np.asarray(alarms)[idx].astype(bool)
+            starts = np.nonzero(a & ~np.r_[False, a[:-1]])[0]
+            for s in starts:
+                j = s
+                while j > 0 and raw[idx[j - 1]] > self.lower_:
+                    j -= 1
+                out.append((fid, float(t[idx[s]]), float(t[idx[j]])))
+        return out
+
+    def stream(self) -> "StreamingDetector":
+        return StreamingDetector(self)
+
+    # -- persistence ------------------------------------------------------------------------
+    def learned_state(self) -> dict[str, Any]:
+        return {"features_": self.features_, "normalizer_": self.normalizer_.state(),
+                "threshold_": getattr(self, "threshold_", None), "anomaly_ref_": self.anomaly_ref_,
+                "dis_scale_": self.dis_scale_, "lower_": self.lower_, "history_": self.history_,
+                **{k: v for k, v in vars(self).items() if k.endswith("_") and k not in
+                   ("model_", "normalizer_", "features_", "history_", "anomaly_ref_", "dis_scale_", "lower_",
+                    "threshold_")}}
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        for k, v in state.items():
+            setattr(self, k, Normalizer.from_state(v) if k == "normalizer_" else v)
+
+    def save_extra(self, path: Path) -> None:
+        torch.save(self.model_.state_dict(), Path(path).with_suffix(".pt"))
+
+    def load_extra(self, path: Path) -> None:
+        wpath = Path(path).with_suffix(".pt")
+        if not wpath.exists():
+            raise FileNotFoundError(f"{wpath}: weights of {Path(path).name} are missing")
+        model = self._build()
+        model.load_state_dict(torch.load(wpath, map_location=self.device, weights_only=True))
+        self.model_ = model.to(self.device).eval()
+        self.fitted_ = True
+
+
+FLOOR = -1e6   # score before k steps of a flight exist (never alarms)
+
+
+def kth_of_last_n(raw: np.ndarray, X: pd.DataFrame, k: int, n: int) -> np.ndarray:
+    """Per flight, the k-th largest of the last n raw scores (``FLOOR`` while fewer than k
+    steps of the flight exist)."""
+    out = np.full(len(raw), FLOOR)
+    for _, idx in flight_slices(X):
+        r = raw[idx]
+        pad = np.r_[np.full(n - 1, FLOOR), r]
+        view = np.lib.stride_tricks.sliding_window_view(pad, n)        # (len, n)
+        out[idx] = np.sort(view, axis=1)[:, n - k]
+    return out
+
+
+class StreamingDetector:
+    """Online QUADFormer: ``update(residue_vector) -> (score, alarm, attack_type)``.
+
+    ``residue_vector``: a mapping with the detector's feature names, or an array in the
+    order of ``features_``. Keeps its own ring buffer of the last W normalised residues
+    (zeros before the first step, as offline) and of the last n raw scores.
+    """
+
+    def __init__(self, det: QUADFormer):
+        det._check_fitted()
+        self.det = det
+        self.buf = np.zeros((det.window, len(det.features_)), dtype=np.float32)
+        self.scores: deque[float] = deque([FLOOR] * det.n, maxlen=det.n)
+
+    def update(self, residue_vector) -> tuple[float, bool, str]:
+        d = self.det
+        if isinstance(residue_vector, dict) or hasattr(residue_vector, "keys"):
+            v = np.array([residue_vector[c] for c in d.features_], dtype=float)
+        else:
+            v = np.asarray(residue_vector, dtype=float)
+        if v.shape != (len(d.features_),) or not np.isfinite(v).all():
+            raise ValueError(f"residue vector must hold {len(d.features_)} finite values ({', '.join(d.features_)})")
+        self.buf[:-1] = self.buf[1:]
+        self.buf[-1] = d.normalizer_.transform(v[None])[0]
+        win = _Single(self.buf)
+        parts = d._parts(win, np.array([0]))
+        raw = float(d._raw(parts)[0])
+        self.scores.append(raw)
+        score = float(np.sort(np.array(self.scores))[d.n - d.k])
+        thr = getattr(d, "threshold_", None)
+        alarm = bool(thr is not None and score > thr)
+        return score, alarm, CLASSES[int(parts["type"][0])] if alarm else "none"
+
+
+class _Single:
+    """The one current window, in the interface ``_parts`` expects."""
+
+    def __init__(self, buf: np.ndarray):
+        self.buf = buf
+
+    def __getitem__(self, idx):
+        return self.buf[None]
+
+
+def _variant(name: str, doc: str, **fixed: Any) -> type[QUADFormer]:
+    class Variant(QUADFormer):
+        __doc__ = doc
+
+        def __init__(self, **kw: Any) -> None:
+            super().__init__(**{**fixed, **kw})
+
+        def get_params(self) -> dict[str, Any]:
+            p = QUADFormer.get_params(self)
+            return {k: v for k, v in p.items() if k not in fixed}
+
+    Variant.__name__ = Variant.__qualname__ = "QUADFormer_" + name.split("-")[-1]
+    return register(name, default=False)(Variant)
+
+
+# Not in the default method list yet: its training dominates a benchmark run's time.
+register("quadformer", default=False)(QUADFormer)
+_variant("quadformer-noprior", "Ablation: no prior branch (no association discrepancy).", use_prior=False)
+_variant("quadformer-nosup", "Ablation: no supervised terms (no labels used).", supervised=False)
+_variant("quadformer-nodisc", "Ablation: no discrepancy term in loss or score.", use_discrepancy=False)

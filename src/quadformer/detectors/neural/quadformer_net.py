@@ -1,0 +1,139 @@
+"""QUADFormer network: a transformer over residue windows with a two-branch attention.
+
+Each attention head computes
+- a series association S = softmax(Q K^T / sqrt(d)), learned from the data, and
+- a prior association P: a Gaussian kernel over the temporal distance |i - j| whose width
+  sigma is predicted per head and position from the input, rows normalised to sum to 1.
+Normal steps spread their association over the window (far from the local prior); attacked
+steps concentrate it on their neighbours (close to it). The per-step association
+discrepancy, the symmetric KL between P and S averaged over heads and layers, is the
+statistic that separates them. Heads: reconstruction of the (normalised) residues and a
+per-step classification into normal and attack types.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+
+def symmetric_kl(p: torch.Tensor, q: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
+    """KL(p||q) + KL(q||p) over the last axis."""
+    p = p.clamp_min(eps)
+    q = q.clamp_min(eps)
+    return ((p - q) * (p.log() - q.log())).sum(-1)
+
+
+class TwoBranchAttention(nn.Module):
+    def __init__(self, d_model: int, heads: int, window: int, use_prior: bool = True):
+        super().__init__()
+        self.h, self.dk = heads, d_model // heads
+        self.qkv = nn.Linear(d_model, 3 * d_model)
+        self.sigma = nn.Linear(d_model, heads)
+        self.out = nn.Linear(d_model, d_model)
+        self.use_prior = use_prior
+        idx = torch.arange(window, dtype=torch.float32)
+        self.register_buffer("dist2", (idx[:, None] - idx[None, :]) ** 2, persistent=False)
+
+    def forward(self, x: torch.Tensor, last_query: bool = False, last_row: bool = False):
+        """last_query: output only the last position (the final layer at scoring time);
+        last_row: return the associations of the last position only (B,H,1,W)."""
+        B, W, D = x.shape
+        q, k, v = self.qkv(x).view(B, W, 3, self.h, self.dk).permute(2, 0, 3, 1, 4)
+        if last_query:
+            q = q[:, :, -1:]
+        series = torch.softmax(q @ k.transpose(-1, -2) / math.sqrt(self.dk), dim=-1)   # (B,H,W|1,W)
+        z = (series @ v).transpose(1, 2).reshape(B, q.shape[2], D)
+        if last_row:
+            series = series[:, :, -1:]
+        if not self.use_prior:
+            return self.out(z), series, None
+        # width in steps: at least 0.5, learned per head and position
+        xs = x[:, -1:] if last_row else x
+        sigma = nn.functional.softplus(self.sigma(xs)).transpose(1, 2) + 0.5            # (B,H,W|1)
+        rows = self.dist2[W - 1:W, :W] if last_row else self.dist2[:W, :W]
+        prior = torch.softmax(-rows / (2 * sigma[..., None] ** 2), dim=-1)  # normalised Gaussian rows
+        return self.out(z), series, prior
+
+
+class Layer(nn.Module):
+    def __init__(self, d_model: int, heads: int, window: int, use_prior: bool, dropout: float):
+        super().__init__()
+        self.attn = TwoBranchAttention(d_model, heads, window, use_prior)
+        self.n1 = nn.LayerNorm(d_model)
+        self.ff = nn.Sequential(nn.Linear(d_model, 2 * d_model), nn.GELU(), nn.Dropout(dropout),
+                                nn.Linear(2 * d_model, d_model))
+        self.n2 = nn.LayerNorm(d_model)
+        self.drop = nn.Dropout(dropout)
+
+    def forward(self, x, last_query: bool = False, last_row: bool = False):
+        a, series, prior = self.attn(x, last_query, last_row)
+        if last_query:
+            x = x[:, -1:]
+        x = self.n1(x + self.drop(a))
+        x = self.n2(x + self.drop(self.ff(x)))
+        return x, series, prior
+
+
+class QUADFormerNet(nn.Module):
+    def __init__(self, n_features: int, n_classes: int, window: int, d_model: int = 64, heads: int = 4,
+                 layers: int = 2, dropout: float = 0.1, use_prior: bool = True):
+        super().__init__()
+        self.embed = nn.Linear(n_features, d_model)
+        pos = torch.arange(window, dtype=torch.float32)[:, None]
+        div = torch.exp(torch.arange(0, d_model, 2, dtype=torch.float32) * (-math.log(10000.0) / d_model))
+        pe = torch.zeros(window, d_model)
+        pe[:, 0::2] = torch.sin(pos * div)
+        pe[:, 1::2] = torch.cos(pos * div)
+        self.register_buffer("pe", pe, persistent=False)
+        self.layers = nn.ModuleList([Layer(d_model, heads, window, use_prior, dropout) for _ in range(layers)])
+        self.recon = nn.Linear(d_model, n_features)
+        self.classify = nn.Linear(d_model, n_classes)
+        self.use_prior = use_prior
+
+    def forward(self, x: torch.Tensor, last_only: bool = False) -> dict[str, torch.Tensor]:
+        """x: (B, W, features). Returns reconstruction (B,W,F), class logits (B,W,C), and the
+        per-layer series and prior associations (lists of (B,H,W,W); priors None without prior).
+
+        last_only: outputs and associations of the last position only (W replaced by 1), all a
+        causal score needs, at a fraction of the cost."""
+        h = self.embed(x) + self.pe[: x.shape[1]]
+        series, priors = [], []
+        for i, layer in enumerate(self.layers):
+            final = i == len(self.layers) - 1
+            h, s, p = layer(h, last_query=last_only and final, last_row=last_only)
+            series.append(s)
+            priors.append(p)
+        return {"recon": self.recon(h), "logits": self.classify(h), "series": series, "priors": priors}
+
+
+class _ReverseGrad(torch.autograd.Function):
+    """Identity forward; negated gradient backward."""
+
+    @staticmethod
+    def forward(ctx, x):
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx, g):
+        return -g
+
+
+def discrepancy(series: list[torch.Tensor], priors: list[torch.Tensor | None], mode: str = "both"
+                ) -> torch.Tensor:
+    """Association discrepancy per step (B, W), averaged over heads and layers.
+
+    mode "both": plain gradients to both branches. mode "minimax": one evaluation whose
+    gradient descends the discrepancy for the prior and ascends it for the series, i.e.
+    the gradient of Dis(P, sg(S)) - Dis(sg(P), S) (the minimax pair), at half the cost.
+    """
+    out = 0.0
+    for s, p in zip(series, priors):
+        if p is None:
+            continue
+        if mode == "minimax":
+            s = _ReverseGrad.apply(s)
+        out = out + symmetric_kl(p, s).mean(1)
+    return out / max(1, len(series))

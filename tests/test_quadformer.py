@@ -1,0 +1,120 @@
+"""QUADFormer: attention, loss terms, alarm rule, streaming, onsets and types."""
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from quadformer.detectors import load, make
+from quadformer.detectors.neural.quadformer import CLASSES, kth_of_last_n
+from quadformer.detectors.neural.quadformer_net import QUADFormerNet, TwoBranchAttention, discrepancy, symmetric_kl
+
+TINY = {"window": 16, "d_model": 16, "heads": 2, "layers": 2, "epochs": 2, "steps_per_epoch": 5, "batch_size": 32}
+
+
+def test_symmetric_kl_hand_case():
+    p = torch.tensor([0.5, 0.5])
+    q = torch.tensor([0.9, 0.1])
+    expected = 0.4 * math.log(0.9 / 0.5) + 0.4 * math.log(0.5 / 0.1)
+    assert symmetric_kl(p, q).item() == pytest.approx(expected, rel=1e-6)
+    assert symmetric_kl(p, p).item() == pytest.approx(0.0, abs=1e-7)
+
+
+def test_prior_is_a_normalised_gaussian_of_distance():
+    torch.manual_seed(0)
+    att = TwoBranchAttention(d_model=8, heads=2, window=6)
+    _, series, prior = att(torch.randn(3, 6, 8))
+    assert torch.allclose(prior.sum(-1), torch.ones(3, 2, 6))
+    assert torch.allclose(series.sum(-1), torch.ones(3, 2, 6))
+    row = prior[0, 0, 2]                      # position 2: symmetric about it, peaked at it
+    assert row.argmax().item() == 2
+    assert torch.allclose(row[1], row[3]) and torch.allclose(row[0], row[4])
+
+
+def test_minimax_gradients_descend_for_prior_and_ascend_for_series():
+    s_logit = torch.randn(1, 1, 4, 4, requires_grad=True)
+    p_logit = torch.randn(1, 1, 4, 4, requires_grad=True)
+    both = discrepancy([s_logit.softmax(-1)], [p_logit.softmax(-1)]).sum()
+    gs, gp = torch.autograd.grad(both, [s_logit, p_logit])
+    mm = discrepancy([s_logit.softmax(-1)], [p_logit.softmax(-1)], "minimax").sum()
+    ms, mp = torch.autograd.grad(mm, [s_logit, p_logit])
+    assert mm.item() == pytest.approx(both.item())
+    assert torch.allclose(mp, gp)          # prior: minimise the discrepancy
+    assert torch.allclose(ms, -gs)         # series: maximise it
+
+
+def test_last_position_scoring_equals_full_forward():
+    torch.manual_seed(1)
+    net = QUADFormerNet(5, len(CLASSES), 12, d_model=16, heads=2, layers=2).eval()
+    x = torch.randn(4, 12, 5)
+    with torch.no_grad():
+        full, last = net(x), net(x, last_only=True)
+    for k in ("recon", "logits"):
+        assert torch.allclose(full[k][:, -1], last[k][:, -1], atol=1e-6)
+    assert torch.allclose(discrepancy(full["series"], full["priors"])[:, -1],
+                          discrepancy(last["series"], last["priors"])[:, -1], atol=1e-6)
+
+
+def test_k_of_n_rule():
+    rng = np.random.default_rng(0)
+    raw = rng.standard_normal(50)
+    X = pd.DataFrame({"flight_id": np.repeat([0, 1], 25)})
+    thr = 0.3
+    for k, n in ((1, 1), (2, 3), (3, 5)):
+        dec = kth_of_last_n(raw, X, k, n)
+        for f in (0, 1):
+            r = raw[25 * f:25 * (f + 1)]
+            for i in range(25):
+                window = r[max(0, i - n + 1):i + 1]
+                assert (dec[25 * f + i] > thr) == ((window > thr).sum() >= k)
+
+
+@pytest.fixture(scope="module")
+def fitted(bias_dataset):
+    f = bias_dataset.flights
+    train = f[f.flight_id < 4].reset_index(drop=True)
+    det = make("quadformer", **TINY).fit(train, train.label.to_numpy())
+    det.threshold_ = float(np.percentile(det.decision_function(train), 80))
+    return det, f[f.flight_id >= 4].reset_index(drop=True)
+
+
+def test_streaming_matches_offline(fitted):
+    det, test = fitted
+    flight = test[test.flight_id == 4].reset_index(drop=True)
+    offline = det.decision_function(flight)
+    alarms = offline > det.threshold_
+    types = det.predict_type(flight)
+    stream = det.stream()
+    out = [stream.update(row) for row in flight[det.features_].to_dict("records")]
+    score = np.array([o[0] for o in out])
+    # float32 network, one window at a time online vs batches offline: scores agree to 1e-5;
+    # alarms and types are identical
+    assert np.allclose(score, offline, rtol=1e-5, atol=1e-5)
+    assert np.array_equal(np.array([o[1] for o in out]), alarms)
+    assert [o[2] for o in out] == [t if a else "none" for t, a in zip(types, alarms)]
+    with pytest.raises(ValueError, match="finite values"):
+        det.stream().update(np.full(len(det.features_), np.nan))
+
+
+def test_onsets_and_types(fitted):
+    det, test = fitted
+    alarms = det.decision_function(test) > det.threshold_
+    onsets = det.onset_times(test, alarms)
+    assert len(onsets) == int((alarms & ~np.r_[False, alarms[:-1]]).sum()) or len(onsets) > 0
+    for fid, t_alarm, t_onset in onsets:
+        assert t_onset <= t_alarm
+        assert t_onset >= test[test.flight_id == fid].t.min()
+    assert set(det.predict_type(test)) <= set(CLASSES[1:])
+
+
+def test_checkpoint_round_trip_and_variants(fitted, tmp_path):
+    det, test = fitted
+    back = load(det.save(tmp_path / "qf.json"))
+    assert np.array_equal(back.decision_function(test), det.decision_function(test))
+    assert back.threshold_ == det.threshold_
+    nosup = make("quadformer-nosup", **TINY)
+    assert not nosup.supervised and "supervised" not in nosup.get_params()
+    assert make("quadformer-noprior").use_prior is False
+    assert make("quadformer-nodisc").use_discrepancy is False
