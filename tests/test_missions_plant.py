@@ -64,3 +64,17 @@ def test_spoof_moves_the_real_vehicle(bias_dataset):
         # VIO-aided, the filter yields to the spoof over seconds; the vehicle follows it
         assert during.max() > 0.3 * row.magnitude
         assert during.max() > before.max() + 0.5
+
+
+def test_gps_correction_integral_remembers_an_absorbed_spoof(bias_dataset):
+    """res_gps_corr_*: the filter absorbs a bias, the innovation fades, the integral of the
+    corrections GPS applied keeps pointing along the spoof until it ends."""
+    f = bias_dataset.flights
+    s = bias_dataset.scenarios
+    cols = ["res_gps_corr_px", "res_gps_corr_py", "res_gps_corr_pz"]
+    clean_max = max(np.linalg.norm(f[f.flight_id == i][cols].to_numpy(), axis=1).max()
+                    for i in s.flight_id[~s.attacked])
+    for _, row in s[s.attacked].iterrows():
+        g = f[(f.flight_id == row.flight_id) & (f.label == 1)]
+        proj = g[cols].to_numpy() @ np.array([row.dir_x, row.dir_y, row.dir_z])
+        assert proj[-1] > 1.0 and proj[-1] > clean_max

@@ -13,13 +13,15 @@ import pandas as pd
 
 from quadformer.detectors.base import check_residues, flight_slices
 
-# Default inputs of the learned detectors: raw and whitened GPS innovations, GPS NIS and the
-# VIO innovation statistics. The predicted innovation std (res_gps_s_*) is left out: it varies
+# Default inputs of the learned detectors: raw and whitened GPS innovations, GPS NIS, the
+# leaky integral of GPS position corrections, and the VIO innovation statistics (datasets
+# written before the correction integral existed simply lack it). The predicted innovation std (res_gps_s_*) is left out: it varies
 # slowly with the flight's conditions and lets a network recognise flights instead of attacks.
 RESIDUE_FEATURES = (
     [f"res_gps_r_{a}" for a in ("px", "py", "pz", "vx", "vy", "vz")]
     + [f"res_gps_w_{a}" for a in ("px", "py", "pz", "vx", "vy", "vz")]
     + ["res_gps_nis"]
+    + [f"res_gps_corr_{a}" for a in ("px", "py", "pz")]
     + [f"res_vio_r_{a}" for a in ("vx", "vy", "vz", "thx", "thy", "thz")]
     + ["res_vio_nis", "res_vio_nis_mean"]
 )
@@ -100,7 +102,8 @@ class AxisSymmetry:
         pos = {c: i for i, c in enumerate(features)}
         self.axes = []
         for a in "xyz":
-            names = [f"res_gps_r_p{a}", f"res_gps_r_v{a}", f"res_gps_w_p{a}", f"res_gps_w_v{a}", f"res_vio_r_v{a}"]
+            names = [f"res_gps_r_p{a}", f"res_gps_r_v{a}", f"res_gps_w_p{a}", f"res_gps_w_v{a}",
+                     f"res_gps_corr_p{a}", f"res_vio_r_v{a}"]
             self.axes.append([pos[n] for n in names if n in pos])
         self.perm = np.arange(len(features))
         for i, j in zip(self.axes[0], self.axes[1]):

@@ -54,6 +54,7 @@ class Innovation:
     w: torch.Tensor      # (B,m) whitened L^-1 r with S = L L^T
     nis: torch.Tensor    # (B,) r^T S^-1 r
     s_std: torch.Tensor  # (B,m) sqrt(diag S)
+    dx: torch.Tensor | None = None   # (B,15) correction applied (zero where masked out)
 
 
 def init_state(p, v, q, ba, bg, P0) -> EKFState:
@@ -130,7 +131,8 @@ def update(s: EKFState, r: torch.Tensor, idx: torch.Tensor, std: torch.Tensor,
     new = EKFState(p, v, q, ba, bg, P)
     if mask is not None:
         new = _select(mask, new, s)
-    return new, innov
+        dx = torch.where(mask.view(-1, 1), dx, torch.zeros_like(dx))
+    return new, replace(innov, dx=dx)
 
 
 def _select(mask: torch.Tensor, a: EKFState, b: EKFState) -> EKFState:

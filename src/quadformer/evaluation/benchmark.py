@@ -21,7 +21,7 @@ import pandas as pd
 from quadformer.config import SimConfig
 from quadformer.evaluation.metrics import evaluate
 from quadformer.evaluation.protocol import split_flights, training_labels, tune
-from quadformer.simulation.dataset import Dataset, DatasetError, load_dataset, package_versions
+from quadformer.simulation.dataset import FORMAT_VERSION, Dataset, DatasetError, load_dataset, package_versions
 from quadformer.simulation.grid import PAPER_GRID, config_name, grid_config, simulate_jobs
 
 
@@ -48,6 +48,7 @@ def profile_configs(profile: Profile) -> list[tuple[str, SimConfig]]:
 def dataset_key(cfg: SimConfig) -> str:
     d = cfg.to_dict()
     d.pop("batch_size", None)   # does not change the data
+    d["format_version"] = FORMAT_VERSION   # what the simulator writes
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 

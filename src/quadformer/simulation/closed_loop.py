@@ -27,12 +27,13 @@ from quadformer.sensors import GPS, IMU, VIO, ChunkedNoise
 GPS_AXES = ("px", "py", "pz", "vx", "vy", "vz")
 VIO_AXES = ("vx", "vy", "vz", "thx", "thy", "thz")
 XYZ = ("x", "y", "z")
+CORR_TAU = 20.0   # s, memory of the GPS correction integral
 
 # Recorded per GPS step: name -> number of columns (column names built in ``column_names``).
 RECORDS = {
     "true_pos": 3, "true_vel": 3, "est_pos": 3, "est_vel": 3, "gps_pos": 3, "gps_vel": 3,
     "vio_pos": 3, "atk_d": 3, "wind": 3,
-    "res_gps_r": 6, "res_gps_w": 6, "res_gps_s": 6, "res_gps_nis": 1,
+    "res_gps_r": 6, "res_gps_w": 6, "res_gps_s": 6, "res_gps_nis": 1, "res_gps_corr": 3,
     "res_vio_r": 6, "res_vio_nis": 1, "res_vio_nis_mean": 1,
 }
 
@@ -42,6 +43,7 @@ def column_names(name: str) -> list[str]:
     if n == 1:
         return [name]
     axes = GPS_AXES if name.startswith("res_gps") else VIO_AXES if name.startswith("res_vio") else XYZ
+    axes = axes[:n]
     return [f"{name}_{a}" for a in axes]
 
 
@@ -91,6 +93,11 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     vio_nis_sum = torch.zeros(B, dtype=torch.float64)
     vio_count = 0
     vio_pos = torch.zeros(B, 3, dtype=torch.float64)
+    # leaky integral of the position corrections applied by GPS updates (time constant
+    # CORR_TAU): how far GPS has recently pulled the estimate; a spoof the filter absorbs
+    # leaves it displaced until the spoof ends
+    corr = torch.zeros(B, 3, dtype=torch.float64)
+    corr_decay = float(np.exp(-1.0 / (cfg.gps.rate_hz * CORR_TAU)))
     block = 100
     ref_block = None
 
@@ -128,12 +135,14 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
             history[:, j] = torch.cat([pos_h, vel_h], -1)
             pos_g, vel_g, active, d_pos, _ = attacks.apply(t, j, pos_h, vel_h, history, cfg.gps.rate_hz)
             ekf, inn = gps_update(ekf, pos_g, vel_g, nm)
+            corr = corr_decay * corr + inn.dx[:, 0:3]
             label[:, j] = active
             for name, val in (
                 ("true_pos", state["x"]), ("true_vel", state["v"]), ("est_pos", ekf.p), ("est_vel", ekf.v),
                 ("gps_pos", pos_g), ("gps_vel", vel_g), ("vio_pos", vio_pos), ("wind", w_vec),
                 ("res_gps_r", inn.r), ("res_gps_w", inn.w), ("res_gps_s", inn.s_std),
-                ("res_gps_nis", inn.nis[:, None]), ("res_vio_r", vio_r), ("res_vio_nis", vio_nis[:, None]),
+                ("res_gps_nis", inn.nis[:, None]), ("res_gps_corr", corr),
+                ("res_vio_r", vio_r), ("res_vio_nis", vio_nis[:, None]),
                 ("res_vio_nis_mean", (vio_nis_sum / max(vio_count, 1))[:, None]),
             ):
                 rec[name][:, j] = val.numpy()

@@ -26,7 +26,7 @@ from quadformer.config import SimConfig
 from quadformer.rng import attacked_flights
 from quadformer.simulation.closed_loop import RECORDS, BatchResult, column_names, simulate_batch
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2   # 2: res_gps_corr_* added
 # Column groups of flights.parquet after flight_id, t, label, attack_type.
 COLUMN_ORDER = ("true_pos", "true_vel", "ref_pos", "est_pos", "est_vel", "gps_pos", "gps_vel", "vio_pos",
                 "atk_d", "wind", *[k for k in RECORDS if k.startswith("res_")])

@@ -215,7 +215,10 @@ class QUADFormer(Detector):
         The last result is cached (shared with ``with_post`` copies), so tuning the alarm rule
         does not run the network again."""
         self._check_fitted()
-        key = (id(X), len(X), tuple(X.columns))
+        import hashlib
+        cols = [c for c in ["flight_id", *self.features_] if c in X.columns]
+        key = hashlib.blake2b(np.ascontiguousarray(X[cols].to_numpy(dtype=float)).tobytes(),
+                              digest_size=16).hexdigest()     # content, not identity
         cache = self.__dict__.setdefault("_cache", {})
         if cache.get("key") != key:
             win = Windows(X, self.features_, self.normalizer_, self.window)
@@ -226,6 +229,10 @@ class QUADFormer(Detector):
     def decision_function(self, X: pd.DataFrame) -> np.ndarray:
         raw, _ = self.raw_scores(X)
         return kth_of_last_n(raw, X, self.k, self.n)
+
+    def clear_cache(self) -> None:
+        """Forget the cached raw scores (timings)."""
+        self.__dict__.pop("_cache", None)
 
     def predict_type(self, X: pd.DataFrame) -> np.ndarray:
         """Predicted attack type at each step (meaningful where an alarm is raised)."""
