@@ -26,7 +26,35 @@ from quadformer.detectors.registry import register
 from quadformer.detectors.windows import RESIDUE_FEATURES, AxisSymmetry, Normalizer, Windows
 
 
-class WindowClassifier(Detector):
+class TorchCheckpoint:
+    """Persistence of a network detector: learned attributes in the JSON document, the
+    network's state dict beside it (``.pt``), read back with ``weights_only=True``."""
+
+    def learned_state(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for k, v in vars(self).items():
+            if k.endswith("_") and not k.startswith("_") and k != "model_":
+                out[k] = v.state() if isinstance(v, Normalizer) else v.tolist() if isinstance(v, np.ndarray) else v
+        return out
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        for k, v in state.items():
+            setattr(self, k, Normalizer.from_state(v) if k == "normalizer_" else v)
+
+    def save_extra(self, path: Path) -> None:
+        torch.save(self.model_.state_dict(), Path(path).with_suffix(".pt"))
+
+    def load_extra(self, path: Path) -> None:
+        wpath = Path(path).with_suffix(".pt")
+        if not wpath.exists():
+            raise FileNotFoundError(f"{wpath}: weights of {Path(path).name} are missing")
+        model = self._build()
+        model.load_state_dict(torch.load(wpath, map_location=self.device, weights_only=True))
+        self.model_ = model.to(self.device).eval()
+        self.fitted_ = True
+
+
+class WindowClassifier(TorchCheckpoint, Detector):
     uses_labels = True
     network: ClassVar[type[nn.Module]]
 
@@ -43,7 +71,7 @@ class WindowClassifier(Detector):
         self.device = device
         self.progress = progress
 
-    def _build(self, n_features: int) -> nn.Module:
+    def _build(self) -> nn.Module:
         raise NotImplementedError
 
     def fit(self, X: pd.DataFrame, y: np.ndarray | None = None) -> "WindowClassifier":
@@ -70,7 +98,7 @@ class WindowClassifier(Detector):
 
         cfg = TrainConfig(epochs=self.epochs, batch_size=self.batch_size, lr=self.lr, seed=self.seed,
                           device=self.device, progress=self.progress)
-        self.model_, result = train(lambda: self._build(len(self.features_)), loss_fn, len(tr), len(ho), cfg)
+        self.model_, result = train(self._build, loss_fn, len(tr), len(ho), cfg)
         self.history_ = result.history
         self.fitted_ = True
         return self
@@ -86,44 +114,13 @@ class WindowClassifier(Detector):
                 out[idx] = self.model_(torch.from_numpy(win[idx]).to(dev)).double().cpu().numpy()
         return out
 
-    # -- persistence: JSON (+ .pt state dict) ----------------------------------------------
-    def learned_state(self) -> dict[str, Any]:
-        return {"features_": self.features_, "normalizer_": self.normalizer_.state(),
-                "threshold_": getattr(self, "threshold_", None), "history_": self.history_,
-                **{k: v for k, v in vars(self).items()
-                   if k.endswith("_") and k not in ("model_", "normalizer_", "features_", "history_")}}
-
-    def load_state(self, state: dict[str, Any]) -> None:
-        for k, v in state.items():
-            if k == "normalizer_":
-                self.normalizer_ = Normalizer.from_state(v)
-            else:
-                setattr(self, k, v)
-
-    def save_extra(self, path: Path) -> None:
-        torch.save(self.model_.state_dict(), _weights(path))
-
-    def load_extra(self, path: Path) -> None:
-        wpath = _weights(path)
-        if not wpath.exists():
-            raise FileNotFoundError(f"{wpath}: weights of {path.name} are missing")
-        model = self._build(len(self.features_))
-        model.load_state_dict(torch.load(wpath, map_location=self.device, weights_only=True))
-        self.model_ = model.to(self.device).eval()
-        self.fitted_ = True
-
-
-def _weights(path: Path) -> Path:
-    return Path(path).with_suffix(".pt")
-
-
 @register("cnn")
 class CNNDetector(WindowClassifier):
     """1D-CNN over the causal residue window."""
     param_grid = {"lr": [1e-3, 3e-3]}
 
-    def _build(self, n_features: int) -> nn.Module:
-        return CNN1d(n_features, channels=self.hidden)
+    def _build(self) -> nn.Module:
+        return CNN1d(len(self.features_), channels=self.hidden)
 
 
 @register("lstm")
@@ -136,5 +133,5 @@ class LSTMDetector(WindowClassifier):
                  progress: bool = False) -> None:
         super().__init__(window, epochs, batch_size, lr, hidden, augment, seed, device, progress)
 
-    def _build(self, n_features: int) -> nn.Module:
-        return LSTMNet(n_features, hidden=self.hidden)
+    def _build(self) -> nn.Module:
+        return LSTMNet(len(self.features_), hidden=self.hidden)

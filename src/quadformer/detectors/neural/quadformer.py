@@ -1,6 +1,8 @@
 """QUADFormer: the transformer attack detector and classifier.
 
-Loss (semi-supervised), on each mini-batch of causal windows:
+Loss (semi-supervised), on each mini-batch of causal windows (a quarter drawn from all
+training windows not known to be attacked, three quarters from labelled flights; all from
+the former without supervision):
 
 - Windows not known to end in an attack (most training windows are unlabelled and treated
   as mostly normal): reconstruction MSE of the normalised residues, plus the association
@@ -30,7 +32,6 @@ from __future__ import annotations
 
 import inspect
 from collections import deque
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -40,6 +41,7 @@ from torch import nn
 
 from quadformer.config import ATTACK_KINDS
 from quadformer.detectors.base import Detector, check_residues, flight_slices, labelled_split
+from quadformer.detectors.neural.detector import TorchCheckpoint
 from quadformer.detectors.neural.quadformer_net import QUADFormerNet, discrepancy
 from quadformer.detectors.neural.training import TrainConfig, train
 from quadformer.detectors.registry import register
@@ -48,7 +50,7 @@ from quadformer.detectors.windows import RESIDUE_FEATURES, AxisSymmetry, Normali
 CLASSES = ATTACK_KINDS          # "none" first
 
 
-class QUADFormer(Detector):
+class QUADFormer(TorchCheckpoint, Detector):
     uses_labels = True
     param_grid: dict[str, list[Any]] = {}
     post_grid = {"k": [1, 2, 3], "n": [3, 5]}
@@ -127,7 +129,7 @@ class QUADFormer(Detector):
         rng = np.random.default_rng(self.seed + 1)
         cls_t = torch.from_numpy(np.r_[cls, -1])         # index -1 -> padding -> ignored
         ce = nn.CrossEntropyLoss(ignore_index=-1)
-        half = self.batch_size // 2 if self.supervised else self.batch_size
+        half = self.batch_size // 4 if self.supervised else self.batch_size   # 3/4 labelled
         holdout = lab_ho if len(lab_ho) else np.zeros(0, int)
 
         def loss_fn(model, idx):
@@ -256,31 +258,6 @@ class QUADFormer(Detector):
 
     def stream(self) -> "StreamingDetector":
         return StreamingDetector(self)
-
-    # -- persistence ------------------------------------------------------------------------
-    def learned_state(self) -> dict[str, Any]:
-        return {"features_": self.features_, "normalizer_": self.normalizer_.state(),
-                "threshold_": getattr(self, "threshold_", None), "anomaly_ref_": self.anomaly_ref_,
-                "dis_scale_": self.dis_scale_, "lower_": self.lower_, "history_": self.history_,
-                **{k: v for k, v in vars(self).items() if k.endswith("_") and k not in
-                   ("model_", "normalizer_", "features_", "history_", "anomaly_ref_", "dis_scale_", "lower_",
-                    "threshold_")}}
-
-    def load_state(self, state: dict[str, Any]) -> None:
-        for k, v in state.items():
-            setattr(self, k, Normalizer.from_state(v) if k == "normalizer_" else v)
-
-    def save_extra(self, path: Path) -> None:
-        torch.save(self.model_.state_dict(), Path(path).with_suffix(".pt"))
-
-    def load_extra(self, path: Path) -> None:
-        wpath = Path(path).with_suffix(".pt")
-        if not wpath.exists():
-            raise FileNotFoundError(f"{wpath}: weights of {Path(path).name} are missing")
-        model = self._build()
-        model.load_state_dict(torch.load(wpath, map_location=self.device, weights_only=True))
-        self.model_ = model.to(self.device).eval()
-        self.fitted_ = True
 
 
 FLOOR = -1e6   # score before k steps of a flight exist (never alarms)
