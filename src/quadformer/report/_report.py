@@ -88,7 +88,10 @@ def extra_table(results: dict[str, Any]) -> pd.DataFrame:
                 "F1 point-adjusted (inflated)": r["f1_point_adjusted"],
                 "onset error med (s)": r.get("onset_error_median_s"),
             })
-    return pd.DataFrame(rows)
+    df = pd.DataFrame(rows)
+    for col in df.columns[2:]:
+        df[col] = pd.to_numeric(df[col])     # missing values (None) -> NaN, shown as "-"
+    return df
 
 
 def ablation_table(results: dict[str, Any]) -> pd.DataFrame | None:
