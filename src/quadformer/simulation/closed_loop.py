@@ -16,6 +16,7 @@ import torch
 
 from quadformer.attacks import sample_attacks
 from quadformer.config import SimConfig
+from quadformer.estimator.residues import ResidueTracker
 from quadformer.estimator.so3 import exp_quat
 from quadformer.estimator.eskf import gps_update, init_state, nees, noise_model, predict, vio_update
 from quadformer.missions import sample_missions
@@ -27,7 +28,6 @@ from quadformer.sensors import GPS, IMU, VIO, ChunkedNoise
 GPS_AXES = ("px", "py", "pz", "vx", "vy", "vz")
 VIO_AXES = ("vx", "vy", "vz", "thx", "thy", "thz")
 XYZ = ("x", "y", "z")
-CORR_TAU = 20.0   # s, memory of the GPS correction integral
 
 # Recorded per GPS step: name -> number of columns (column names built in ``column_names``).
 RECORDS = {
@@ -52,7 +52,13 @@ class BatchResult(dict):
 
 
 def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
-                   progress: Callable[[float], None] | None = None, record_nees: bool = False) -> BatchResult:
+                   progress: Callable[[float], None] | None = None, record_nees: bool = False,
+                   record_sensors: bool = False) -> BatchResult:
+    """Simulate flights ``flights`` (indices into the dataset) of ``cfg`` together.
+
+    record_nees: also the filter's NEES per GPS step (consistency checks); record_sensors:
+    also the raw IMU, VIO and (attacked) GPS streams and the initial filter state, which
+    ``estimator.replay.run_ekf`` can process on their own."""
     B = len(flights)
     dt, n_steps, spg, spv, n_gps = cfg.dt, cfg.n_steps, cfg.steps_per_gps, cfg.steps_per_vio, cfg.n_gps
     scn = batch_generators(cfg.seed, flights, Stream.SCENARIO)
@@ -88,16 +94,9 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     history = torch.zeros(B, n_gps, 6, dtype=torch.float64)
     zeros_b = torch.zeros(B, dtype=torch.float64)
     rates_est = torch.zeros(B, 3, dtype=torch.float64)
-    vio_r = torch.zeros(B, 6, dtype=torch.float64)
-    vio_nis = torch.zeros(B, dtype=torch.float64)
-    vio_nis_sum = torch.zeros(B, dtype=torch.float64)
-    vio_count = 0
     vio_pos = torch.zeros(B, 3, dtype=torch.float64)
-    # leaky integral of the position corrections applied by GPS updates (time constant
-    # CORR_TAU): how far GPS has recently pulled the estimate; a spoof the filter absorbs
-    # leaves it displaced until the spoof ends
-    corr = torch.zeros(B, 3, dtype=torch.float64)
-    corr_decay = float(np.exp(-1.0 / (cfg.gps.rate_hz * CORR_TAU)))
+    residues = ResidueTracker(B, cfg.gps.rate_hz)
+    sensors = {"ekf0": ekf, "imu": [], "vio": [], "gps": []} if record_sensors else None
     block = 100
     ref_block = None
 
@@ -118,15 +117,17 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
         rates = 0.5 * (w_prev + state["w"])
         q_mid = roma.quat_normalize(q_prev + torch.sign((q_prev * state["q"]).sum(-1, keepdim=True)) * state["q"])
         accel, gyro = imu.measure(acc, rates, roma.unitquat_to_rotmat(q_mid))
+        if sensors is not None:
+            sensors["imu"].append(torch.cat([accel, gyro], -1))
         ekf = predict(ekf, accel, gyro, dt, nm)
         rates_est = gyro - ekf.bg
 
         if (k + 1) % spv == 0:
             v_m, q_m, vio_pos = vio.measure(state["x"], state["v"], state["q"])
+            if sensors is not None:
+                sensors["vio"].append(torch.cat([v_m, q_m], -1))
             ekf, inn = vio_update(ekf, v_m, q_m, nm)
-            vio_r, vio_nis = inn.r, inn.nis
-            vio_nis_sum = vio_nis_sum + inn.nis
-            vio_count += 1
+            residues.on_vio(inn)
 
         if (k + 1) % spg == 0:
             j = (k + 1) // spg - 1
@@ -134,21 +135,17 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
             pos_h, vel_h = gps.measure(state["x"], state["v"])
             history[:, j] = torch.cat([pos_h, vel_h], -1)
             pos_g, vel_g, active, d_pos, _ = attacks.apply(t, j, pos_h, vel_h, history, cfg.gps.rate_hz)
+            if sensors is not None:
+                sensors["gps"].append(torch.cat([pos_g, vel_g], -1))
             ekf, inn = gps_update(ekf, pos_g, vel_g, nm)
-            corr = corr_decay * corr + inn.dx[:, 0:3]
             label[:, j] = active
             for name, val in (
                 ("true_pos", state["x"]), ("true_vel", state["v"]), ("est_pos", ekf.p), ("est_vel", ekf.v),
                 ("gps_pos", pos_g), ("gps_vel", vel_g), ("vio_pos", vio_pos), ("wind", w_vec),
-                ("res_gps_r", inn.r), ("res_gps_w", inn.w), ("res_gps_s", inn.s_std),
-                ("res_gps_nis", inn.nis[:, None]), ("res_gps_corr", corr),
-                ("res_vio_r", vio_r), ("res_vio_nis", vio_nis[:, None]),
-                ("res_vio_nis_mean", (vio_nis_sum / max(vio_count, 1))[:, None]),
+                *residues.on_gps(inn).items(),
             ):
                 rec[name][:, j] = val.numpy()
             rec["atk_d"][:, j] = d_pos
-            vio_nis_sum = torch.zeros_like(vio_nis_sum)
-            vio_count = 0
             if nees_rec is not None:
                 nees_rec[:, j] = nees(ekf, state["x"], state["v"], state["q"]).numpy()
             if progress is not None and (k + 1) % int(round(1.0 / dt)) == 0:
@@ -159,5 +156,12 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     out = BatchResult(rec)
     out.update(flights=np.asarray(flights), t=t_gps, label=label, ref_pos=ref_pos,
                missions=missions, wind_params=wind, attacks=attacks, nees=nees_rec)
+    if sensors is not None:
+        out["sensors"] = {
+            "ekf0": sensors["ekf0"], "noise": nm, "dt": dt,
+            "imu_t": (np.arange(n_steps) + 1) * dt, "imu": torch.stack(sensors["imu"], 1),
+            "vio_t": (np.arange(len(sensors["vio"])) + 1) * spv * dt, "vio": torch.stack(sensors["vio"], 1),
+            "gps_t": t_gps, "gps": torch.stack(sensors["gps"], 1),
+        }
     return out
 

@@ -1,0 +1,46 @@
+"""The residue generator: what the filter's updates say, per GPS step.
+
+One ``ResidueTracker`` serves the closed loop and the replay of recorded sensor streams,
+so both produce the same ``res_*`` features from the same innovations:
+
+- GPS: raw innovation, whitened innovation (L^-1 r), sqrt(diag S), NIS;
+- the leaky integral (time constant ``corr_tau``) of the position corrections GPS updates
+  applied: how far GPS has recently pulled the estimate; a spoof the filter absorbs keeps it
+  displaced until the spoof ends;
+- VIO: the latest innovation and NIS, and the mean NIS since the previous GPS step.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from quadformer.estimator.eskf import Innovation
+
+CORR_TAU = 20.0   # s
+
+
+class ResidueTracker:
+    def __init__(self, n: int, gps_rate_hz: float, corr_tau: float = CORR_TAU):
+        z = lambda *s: torch.zeros(*s, dtype=torch.float64)  # noqa: E731
+        self.corr = z(n, 3)
+        self.decay = float(np.exp(-1.0 / (gps_rate_hz * corr_tau)))
+        self.vio_r, self.vio_nis = z(n, 6), z(n)
+        self._sum, self._count = z(n), 0
+
+    def on_vio(self, inn: Innovation) -> None:
+        self.vio_r, self.vio_nis = inn.r, inn.nis
+        self._sum = self._sum + inn.nis
+        self._count += 1
+
+    def on_gps(self, inn: Innovation) -> dict[str, torch.Tensor]:
+        """Residues of this GPS step (each (n, k)); resets the VIO mean."""
+        self.corr = self.decay * self.corr + inn.dx[:, 0:3]
+        out = {
+            "res_gps_r": inn.r, "res_gps_w": inn.w, "res_gps_s": inn.s_std, "res_gps_nis": inn.nis[:, None],
+            "res_gps_corr": self.corr, "res_vio_r": self.vio_r, "res_vio_nis": self.vio_nis[:, None],
+            "res_vio_nis_mean": (self._sum / max(self._count, 1))[:, None],
+        }
+        self._sum = torch.zeros_like(self._sum)
+        self._count = 0
+        return out
