@@ -129,14 +129,14 @@ class QUADFormer(TorchCheckpoint, Detector):
         rng = np.random.default_rng(self.seed + 1)
         cls_t = torch.from_numpy(np.r_[cls, -1])         # index -1 -> padding -> ignored
         ce = nn.CrossEntropyLoss(ignore_index=-1)
-        half = self.batch_size // 4 if self.supervised else self.batch_size   # 3/4 labelled
+        n_unlab = self.batch_size // 4 if self.supervised else self.batch_size   # the rest labelled
         holdout = lab_ho if len(lab_ho) else np.zeros(0, int)
 
         def loss_fn(model, idx):
             training = model.training
             if training:   # idx indexes nothing fixed: draw a mixed batch
-                u = unl[rng.integers(len(unl), size=half)]
-                lab = lab_tr[rng.integers(len(lab_tr), size=self.batch_size - half)] if self.supervised else u[:0]
+                u = unl[rng.integers(len(unl), size=n_unlab)]
+                lab = lab_tr[rng.integers(len(lab_tr), size=self.batch_size - n_unlab)] if self.supervised else u[:0]
             else:
                 u, lab = holdout[idx - n_train_eff], holdout[idx - n_train_eff]
             rows = np.concatenate([u, lab])
