@@ -1,7 +1,6 @@
 """The contract every registered detector honours (run over all of them)."""
 
 import numpy as np
-import pandas as pd
 import pytest
 
 from quadformer.detectors import NotFittedError, available, load

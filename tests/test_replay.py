@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-import torch
 
 from quadformer.config import AttackConfig, SimConfig
 from quadformer.estimator.replay import StreamError, run_ekf

@@ -32,11 +32,6 @@ def batch_generators(seed: int, flights: np.ndarray, stream: Stream) -> list[np.
     return [flight_generator(seed, int(i), stream) for i in flights]
 
 
-def draw(gens: list[np.random.Generator], method: str, shape: tuple[int, ...], **kwargs) -> np.ndarray:
-    """Stack one draw per flight: result shape (flights, *shape)."""
-    return np.stack([getattr(g, method)(size=shape, **kwargs) for g in gens])
-
-
 def attacked_flights(seed: int, n_flights: int, fraction: float) -> np.ndarray:
     """Boolean mask of attacked flights: exactly round(fraction * n) of them.
 

@@ -30,10 +30,6 @@ class Detector:
     name: ClassVar[str] = "detector"
     #: hyper-parameter grid searched on validation flights (same rule for every method)
     param_grid: ClassVar[dict[str, list[Any]]] = {}
-    uses_labels: ClassVar[bool] = False
-
-    def __init__(self, **params: Any):
-        self._params = dict(params)
 
     # -- parameters -------------------------------------------------------------------
     def get_params(self) -> dict[str, Any]:

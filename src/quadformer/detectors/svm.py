@@ -23,7 +23,6 @@ def _window_features(w: np.ndarray) -> np.ndarray:
 
 @register("svm")
 class SVMDetector(Detector):
-    uses_labels = True
     param_grid = {"C": [1.0, 10.0]}
 
     def __init__(self, window: int = 32, C: float = 1.0, gamma: str | float = "scale",

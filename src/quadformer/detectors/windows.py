@@ -74,7 +74,6 @@ class Windows:
         self._rows = np.concatenate(rows) if rows else np.zeros(0, dtype=np.int64)
         self._start = ends - (width - 1)
         self.width = width
-        self.n_features = d
 
     def __len__(self) -> int:
         return len(self._start)

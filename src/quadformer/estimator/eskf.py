@@ -184,6 +184,3 @@ def noise_model(imu_cfg, gps_cfg, vio_cfg, ekf_cfg, imu_rate_hz: float) -> Noise
         vio_std=torch.tensor([vvel] * 3 + [vatt] * 3, dtype=torch.float64),
     )
 
-
-def with_state(s: EKFState, **kw) -> EKFState:
-    return replace(s, **kw)

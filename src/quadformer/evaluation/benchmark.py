@@ -108,19 +108,15 @@ def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray) -> dict[str, An
     first alarm of each alarm run (true type ``none`` for a false alarm)."""
     out: dict[str, Any] = {}
     if hasattr(det, "onset_times"):
+        # attack windows (start, end times) per flight, computed once
+        windows: dict[Any, list[tuple[float, float]]] = {}
+        for fid, g in test.groupby("flight_id", sort=False):
+            lab, t = g.label.to_numpy() == 1, g.t.to_numpy()
+            windows[fid] = list(zip(t[lab & ~np.r_[False, lab[:-1]]], t[lab & ~np.r_[lab[1:], False]]))
         errors = []
         for fid, t_alarm, t_onset in det.onset_times(test, alarms):
-            g = test[test.flight_id == fid]
-            lab = g.label.to_numpy() == 1
-            if not lab.any():
-                continue
-            t = g.t.to_numpy()
-            # the window this alarm run belongs to: the first labelled run starting before the alarm ends
-            starts = t[lab & ~np.r_[False, lab[:-1]]]
-            ends = t[lab & ~np.r_[lab[1:], False]]
-            for s0, e0 in zip(starts, ends):
-                if s0 <= t_alarm <= e0:
-                    errors.append(t_onset - s0)
+            # the window this alarm falls in (none: a false alarm, no onset error)
+            errors += [t_onset - s0 for s0, e0 in windows.get(fid, []) if s0 <= t_alarm <= e0]
         out["onset_error_median_s"] = float(np.median(errors)) if errors else None
         out["onset_error_p95_s"] = float(np.percentile(np.abs(errors), 95)) if errors else None
     if hasattr(det, "predict_type"):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import itertools
-import json
 import multiprocessing
 import os
 from concurrent.futures import ProcessPoolExecutor
@@ -97,19 +96,6 @@ def simulate_jobs(jobs: list[tuple[str, SimConfig, Path]], progress: bool = True
         if bar is not None:
             bar.close()
     return summaries
-
-
-def simulate_grid(base: SimConfig, out: Path, progress: bool = True, overwrite: bool = False,
-                  workers: int | None = None) -> list[dict[str, Any]]:
-    """Simulate every paper configuration with ``base``'s other settings into out/<config>/."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    jobs = [(config_name(*c), grid_config(base, *c), out / config_name(*c)) for c in PAPER_GRID]
-    summaries = simulate_jobs(jobs, progress=progress, overwrite=overwrite, workers=workers)
-    rows = [{"config": config_name(*c), "model": c[0], "noise": c[1], "attack": c[2],
-             **summaries[config_name(*c)]} for c in PAPER_GRID]
-    (out / "summary.json").write_text(json.dumps(rows, indent=2))
-    return rows
 
 
 def summary_table(rows: list[dict[str, Any]]) -> pd.DataFrame:

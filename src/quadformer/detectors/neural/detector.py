@@ -55,7 +55,6 @@ class TorchCheckpoint:
 
 
 class WindowClassifier(TorchCheckpoint, Detector):
-    uses_labels = True
     network: ClassVar[type[nn.Module]]
 
     def __init__(self, window: int = 32, epochs: int = 30, batch_size: int = 256, lr: float = 1e-3,

@@ -51,7 +51,6 @@ CLASSES = ATTACK_KINDS          # "none" first
 
 
 class QUADFormer(TorchCheckpoint, Detector):
-    uses_labels = True
     param_grid: dict[str, list[Any]] = {}
     post_grid = {"k": [1, 2, 3], "n": [3, 5]}
 
