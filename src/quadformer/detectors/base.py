@@ -40,6 +40,17 @@ class Detector:
     def set_params(self, **params: Any) -> "Detector":
         return type(self)(**{**self.get_params(), **params})
 
+    #: post-processing parameters (e.g. an alarm rule) tuned without refitting
+    post_grid: ClassVar[dict[str, list[Any]]] = {}
+
+    def with_post(self, **post: Any) -> "Detector":
+        """A shallow copy sharing the fitted state, with post-processing parameters changed."""
+        import copy
+        other = copy.copy(self)
+        for k, v in post.items():
+            setattr(other, k, v)
+        return other
+
     # -- contract ---------------------------------------------------------------------
     def fit(self, X: pd.DataFrame, y: np.ndarray | None = None) -> "Detector":
         raise NotImplementedError

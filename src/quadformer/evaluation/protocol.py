@@ -134,7 +134,7 @@ def tune(method: str, train: pd.DataFrame, y_train: np.ndarray, val: pd.DataFram
     y_val = val["label"].to_numpy()
     best: Tuned | None = None
     tried = []
-    post_grid = getattr(cls, "post_grid", {})
+    post_grid = cls.post_grid
     for point in grid_points(grid):
         fitted = make(method, **{**fixed, **point}).fit(train, y_train)
         # post-processing parameters (e.g. an alarm rule) need no refit

@@ -95,13 +95,6 @@ class QUADFormer(TorchCheckpoint, Detector):
         sig = inspect.signature(QUADFormer.__init__)
         return {k: getattr(self, k) for k in sig.parameters if k != "self"}
 
-    def with_post(self, **post: Any) -> "QUADFormer":
-        import copy
-        other = copy.copy(self)
-        for k, v in post.items():
-            setattr(other, k, v)
-        return other
-
     # -- training ---------------------------------------------------------------------------
     def fit(self, X: pd.DataFrame, y: np.ndarray | None = None) -> "QUADFormer":
         if self.k > self.n:
