@@ -50,6 +50,37 @@ def test_benchmark_writes_schema_tables_report_and_reuses_cache(dataset_dir, tmp
     html = (out / "report.html").read_text()
     assert "data:image/png;base64," in html and "point-adjusted" in html and "<table" in html
     assert (out / "figures" / "f1_by_config.png").exists()
+    alerts = pd.read_csv(out / "alerts.csv")
+    assert {"config", "method", "flight_id", "start_s", "onset_s", "attack_type", "score", "end_s"} <= set(alerts.columns)
+    assert set(alerts.method) <= {"chi2", "cusum"} and len(alerts) > 0
+    assert len(list((cache / "models").rglob("cusum-*.tuned.json"))) == 8      # tuned detectors cached
+
+
+def test_resilience_cli_flies_four_policies_and_reuses_tuned_detectors(dataset_dir, tmp_path):
+    cache = tmp_path / "cache"
+    for name, cfg in profile_configs(PROFILES["demo"]):
+        shutil.copytree(dataset_dir, cache / f"{name}-{dataset_key(cfg)}")
+    out = tmp_path / "res"
+    args = ["--profile", "demo", "--cache", str(cache), "--quiet", "--workers", "2"]
+    res = runner.invoke(app, ["benchmark", "--methods", "cusum", "--out", str(tmp_path / "bench"), *args])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["resilience", "--detector", "cusum", "--out", str(out), *args])
+    assert res.exit_code == 0, res.output
+    assert "naive" in res.output and "oracle" in res.output and "alerts.csv" in res.output
+    r = json.loads((out / "results.json").read_text())
+    assert r["policies"] == ["naive", "px4", "resilient", "oracle"] and len(r["configs"]) == 8
+    c = r["configs"][0]
+    assert c["model_from_cache"] is True                 # the benchmark's tuned CUSUM, not a new one
+    assert set(c["policies"]) == set(r["policies"])
+    for p in r["policies"]:
+        assert c["policies"][p]["attacked_flights"] + c["policies"][p]["clean_flights"] == c["test_flights"]
+    assert c["policies"]["oracle"]["wrongly_excluded_fraction"] == 0.0
+    assert c["policies"]["naive"]["excluded_during_attack"] == 0
+    traj = pd.read_parquet(out / "trajectories" / f"{c['name']}.parquet")
+    assert len(traj) == 4 * c["test_flights"] * 240
+    html = (out / "report.html").read_text()
+    assert html.count("data:image/png;base64,") >= 1 and "oracle" in html
+    assert (out / "alerts.csv").exists() and (out / "overall.csv").exists()
 
 
 def test_fit_then_evaluate_round_trip(dataset_dir, tmp_path):

@@ -223,6 +223,7 @@ def evaluate(
 
     from quadformer.detectors import load
     from quadformer.evaluation.metrics import evaluate as metrics
+    from quadformer.resilience.alerts import alerts_from_scores, write_alerts
     from quadformer.simulation.dataset import DatasetError, load_dataset
 
     try:
@@ -253,22 +254,90 @@ def evaluate(
     tmp = out / "scores.parquet.tmp"
     table.to_parquet(tmp, index=False)
     tmp.replace(out / "scores.parquet")
-    (out / "results.json").write_text(json.dumps(res, indent=2, default=float))
+    alerts = alerts_from_scores(f, s, det.threshold_, det)
+    write_alerts(alerts, out / "alerts.csv")
+    res["alerts"] = len(alerts)
+    tmp = out / "results.json.tmp"
+    tmp.write_text(json.dumps(res, indent=2, default=float))
+    tmp.replace(out / "results.json")
     if "metrics" in res:
         m = res["metrics"]
         typer.echo(f"{det.name}: P {m['precision']:.3f} R {m['recall']:.3f} F1 {m['f1']:.3f} "
                    f"event F1 {m['event_f1']:.3f}")
-    typer.echo(f"wrote {out / 'results.json'} and {out / 'scores.parquet'}")
+    _print_alerts(alerts)
+    typer.echo(f"wrote {out / 'results.json'}, {out / 'scores.parquet'} and {out / 'alerts.csv'}")
+
+
+def _print_alerts(alerts, limit: int = 10) -> None:
+    typer.echo(f"{len(alerts)} alert(s)" + (":" if alerts else ""))
+    for a in alerts[:limit]:
+        typer.echo(f"  {a}")
+    if len(alerts) > limit:
+        typer.echo(f"  ... {len(alerts) - limit} more")
+
+
+def _print_resilience(results: dict) -> None:
+    from quadformer.report.resilience import overall_table
+
+    typer.echo(f"\nResilience, detector {results['detector']}, all configurations (test flights flown again "
+               "under each policy):")
+    typer.echo(overall_table(results).to_string(index=False, float_format=lambda v: f"{v:.2f}"))
+    n = sum(c.get("alerts", 0) for c in results["configs"])
+    typer.echo(f"{n} alert(s) raised on the resilient flights (start, estimated onset, type, peak score, end) "
+               "in alerts.csv")
+
+
+@app.command()
+def resilience(
+    profile: str = typer.Option("demo", help="demo (20 flights/config), quick (60) or paper (600)."),
+    detector: str = typer.Option("quadformer", help="Registered detector driving the resilient policy."),
+    out: Path = typer.Option(Path("runs/resilience"), "--out", help="Output directory."),
+    cache: Path = typer.Option(Path("runs/cache"), help="Dataset and tuned-model cache directory."),
+    seed: int = typer.Option(0, help="Split seed (the detection benchmark's)."),
+    label_fraction: float = typer.Option(0.2, help="Share of training flights whose labels the detector may use."),
+    hold: float = typer.Option(2.0, help="Seconds clear and agreeing before GPS is re-admitted."),
+    blend: float = typer.Option(2.0, help="Seconds over which re-admitted GPS goes from inflated to nominal noise."),
+    workers: Optional[int] = typer.Option(None, help="Processes (default: one per core)."),
+    quiet: bool = typer.Option(False, help="No progress bars."),
+) -> None:
+    """Fly each configuration's test flights in closed loop under four GPS policies (naive, PX4-like,
+    resilient with DETECTOR, oracle); write results.json, alerts.csv, tables and a report."""
+    from quadformer.evaluation.benchmark import PROFILES
+    from quadformer.resilience import AdmissionConfig
+    from quadformer.resilience.run import run_resilience
+    from quadformer.simulation.dataset import set_threads
+
+    if profile not in PROFILES:
+        _fail(f"profile: unknown profile {profile!r}; choose from {', '.join(PROFILES)}")
+    if not 0.0 <= label_fraction <= 1.0:
+        _fail(f"label-fraction: must be in [0, 1], got {label_fraction}")
+    try:
+        adm = AdmissionConfig(hold_s=hold, blend_s=blend)
+    except ValueError as e:
+        _fail(str(e))
+    if "," in detector:
+        _fail(f"detector: one name, got {detector!r}")
+    _methods(detector)
+    set_threads()
+    results = run_resilience(profile, detector, out, cache, progress=not quiet, workers=workers, seed=seed,
+                             label_fraction=label_fraction, admission=adm)
+    _print_resilience(results)
+    typer.echo(f"\nresilience run took {results['timing_s']['total']:.0f} s")
+    typer.echo(f"results: {(out / 'results.json').resolve()}")
+    typer.echo(f"alerts:  {(out / 'alerts.csv').resolve()}")
+    typer.echo(f"report:  {(out / 'report.html').resolve()}")
 
 
 @app.command()
 def demo(
     out: Path = typer.Option(Path("runs/demo"), "--out", help="Output directory."),
-    cache: Path = typer.Option(Path("runs/cache"), help="Dataset cache directory."),
+    cache: Path = typer.Option(Path("runs/cache"), help="Dataset and tuned-model cache directory."),
     quiet: bool = typer.Option(False, help="No progress bars."),
 ) -> None:
-    """The demo profile end to end: simulate, residues, every detector, tables, report."""
+    """The demo profile end to end: simulate, residues, every detector, tables, report; then a
+    short resilience run (QUADFormer driving the resilient estimator, beside the other policies)."""
     from quadformer.evaluation.benchmark import PROFILES, ensure_datasets, run_benchmark
+    from quadformer.resilience.run import run_resilience
     from quadformer.simulation.dataset import load_dataset, set_threads
     from quadformer.simulation.grid import dataset_summary, summary_table
 
@@ -280,11 +349,15 @@ def demo(
     rows = [{"config": name, **dataset_summary(load_dataset(p))} for name, p in paths.items()]
     typer.echo("Datasets (GPS noise moments: velocity error on clean steps, std set to 0.1 m/s):")
     typer.echo(summary_table(rows).to_string(index=False))
-    results = run_benchmark("demo", _methods(None), out, cache, progress=not quiet)
+    results = run_benchmark("demo", _methods(None), out / "detection", cache, progress=not quiet)
     _print_tables(results)
+    res = run_resilience("demo", "quadformer", out / "resilience", cache, progress=not quiet)
+    _print_resilience(res)
     typer.echo(f"\ndemo took {time.perf_counter() - t0:.0f} s")
-    typer.echo(f"results: {(out / 'results.json').resolve()}")
-    typer.echo(f"report:  {(out / 'report.html').resolve()}  (open in a browser; works offline)")
+    typer.echo(f"detection results: {(out / 'detection' / 'results.json').resolve()}")
+    typer.echo(f"detection report:  {(out / 'detection' / 'report.html').resolve()}  (open in a browser; works offline)")
+    typer.echo(f"resilience report: {(out / 'resilience' / 'report.html').resolve()}")
+    typer.echo(f"alerts:            {(out / 'resilience' / 'alerts.csv').resolve()}")
 
 
 def main() -> None:  # pragma: no cover

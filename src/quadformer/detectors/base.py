@@ -43,6 +43,13 @@ class Detector:
     #: post-processing parameters (e.g. an alarm rule) tuned without refitting
     post_grid: ClassVar[dict[str, list[Any]]] = {}
 
+    @property
+    def context_steps(self) -> int | None:
+        """How many of a flight's latest steps the score of its latest step depends on (None:
+        the whole flight, as for recursive statistics). Online scorers keep that many."""
+        w = getattr(self, "window", None)
+        return int(w) if w is not None else None
+
     def with_post(self, **post: Any) -> "Detector":
         """A shallow copy sharing the fitted state, with post-processing parameters changed."""
         import copy

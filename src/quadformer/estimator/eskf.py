@@ -102,12 +102,13 @@ def update(s: EKFState, r: torch.Tensor, idx: torch.Tensor, std: torch.Tensor,
            mask: torch.Tensor | None = None) -> tuple[EKFState, Innovation]:
     """Kalman update with a measurement observing error states ``idx`` directly.
 
-    r: (B,m) innovation; std: (m,) measurement noise std. ``mask`` (B,) selects the flights
-    whose state is corrected; the innovation statistics are computed for all flights.
+    r: (B,m) innovation; std: (m,) measurement noise std, or (B,m) per flight (an inflated
+    noise while a sensor is re-admitted). ``mask`` (B,) selects the flights whose state is
+    corrected; the innovation statistics are computed for all flights.
     """
     B, m = r.shape
     std = std.to(torch.float64)
-    Rm = torch.diag(std**2)
+    Rm = torch.diag_embed(std**2) if std.dim() == 2 else torch.diag(std**2)
     PHt = s.P[:, :, idx]                                   # (B,15,m)
     S = PHt[:, idx, :] + Rm                                # (B,m,m)
     S = 0.5 * (S + S.transpose(1, 2))
@@ -120,7 +121,8 @@ def update(s: EKFState, r: torch.Tensor, idx: torch.Tensor, std: torch.Tensor,
     dx = matvec(K, r)                                      # (B,15)
     A = torch.eye(15, dtype=torch.float64).repeat(B, 1, 1)
     A[:, :, idx] -= K
-    P = bmm(bmm(A, s.P), A.transpose(1, 2)) + bmm(K * std**2, Kt)   # Joseph form
+    var = (std**2).unsqueeze(1) if std.dim() == 2 else std**2
+    P = bmm(bmm(A, s.P), A.transpose(1, 2)) + bmm(K * var, Kt)   # Joseph form
     P = 0.5 * (P + P.transpose(1, 2))
 
     p = s.p + dx[:, 0:3]
@@ -142,9 +144,26 @@ def _select(mask: torch.Tensor, a: EKFState, b: EKFState) -> EKFState:
                     torch.where(mask.view(-1, 1, 1), a.P, b.P))
 
 
-def gps_update(s: EKFState, pos: torch.Tensor, vel: torch.Tensor, nm: NoiseModel, mask=None):
+def gps_update(s: EKFState, pos: torch.Tensor, vel: torch.Tensor, nm: NoiseModel, mask=None,
+               std_scale: torch.Tensor | None = None):
+    """GPS position and velocity update; ``std_scale`` (B,) multiplies the measurement noise
+    std per flight."""
     r = torch.cat([pos - s.p, vel - s.v], dim=-1)
-    return update(s, r, GPS_IDX, nm.gps_std, mask)
+    std = nm.gps_std if std_scale is None else std_scale.to(torch.float64)[:, None] * nm.gps_std
+    return update(s, r, GPS_IDX, std, mask)
+
+
+def reset_to_gps(s: EKFState, pos: torch.Tensor, vel: torch.Tensor, nm: NoiseModel,
+                 mask: torch.Tensor) -> EKFState:
+    """Reset position and velocity of the flights in ``mask`` to a GPS fix (what PX4 EKF2 does
+    after GPS has been rejected for too long): states set to the fix, their covariance to the
+    GPS noise, their cross-covariances cleared."""
+    P = s.P.clone()
+    P[:, 0:6, :] = 0.0
+    P[:, :, 0:6] = 0.0
+    P[:, GPS_IDX, GPS_IDX] = nm.gps_std.to(torch.float64) ** 2
+    new = EKFState(pos.to(torch.float64), vel.to(torch.float64), s.q, s.ba, s.bg, P)
+    return _select(mask, new, s)
 
 
 def vio_update(s: EKFState, vel: torch.Tensor, q_meas: torch.Tensor, nm: NoiseModel, mask=None):

@@ -34,13 +34,24 @@ class ResidueTracker:
         self._count += 1
 
     def on_gps(self, inn: Innovation) -> dict[str, torch.Tensor]:
-        """Residues of this GPS step (each (n, k)); resets the VIO mean."""
-        self.corr = self.decay * self.corr + inn.dx[:, 0:3]
+        """Residues of this GPS step (each (n, k)); resets the VIO mean.
+
+        The correction integral includes the correction the update proposes (``inn.dx``), as
+        a filter that always fuses GPS applies it; see ``applied`` for one that does not."""
+        proposed = self.decay * self.corr + inn.dx[:, 0:3]
+        self.corr = proposed
         out = {
             "res_gps_r": inn.r, "res_gps_w": inn.w, "res_gps_s": inn.s_std, "res_gps_nis": inn.nis[:, None],
-            "res_gps_corr": self.corr, "res_vio_r": self.vio_r, "res_vio_nis": self.vio_nis[:, None],
+            "res_gps_corr": proposed, "res_vio_r": self.vio_r, "res_vio_nis": self.vio_nis[:, None],
             "res_vio_nis_mean": (self._sum / max(self._count, 1))[:, None],
         }
         self._sum = torch.zeros_like(self._sum)
         self._count = 0
         return out
+
+    def applied(self, proposed: torch.Tensor, applied: torch.Tensor) -> None:
+        """After ``on_gps``: the position correction actually applied (n, 3) replaces the
+        proposed one (n, 3) in the integral carried to later steps (resilient estimation
+        excludes or rolls back GPS corrections). Flights where they are equal are unchanged."""
+        self.corr = torch.where((proposed == applied).all(-1, keepdim=True), self.corr,
+                                self.corr - proposed + applied)

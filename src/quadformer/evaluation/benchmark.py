@@ -20,7 +20,8 @@ import pandas as pd
 
 from quadformer.config import SimConfig
 from quadformer.evaluation.metrics import evaluate
-from quadformer.evaluation.protocol import split_flights, training_labels, tune
+from quadformer.evaluation.protocol import Tuned, split_flights, training_labels, tune
+from quadformer.resilience.alerts import alerts_frame, alerts_from_scores
 from quadformer.simulation.dataset import FORMAT_VERSION, Dataset, DatasetError, load_dataset, package_versions
 from quadformer.simulation.grid import PAPER_GRID, config_name, grid_config, simulate_jobs
 
@@ -68,9 +69,52 @@ def ensure_datasets(profile: Profile, cache_dir: Path, progress: bool = True,
     return paths
 
 
+def _detectors_digest() -> str:
+    """Hash of the detector code: a tuned model cached by an older version is not reused."""
+    import quadformer.detectors as pkg
+    h = hashlib.sha256()
+    for f in sorted(Path(pkg.__file__).parent.rglob("*.py")):
+        h.update(f.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def tuned_model(method: str, train: pd.DataFrame, y_train: np.ndarray, val: pd.DataFrame, rate: float,
+                budget_per_hour: float, model_dir: Path | None) -> Tuned:
+    """``protocol.tune``, cached in ``model_dir`` (one dataset, split and label set per directory):
+    the detection and resilience benchmarks share tuned detectors instead of training twice."""
+    if model_dir is None:
+        return tune(method, train, y_train, val, gps_rate_hz=rate, budget_per_hour=budget_per_hour)
+    from quadformer.detectors import load
+    base = Path(model_dir) / f"{method}-b{budget_per_hour:g}-{_detectors_digest()}"
+    meta_path = base.with_suffix(".tuned.json")
+    if meta_path.exists():
+        try:
+            meta = json.loads(meta_path.read_text())
+            det = load(base.with_suffix(".json"))
+            return Tuned(det, meta["params"], meta["threshold"], meta["val_f1"], meta["budget_threshold"],
+                         meta["grid"], cached=True)
+        except (OSError, ValueError, KeyError):
+            pass   # unreadable cache entry: tune again and overwrite it
+    tuned = tune(method, train, y_train, val, gps_rate_hz=rate, budget_per_hour=budget_per_hour)
+    base.parent.mkdir(parents=True, exist_ok=True)
+    tuned.detector.save(base.with_suffix(".json"))
+    tmp = meta_path.with_name(meta_path.name + ".tmp")
+    tmp.write_text(json.dumps({"params": tuned.params, "threshold": tuned.threshold, "val_f1": tuned.val_f1,
+                               "budget_threshold": tuned.budget_threshold, "grid": tuned.grid}, default=float))
+    tmp.replace(meta_path)
+    return tuned
+
+
+def model_dir_for(cache_dir: Path, dataset_path: Path, seed: int, label_fraction: float) -> Path:
+    """Where tuned detectors of one dataset, split seed and label fraction are cached."""
+    return Path(cache_dir) / "models" / f"{Path(dataset_path).name}-s{seed}-l{label_fraction:g}"
+
+
 def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: float = 0.2,
-               budget_per_hour: float = 1.0) -> tuple[dict[str, Any], pd.DataFrame]:
-    """Tune and evaluate every method on one dataset. Returns (results, per-step test scores)."""
+               budget_per_hour: float = 1.0, model_dir: Path | None = None) -> tuple[dict[str, Any], pd.DataFrame]:
+    """Tune and evaluate every method on one dataset. Returns (results, per-step test scores).
+
+    model_dir: cache of tuned detectors (see ``tuned_model``); None: always tune."""
     cfg = ds.config
     rate = cfg.gps.rate_hz
     f = ds.flights
@@ -82,9 +126,10 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
     offsets = np.linalg.norm(test[["atk_d_x", "atk_d_y", "atk_d_z"]].to_numpy(), axis=1)
     scores = test[["flight_id", "t", "label"]].copy()
     out: dict[str, Any] = {}
+    alerts: list[pd.DataFrame] = []
     for m in methods:
         t0 = time.perf_counter()
-        tuned = tune(m, train, y_train, val, gps_rate_hz=rate, budget_per_hour=budget_per_hour)
+        tuned = tuned_model(m, train, y_train, val, rate, budget_per_hour, model_dir)
         t1 = time.perf_counter()
         s = tuned.detector.decision_function(test)
         t2 = time.perf_counter()
@@ -95,11 +140,12 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
         out[m] = {**res, "threshold": tuned.threshold, "params": tuned.params, "val_f1": tuned.val_f1,
                   "budget": {**at_budget, "threshold": tuned.budget_threshold,
                              "alarms_per_hour_allowed": budget_per_hour},
-                  "tune_seconds": t1 - t0, "score_seconds": t2 - t1}
+                  "tune_seconds": t1 - t0, "score_seconds": t2 - t1, "model_from_cache": tuned.cached}
         scores[f"score_{m}"] = s
         scores[f"alarm_{m}"] = (s > tuned.threshold).astype(np.int8)
+        alerts.append(alerts_frame(alerts_from_scores(test, s, tuned.threshold, tuned.detector)).assign(method=m))
     split = {"train": len(sp.train), "val": len(sp.val), "test": len(sp.test), "labelled": len(sp.labelled)}
-    return {"split": split, "methods": out}, scores
+    return {"split": split, "methods": out, "alerts": pd.concat(alerts, ignore_index=True) if alerts else None}, scores
 
 
 def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray) -> dict[str, Any]:
@@ -147,6 +193,7 @@ def run_benchmark(profile: str | Profile, methods: list[str], out: Path, cache_d
     t_sim = time.perf_counter() - t_start
     (out / "scores").mkdir(parents=True, exist_ok=True)
     configs = []
+    all_alerts: list[pd.DataFrame] = []
     items = list(zip(PAPER_GRID, paths.items()))
     iterator = items
     if progress:
@@ -155,8 +202,12 @@ def run_benchmark(profile: str | Profile, methods: list[str], out: Path, cache_d
     for (model, noise, attack), (name, path) in iterator:
         ds = load_dataset(path)
         res, scores = run_config(ds, methods, seed=seed, label_fraction=label_fraction,
-                                 budget_per_hour=budget_per_hour)
+                                 budget_per_hour=budget_per_hour,
+                                 model_dir=model_dir_for(cache_dir, path, seed, label_fraction))
         scores.to_parquet(out / "scores" / f"{name}.parquet", index=False)
+        frame = res.pop("alerts")
+        if frame is not None:
+            all_alerts.append(frame.assign(config=name))
         configs.append({"name": name, "model": model, "noise": noise, "attack": attack,
                         "dataset": str(path), "n_test_flights": res["split"]["test"], **res})
     results = {
@@ -167,6 +218,10 @@ def run_benchmark(profile: str | Profile, methods: list[str], out: Path, cache_d
         "configs": configs, "versions": package_versions(),
         "timing_s": {"simulate": t_sim, "total": time.perf_counter() - t_start},
     }
+    if all_alerts:    # every method's alerts on the test flights
+        tmp = out / "alerts.csv.tmp"
+        pd.concat(all_alerts, ignore_index=True).to_csv(tmp, index=False)
+        tmp.replace(out / "alerts.csv")
     tmp = out / "results.json.tmp"
     tmp.write_text(json.dumps(results, indent=2, default=float))
     tmp.replace(out / "results.json")

@@ -116,6 +116,7 @@ class Tuned:
     val_f1: float
     budget_threshold: float
     grid: list[dict[str, Any]] = field(default_factory=list)
+    cached: bool = False    # loaded from a model cache instead of tuned now
 
 
 def grid_points(grid: dict[str, list[Any]]) -> list[dict[str, Any]]:

@@ -4,10 +4,15 @@ At every 100 Hz step: the SE(3) controller flies on the EKF estimate, rotorpy in
 the vehicle in its wind, the IMU samples the motion and the EKF propagates. VIO updates the
 EKF at 20 Hz; at 10 Hz the GPS fix (honest, then attacked) updates it and the innovation
 statistics are recorded as residues. A spoofed fix therefore moves the real vehicle.
+
+With an ``Admission`` (resilience), each GPS step first computes the innovation for every
+flight, lets an online detector score the residues, and fuses the fix only where the
+flight's admission policy allows (possibly with inflated noise, a reset or a rollback).
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -18,7 +23,7 @@ from quadformer.attacks import sample_attacks
 from quadformer.config import SimConfig
 from quadformer.estimator.residues import ResidueTracker
 from quadformer.estimator.so3 import exp_quat
-from quadformer.estimator.eskf import gps_update, init_state, nees, noise_model, predict, vio_update
+from quadformer.estimator.eskf import gps_update, init_state, nees, noise_model, predict, reset_to_gps, vio_update
 from quadformer.missions import sample_missions
 from quadformer.plant import Plant, sample_wind
 from quadformer.plant._vehicle import DrydenWind
@@ -53,12 +58,16 @@ class BatchResult(dict):
 
 def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
                    progress: Callable[[float], None] | None = None, record_nees: bool = False,
-                   record_sensors: bool = False) -> BatchResult:
+                   record_sensors: bool = False, admission=None, scorer=None) -> BatchResult:
     """Simulate flights ``flights`` (indices into the dataset) of ``cfg`` together.
 
     record_nees: also the filter's NEES per GPS step (consistency checks); record_sensors:
     also the raw IMU, VIO and (attacked) GPS streams and the initial filter state, which
-    ``estimator.replay.run_ekf`` can process on their own."""
+    ``estimator.replay.run_ekf`` can process on their own.
+
+    admission: a ``resilience.Admission`` over the batch's flights (GPS fused per policy);
+    scorer: a ``resilience.OnlineScorer`` whose alarms drive the ``resilient`` policy. Both
+    add per-step ``admission`` records (fused, noise scale, reset, score, alarm)."""
     B = len(flights)
     dt, n_steps, spg, spv, n_gps = cfg.dt, cfg.n_steps, cfg.steps_per_gps, cfg.steps_per_vio, cfg.n_gps
     scn = batch_generators(cfg.seed, flights, Stream.SCENARIO)
@@ -99,6 +108,9 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     sensors = {"ekf0": ekf, "imu": [], "vio": [], "gps": []} if record_sensors else None
     block = 100
     ref_block = None
+    adm_rec = {k: np.zeros((B, n_gps), dtype=dt_) for k, dt_ in
+               (("fused", bool), ("std_scale", float), ("reset", bool), ("score", float), ("alarm", bool))} \
+        if admission is not None else None
 
     for k in range(n_steps):
         if k % block == 0:
@@ -137,12 +149,18 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
             pos_g, vel_g, active, d_pos, _ = attacks.apply(t, j, pos_h, vel_h, history, cfg.gps.rate_hz)
             if sensors is not None:
                 sensors["gps"].append(torch.cat([pos_g, vel_g], -1))
-            ekf, inn = gps_update(ekf, pos_g, vel_g, nm)
+            proposed, inn = gps_update(ekf, pos_g, vel_g, nm)
+            res = residues.on_gps(inn)
+            if admission is None:
+                ekf = proposed
+            else:
+                ekf = _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, torch.from_numpy(np.asarray(active)),
+                             admission, scorer, residues, adm_rec, j)
             label[:, j] = active
             for name, val in (
                 ("true_pos", state["x"]), ("true_vel", state["v"]), ("est_pos", ekf.p), ("est_vel", ekf.v),
                 ("gps_pos", pos_g), ("gps_vel", vel_g), ("vio_pos", vio_pos), ("wind", w_vec),
-                *residues.on_gps(inn).items(),
+                *res.items(),
             ):
                 rec[name][:, j] = val.numpy()
             rec["atk_d"][:, j] = d_pos
@@ -155,7 +173,7 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     ref_pos = missions.evaluate(t_gps)[0]
     out = BatchResult(rec)
     out.update(flights=np.asarray(flights), t=t_gps, label=label, ref_pos=ref_pos,
-               missions=missions, wind_params=wind, attacks=attacks, nees=nees_rec)
+               missions=missions, wind_params=wind, attacks=attacks, nees=nees_rec, admission=adm_rec)
     if sensors is not None:
         out["sensors"] = {
             "ekf0": sensors["ekf0"], "noise": nm, "dt": dt,
@@ -165,3 +183,39 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
         }
     return out
 
+
+
+def _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, attacked, admission, scorer, residues, rec, j):
+    """One GPS step under admission control: score, decide per flight, apply."""
+    B = len(attacked)
+    if scorer is not None:
+        cols = {}
+        for name, val in res.items():
+            for c, col in zip(column_names(name), val.T):
+                cols[c] = col.numpy()
+        score, alarm = scorer.update(cols)
+    else:
+        score, alarm = np.zeros(B), np.zeros(B, dtype=bool)
+    dec = admission.decide(inn.nis, inn.r / inn.s_std, torch.from_numpy(np.asarray(alarm)), attacked)
+    scaled = dec.fuse & (dec.std_scale != 1.0)
+    if bool(dec.fuse.all()) and not bool(scaled.any()):
+        new, dx = proposed, inn.dx
+    else:
+        new, inn_applied = gps_update(ekf, pos_g, vel_g, nm, mask=dec.fuse, std_scale=dec.std_scale)
+        dx = inn_applied.dx
+    applied = dx[:, 0:3]
+    if bool(dec.reset.any()):
+        jumped = reset_to_gps(new, pos_g, vel_g, nm, dec.reset)
+        applied = applied + (jumped.p - new.p)
+        new = jumped
+    if bool(dec.rollback.any()):
+        new = replace(new, p=new.p + dec.rollback)
+        applied = applied + dec.rollback
+    admission.record(applied)
+    residues.applied(inn.dx[:, 0:3], applied)
+    rec["fused"][:, j] = dec.fuse.numpy()
+    rec["std_scale"][:, j] = dec.std_scale.numpy()
+    rec["reset"][:, j] = dec.reset.numpy()
+    rec["score"][:, j] = score
+    rec["alarm"][:, j] = alarm
+    return new

@@ -113,6 +113,33 @@ class WindowClassifier(TorchCheckpoint, Detector):
                 out[idx] = self.model_(torch.from_numpy(win[idx]).to(dev)).double().cpu().numpy()
         return out
 
+    def batch_stream(self, n_flights: int) -> "WindowBatchStream":
+        return WindowBatchStream(self, n_flights)
+
+
+class WindowBatchStream:
+    """A window classifier online over n flights stepped together:
+    ``update(residues (n, features)) -> (scores (n,), alarms (n,), None)``; a ring buffer of the
+    last W normalised residues per flight (zeros before the first step, as offline)."""
+
+    def __init__(self, det: WindowClassifier, n_flights: int):
+        det._check_fitted()
+        self.det = det
+        self.buf = np.zeros((n_flights, det.window, len(det.features_)), dtype=np.float32)
+
+    def update(self, residues: np.ndarray):
+        d = self.det
+        v = np.asarray(residues, dtype=float)
+        if v.shape != self.buf.shape[::2] or not np.isfinite(v).all():
+            raise ValueError(f"residues must be {len(self.buf)} rows of {len(d.features_)} finite values "
+                             f"({', '.join(d.features_)})")
+        self.buf[:, :-1] = self.buf[:, 1:]
+        self.buf[:, -1] = d.normalizer_.transform(v)
+        with torch.no_grad():
+            score = d.model_(torch.from_numpy(self.buf).to(torch.device(d.device))).double().cpu().numpy()
+        thr = getattr(d, "threshold_", None)
+        return score, (score > thr if thr is not None else np.zeros(len(score), bool)), None
+
 @register("cnn")
 class CNNDetector(WindowClassifier):
     """1D-CNN over the causal residue window."""

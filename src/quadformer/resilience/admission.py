@@ -1,0 +1,146 @@
+"""GPS admission: which flights fuse this GPS fix, for four policies, batched over flights.
+
+At each GPS step the filter's GPS innovation is computed first (for every flight, whatever
+the policy), the detector scores the residues of this step, and the admission control
+decides, per flight, whether the fix is fused and with which noise:
+
+- ``naive``: always fused (the filter that produced the benchmark's residues).
+- ``px4``: an EKF2-like innovation gate. A fix with any component beyond ``gate_sigma``
+  (5) standard deviations of its predicted innovation is rejected; after ``reset_after_s``
+  (7 s) of consecutive rejections, position and velocity are reset to GPS. A spoofer who
+  drags slowly stays inside the gate; one who jumps is believed after the reset.
+- ``resilient``: driven by a detector. An alarm excludes GPS at once (VIO + IMU carry the
+  estimate) and rolls back the position corrections GPS made in the preceding
+  ``rollback_s``, which the filter fused while the detector was confirming the attack.
+  GPS is re-admitted only after the detector has been clear *and* the fix has agreed with
+  the VIO-propagated estimate (NIS inside the chi-square gate ``readmit_nis``) for
+  ``hold_s`` without a break: hysteresis on the way back; the k-of-n alarm rule is the
+  hysteresis on the way in. Re-admission blends: the GPS noise std is inflated by
+  ``blend_inflation`` and decays geometrically to nominal over ``blend_s``, so the estimate
+  moves to GPS over seconds instead of jumping.
+- ``oracle``: excludes exactly the fixes that are spoofed (it knows the attack window) and
+  re-admits with the same blend: the limit any detector-driven policy can reach.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.stats import chi2
+
+POLICIES = ("naive", "px4", "resilient", "oracle")
+
+FUSING, EXCLUDED, BLENDING = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class AdmissionConfig:
+    hold_s: float = 2.0            # clear and in agreement for this long before re-admission
+    readmit_nis: float = float(chi2.ppf(0.999, 6))   # agreement gate on the 6-dof GPS NIS
+    blend_s: float = 2.0           # inflation decays to nominal over this time
+    blend_inflation: float = 10.0  # initial GPS noise std factor at re-admission
+    rollback_s: float = 1.0        # GPS position corrections undone at exclusion
+    gate_sigma: float = 5.0        # px4: innovation gate per component
+    reset_after_s: float = 7.0     # px4: reset to GPS after this long rejecting
+
+    def __post_init__(self) -> None:
+        for name in ("hold_s", "blend_s", "rollback_s", "reset_after_s"):
+            if not np.isfinite(getattr(self, name)) or getattr(self, name) < 0:
+                raise ValueError(f"admission.{name} must be a finite number >= 0, got {getattr(self, name)!r}")
+        for name in ("readmit_nis", "gate_sigma"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"admission.{name} must be > 0, got {getattr(self, name)!r}")
+        if not self.blend_inflation >= 1:
+            raise ValueError(f"admission.blend_inflation must be >= 1, got {self.blend_inflation!r}")
+
+
+@dataclass
+class Decision:
+    fuse: torch.Tensor          # (B,) bool: fuse this fix
+    std_scale: torch.Tensor     # (B,) GPS noise std factor for the fused ones
+    reset: torch.Tensor         # (B,) bool: reset position/velocity to this fix (px4)
+    rollback: torch.Tensor      # (B,3) position correction to add (undo of recent GPS corrections)
+
+
+class Admission:
+    """Per-flight admission state for a batch whose flights each follow one policy.
+
+    ``policies``: (B,) names from ``POLICIES``. Call ``decide`` once per GPS step, then
+    ``record`` with the correction actually applied."""
+
+    def __init__(self, policies, gps_rate_hz: float, cfg: AdmissionConfig | None = None):
+        policies = np.asarray(policies, dtype=object)
+        unknown = sorted(set(policies) - set(POLICIES))
+        if unknown:
+            raise ValueError(f"unknown admission policy {unknown[0]!r}; known: {', '.join(POLICIES)}")
+        self.cfg = cfg or AdmissionConfig()
+        self.dt = 1.0 / gps_rate_hz
+        self.policies = policies
+        self.is_ = {p: torch.from_numpy(policies == p) for p in POLICIES}
+        B = len(policies)
+        self.state = torch.full((B,), FUSING, dtype=torch.int64)
+        self.clear_time = torch.zeros(B, dtype=torch.float64)     # resilient: clear + agreeing
+        self.blend_time = torch.zeros(B, dtype=torch.float64)
+        self.reject_time = torch.zeros(B, dtype=torch.float64)    # px4: consecutive rejections
+        n_roll = max(1, int(round(self.cfg.rollback_s * gps_rate_hz)))
+        self.recent = torch.zeros(B, n_roll, 3, dtype=torch.float64)   # last applied position corrections
+
+    def decide(self, nis: torch.Tensor, w_component: torch.Tensor, alarm: torch.Tensor,
+               attacked: torch.Tensor) -> Decision:
+        """nis (B,): 6-dof GPS NIS; w_component (B,6): innovation / its predicted std;
+        alarm (B,) bool: the detector's alarm at this step; attacked (B,) bool: this fix is
+        spoofed (used by the oracle only)."""
+        c = self.cfg
+        B = len(self.state)
+        alarm = alarm.to(torch.bool)
+        attacked = attacked.to(torch.bool)
+        fuse = torch.ones(B, dtype=torch.bool)
+        scale = torch.ones(B, dtype=torch.float64)
+        reset = torch.zeros(B, dtype=torch.bool)
+        rollback = torch.zeros(B, 3, dtype=torch.float64)
+
+        # px4: gate, and reset after too long rejecting
+        px4 = self.is_["px4"]
+        reject = (w_component.abs() > c.gate_sigma).any(-1)
+        self.reject_time = torch.where(px4 & reject, self.reject_time + self.dt, torch.zeros_like(self.reject_time))
+        do_reset = px4 & (self.reject_time >= c.reset_after_s - 1e-9)
+        reset |= do_reset
+        self.reject_time = torch.where(do_reset, torch.zeros_like(self.reject_time), self.reject_time)
+        fuse = torch.where(px4, ~reject | do_reset, fuse)
+
+        # resilient and oracle: the same state machine, different triggers
+        res, orc = self.is_["resilient"], self.is_["oracle"]
+        detector_bad = torch.where(orc, attacked, alarm)
+        managed = res | orc
+        st = self.state
+        enter = managed & (st != EXCLUDED) & detector_bad
+        rollback = torch.where((enter & res)[:, None], -self.recent.sum(1), rollback)
+        self.recent = torch.where(enter[:, None, None], torch.zeros_like(self.recent), self.recent)
+        st = torch.where(enter, torch.full_like(st, EXCLUDED), st)
+        self.clear_time = torch.where(enter, torch.zeros_like(self.clear_time), self.clear_time)
+        # excluded: count time clear (oracle: not attacked) and, for the detector, agreeing
+        agree = torch.where(orc, torch.ones_like(detector_bad), nis <= c.readmit_nis)
+        ok = ~detector_bad & agree
+        excl = managed & (st == EXCLUDED) & ~enter
+        self.clear_time = torch.where(excl & ok, self.clear_time + self.dt,
+                                      torch.where(excl, torch.zeros_like(self.clear_time), self.clear_time))
+        hold = torch.where(orc, torch.zeros_like(self.clear_time), torch.full_like(self.clear_time, c.hold_s))
+        readmit = excl & ok & (self.clear_time >= hold - 1e-9)
+        st = torch.where(readmit, torch.full_like(st, BLENDING), st)
+        self.blend_time = torch.where(readmit, torch.zeros_like(self.blend_time), self.blend_time)
+        blending = managed & (st == BLENDING)
+        if c.blend_s > 0:
+            frac = (self.blend_time / c.blend_s).clamp(max=1.0)
+            scale = torch.where(blending, c.blend_inflation ** (1.0 - frac), scale)
+        done = blending & (self.blend_time + self.dt >= c.blend_s - 1e-9)
+        self.blend_time = torch.where(blending, self.blend_time + self.dt, self.blend_time)
+        st = torch.where(done, torch.full_like(st, FUSING), st)
+        self.state = st
+        fuse = torch.where(managed, st != EXCLUDED, fuse)
+        return Decision(fuse, scale, reset, rollback)
+
+    def record(self, applied_dpos: torch.Tensor) -> None:
+        """The position correction this GPS step applied per flight (zero where not fused)."""
+        self.recent = torch.cat([self.recent[:, 1:], applied_dpos[:, None].to(torch.float64)], 1)

@@ -1,0 +1,78 @@
+"""Alert events: a detector's alarm runs, as an operator or an autopilot would see them.
+
+One alert per run of consecutive alarmed steps of a flight: when it was raised, the
+estimated onset of the attack (from the detector's onset criterion where it has one, else
+the alarm time), the attack type it predicts (where it classifies, else ``attack``), the
+peak score during the run and when the run ended (``None`` while still alarmed at the end
+of the data).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from quadformer.detectors.base import flight_slices
+
+ALERT_COLUMNS = ["flight_id", "start_s", "onset_s", "attack_type", "score", "end_s"]
+
+
+@dataclass(frozen=True)
+class Alert:
+    flight_id: Any
+    start_s: float           # time of the first alarmed step
+    onset_s: float           # estimated attack onset (<= start_s)
+    attack_type: str
+    score: float             # peak score during the alarm run
+    end_s: float | None      # time of the first step after the run (None: still alarmed)
+
+    def __str__(self) -> str:
+        end = f"{self.end_s:.1f} s" if self.end_s is not None else "open"
+        return (f"flight {self.flight_id}: {self.attack_type} alert at {self.start_s:.1f} s "
+                f"(onset ~{self.onset_s:.1f} s, until {end}, peak score {self.score:.3g})")
+
+
+def alerts_from_scores(X: pd.DataFrame, scores: np.ndarray, threshold: float, detector=None) -> list[Alert]:
+    """Alerts of the flights in X (rows grouped by ``flight_id``, time ``t``) for per-step
+    ``scores`` and an alarm ``threshold``."""
+    scores = np.asarray(scores, dtype=float)
+    if len(scores) != len(X):
+        raise ValueError(f"{len(scores)} scores for {len(X)} rows")
+    alarms = scores > threshold
+    onsets: dict[tuple[Any, float], float] = {}
+    if detector is not None and hasattr(detector, "onset_times"):
+        onsets = {(fid, ta): to for fid, ta, to in detector.onset_times(X, alarms)}
+    types = detector.predict_type(X) if detector is not None and hasattr(detector, "predict_type") else None
+    t = X["t"].to_numpy(dtype=float)
+    out = []
+    for fid, idx in flight_slices(X):
+        a = alarms[idx]
+        starts = np.nonzero(a & ~np.r_[False, a[:-1]])[0]
+        ends = np.nonzero(a & ~np.r_[a[1:], False])[0]
+        for s, e in zip(starts, ends):
+            t0 = float(t[idx[s]])
+            out.append(Alert(
+                flight_id=fid.item() if hasattr(fid, "item") else fid, start_s=t0,
+                onset_s=float(onsets.get((fid, t0), t0)),
+                attack_type=str(types[idx[s]]) if types is not None else "attack",
+                score=float(scores[idx[s:e + 1]].max()),
+                end_s=float(t[idx[e + 1]]) if e + 1 < len(idx) else None))
+    return out
+
+
+def alerts_frame(alerts: list[Alert]) -> pd.DataFrame:
+    return pd.DataFrame([asdict(a) for a in alerts], columns=ALERT_COLUMNS)
+
+
+def write_alerts(alerts: list[Alert], path: Path) -> Path:
+    """CSV of alerts, written to a temporary sibling and moved into place."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    alerts_frame(alerts).to_csv(tmp, index=False)
+    tmp.replace(path)
+    return path
