@@ -106,6 +106,7 @@ def test_fit_then_evaluate_round_trip(dataset_dir, tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["benchmark", "--profile", "huge"], "profile: unknown profile 'huge'"),
     (["benchmark", "--methods", "chi2,nope"], "unknown detector 'nope'"),
+    (["resilience", "--threshold", "x"], "threshold: unknown choice"),
     (["fit", "--method", "cusum", "--data", "/nonexistent", "--out", "m.json"], "no such dataset"),
     (["evaluate", "--model", "/nonexistent.json", "--data", ".", "--out", "x"], "no such model file"),
 ])

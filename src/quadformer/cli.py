@@ -297,6 +297,8 @@ def resilience(
     label_fraction: float = typer.Option(0.2, help="Share of training flights whose labels the detector may use."),
     hold: float = typer.Option(2.0, help="Seconds clear and agreeing before GPS is re-admitted."),
     blend: float = typer.Option(2.0, help="Seconds over which re-admitted GPS goes from inflated to nominal noise."),
+    threshold: str = typer.Option("f1", help="Alarm threshold chosen on validation flights: f1 (max F1) or budget "
+                                  "(1 alarm per flight-hour on clean flights)."),
     workers: Optional[int] = typer.Option(None, help="Processes (default: one per core)."),
     quiet: bool = typer.Option(False, help="No progress bars."),
 ) -> None:
@@ -317,10 +319,12 @@ def resilience(
         _fail(str(e))
     if "," in detector:
         _fail(f"detector: one name, got {detector!r}")
+    if threshold not in ("f1", "budget"):
+        _fail(f"threshold: unknown choice {threshold!r}; choose from f1, budget")
     _methods(detector)
     set_threads()
     results = run_resilience(profile, detector, out, cache, progress=not quiet, workers=workers, seed=seed,
-                             label_fraction=label_fraction, admission=adm)
+                             label_fraction=label_fraction, admission=adm, threshold=threshold)
     _print_resilience(results)
     typer.echo(f"\nresilience run took {results['timing_s']['total']:.0f} s")
     typer.echo(f"results: {(out / 'results.json').resolve()}")

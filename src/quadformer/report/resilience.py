@@ -73,6 +73,10 @@ def _trajectory_figure(traj: pd.DataFrame, flight: int, policies: list[str], tit
     fig, axes = plt.subplots(1, len(policies), figsize=(4 * len(policies), 4))
     for ax, p in zip(np.atleast_1d(axes), policies):
         g = traj[(traj.policy == p) & (traj.flight_id == flight)]
+        lab = g.label.to_numpy() == 1
+        if lab.any():   # the attack window, from 5 s before to 15 s after
+            t = g.t.to_numpy()
+            g = g[(t >= t[lab][0] - 5.0) & (t <= t[lab][-1] + 15.0)]
         att = g.label.to_numpy() == 1
         ax.plot(g.ref_pos_x, g.ref_pos_y, color="0.6", lw=2, label="mission")
         ax.plot(g.true_pos_x, g.true_pos_y, color="C0", lw=1.2, label="true")
@@ -102,7 +106,7 @@ def write_resilience_report(results: dict[str, Any], out: Path) -> Path:
     _write(out / "overall.csv", overall.to_csv(index=False))
     (out / "figures").mkdir(exist_ok=True)
     parts = [f"<h1>quadformer resilience: profile {html.escape(results['profile'])}, detector "
-             f"{html.escape(results['detector'])}</h1>",
+             f"{html.escape(results['detector'])} (threshold: {html.escape(results.get('threshold_rule', 'f1'))})</h1>",
              f"<p>{html.escape(results['protocol'])}. Policies: naive (always fuse GPS), px4 (5-sigma "
              "innovation gate, reset to GPS after 7 s of rejections), resilient (exclude GPS on the detector's "
              "alarm, re-admit after it has been clear and GPS has agreed with the estimate for the hold time, "
@@ -122,7 +126,8 @@ def write_resilience_report(results: dict[str, Any], out: Path) -> Path:
         worst = max(naive, key=lambda r: r["max_dev_m"])["flight_id"]   # the attack that hurt most
         traj = pd.read_parquet(path)
         fig = _trajectory_figure(traj, worst, results["policies"],
-                                 f"{c['name']}: test flight {worst} (attack that moved the naive vehicle most)")
+                                 f"{c['name']}: test flight {worst} (attack that moved the naive vehicle most), "
+                                 "from 5 s before the attack to 15 s after")
         fig.savefig(out / "figures" / f"trajectory_{c['name']}.png", dpi=110, bbox_inches="tight")
         b64 = _png(fig)
         plt.close(fig)

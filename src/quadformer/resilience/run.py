@@ -38,6 +38,8 @@ from quadformer.simulation.closed_loop import RECORDS, column_names, simulate_ba
 from quadformer.simulation.dataset import load_dataset, package_versions
 from quadformer.simulation.grid import PAPER_GRID
 
+THRESHOLDS = ("f1", "budget")
+
 
 def flight_metrics(t: np.ndarray, label: np.ndarray, true_pos: np.ndarray, est_pos: np.ndarray,
                    ref_pos: np.ndarray, fused: np.ndarray) -> dict[str, Any]:
@@ -93,11 +95,17 @@ def summarize_policy(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 def run_config(ds, detector: str, seed: int = 0, label_fraction: float = 0.2,
                policies: tuple[str, ...] = POLICIES, admission: AdmissionConfig | None = None,
-               max_flights: int | None = None, model_dir: Path | None = None,
+               max_flights: int | None = None, model_dir: Path | None = None, threshold: str = "f1",
                ) -> tuple[dict[str, Any], pd.DataFrame, pd.DataFrame]:
     """Tune ``detector`` on the dataset's train/validation flights (or load it from
     ``model_dir``, the detection benchmark's cache) and fly its test flights under every
-    policy. Returns (results, per-step trajectories, alerts of the resilient policy)."""
+    policy. Returns (results, per-step trajectories, alerts of the resilient policy).
+
+    threshold: the detector's alarm threshold, both chosen on validation flights: ``f1``
+    maximises validation F1 (the detection benchmark's), ``budget`` allows one alarm per
+    flight-hour on clean validation flights (fewer wrongful exclusions, later detections)."""
+    if threshold not in THRESHOLDS:
+        raise ValueError(f"threshold: unknown choice {threshold!r}; choose from {', '.join(THRESHOLDS)}")
     cfg = ds.config
     f = ds.flights
     sp = split_flights(ds.scenarios, seed, label_fraction=label_fraction)
@@ -107,6 +115,7 @@ def run_config(ds, detector: str, seed: int = 0, label_fraction: float = 0.2,
     tuned = tuned_model(detector, train, training_labels(train, sp.labelled), val, cfg.gps.rate_hz, 1.0, model_dir)
     t_tune = time.perf_counter() - t0
     det = tuned.detector
+    thr = tuned.threshold if threshold == "f1" else tuned.budget_threshold
     test = np.sort(np.asarray(sp.test))
     if max_flights is not None:
         test = test[:max_flights]
@@ -115,7 +124,7 @@ def run_config(ds, detector: str, seed: int = 0, label_fraction: float = 0.2,
     flights = np.tile(test, P)
     pol = np.repeat(np.array(policies, dtype=object), len(test))
     adm = Admission(pol, cfg.gps.rate_hz, admission)
-    scorer = OnlineScorer(det, len(flights), tuned.threshold)
+    scorer = OnlineScorer(det, len(flights), thr)
     t0 = time.perf_counter()
     r = simulate_batch(cfg, flights, np.tile(attacked, P), admission=adm, scorer=scorer)
     t_fly = time.perf_counter() - t0
@@ -128,7 +137,8 @@ def run_config(ds, detector: str, seed: int = 0, label_fraction: float = 0.2,
         rows_by_policy[pol[b]].append(m)
         per_flight.append({"policy": pol[b], "flight_id": int(flights[b]), **m})
     results = {
-        "detector": detector, "threshold": tuned.threshold, "params": tuned.params, "val_f1": tuned.val_f1,
+        "detector": detector, "threshold": thr, "threshold_rule": threshold, "params": tuned.params,
+        "val_f1": tuned.val_f1,
         "test_flights": len(test), "tune_seconds": t_tune, "model_from_cache": tuned.cached, "fly_seconds": t_fly,
         "policies": {p: summarize_policy(rows_by_policy[p]) for p in policies},
         "flights": per_flight,
@@ -150,28 +160,30 @@ def run_config(ds, detector: str, seed: int = 0, label_fraction: float = 0.2,
         cols = {c: r[k][sel][..., i].reshape(-1) for k in RECORDS if k.startswith("res_")
                 for i, c in enumerate(column_names(k))}
         X = pd.DataFrame({"flight_id": np.repeat(flights[sel], n), "t": np.tile(t, len(sel)), **cols})
-        alerts = alerts_frame(alerts_from_scores(X, r["admission"]["score"][sel].reshape(-1), tuned.threshold, det))
+        alerts = alerts_frame(alerts_from_scores(X, r["admission"]["score"][sel].reshape(-1), thr, det))
         results["alerts"] = int(len(alerts))
     return results, traj, alerts
 
 
 def _one(args) -> tuple[dict[str, Any], pd.DataFrame, pd.DataFrame]:
-    path, detector, seed, label_fraction, policies, admission, max_flights, threads, model_dir = args
+    path, detector, seed, label_fraction, policies, admission, max_flights, threads, model_dir, threshold = args
     from quadformer.simulation.dataset import set_threads
     set_threads(threads)
     return run_config(load_dataset(path), detector, seed, label_fraction, policies, admission, max_flights,
-                      model_dir)
+                      model_dir, threshold)
 
 
 def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: Path, progress: bool = True,
                    workers: int | None = None, seed: int = 0, label_fraction: float = 0.2,
                    policies: tuple[str, ...] = POLICIES, admission: AdmissionConfig | None = None,
-                   max_flights: int | None = None) -> dict[str, Any]:
+                   max_flights: int | None = None, threshold: str = "f1") -> dict[str, Any]:
     from quadformer.detectors import get
     from quadformer.report.resilience import write_resilience_report
 
     prof = PROFILES[profile] if isinstance(profile, str) else profile
     get(detector)    # unknown names fail before any work
+    if threshold not in THRESHOLDS:
+        raise ValueError(f"threshold: unknown choice {threshold!r}; choose from {', '.join(THRESHOLDS)}")
     out = Path(out)
     t_start = time.perf_counter()
     paths = ensure_datasets(prof, cache_dir, progress=progress, workers=workers)
@@ -180,7 +192,7 @@ def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: 
     workers = workers or min(len(paths), os.cpu_count() or 1)
     threads = max(1, (os.cpu_count() or 1) // workers)
     jobs = [(p, detector, seed, label_fraction, tuple(policies), admission, max_flights, threads,
-             model_dir_for(cache_dir, p, seed, label_fraction)) for p in paths.values()]
+             model_dir_for(cache_dir, p, seed, label_fraction), threshold) for p in paths.values()]
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -215,7 +227,8 @@ def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: 
     tmp.replace(out / "alerts.csv")
     results = {
         "profile": prof.name, "flights_per_config": prof.flights, "duration_s": prof.duration,
-        "detector": detector, "seed": seed, "label_fraction": label_fraction, "policies": list(policies),
+        "detector": detector, "threshold_rule": threshold, "seed": seed, "label_fraction": label_fraction,
+        "policies": list(policies),
         "admission": vars(admission or AdmissionConfig()),
         "protocol": "detector tuned on train/validation flights as in the detection benchmark; test flights "
                     "flown again in closed loop under each policy (same missions, wind, noise and attacks)",
