@@ -33,7 +33,7 @@ def _drive(policy, alarm, nis=None, w=None, attacked=None, cfg=None, corrections
         out["reset"].append(bool(d.reset[0]))
         out["rollback"].append(d.rollback[0].numpy())
         dpos = corrections[k] if corrections is not None and d.fuse[0] else np.zeros(3)
-        adm.record(torch.tensor(dpos)[None] + d.rollback)
+        adm.record(torch.tensor(dpos)[None])
     return {k: np.array(v) for k, v in out.items()}
 
 

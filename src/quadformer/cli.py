@@ -281,7 +281,7 @@ def _print_resilience(results: dict) -> None:
 
     typer.echo(f"\nResilience, detector {results['detector']}, all configurations (test flights flown again "
                "under each policy):")
-    typer.echo(overall_table(results).to_string(index=False, float_format=lambda v: f"{v:.2f}"))
+    typer.echo(overall_table(results).to_string(index=False, na_rep="-", float_format=lambda v: f"{v:.2f}"))
     n = sum(c.get("alerts", 0) for c in results["configs"])
     typer.echo(f"{n} alert(s) raised on the resilient flights (start, estimated onset, type, peak score, end) "
                "in alerts.csv")

@@ -208,10 +208,10 @@ def _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, attacked, admission, score
         jumped = reset_to_gps(new, pos_g, vel_g, nm, dec.reset)
         applied = applied + (jumped.p - new.p)
         new = jumped
+    admission.record(applied)          # what GPS did to the estimate (a later rollback undoes it)
     if bool(dec.rollback.any()):
         new = replace(new, p=new.p + dec.rollback)
         applied = applied + dec.rollback
-    admission.record(applied)
     residues.applied(inn.dx[:, 0:3], applied)
     rec["fused"][:, j] = dec.fuse.numpy()
     rec["std_scale"][:, j] = dec.std_scale.numpy()
