@@ -107,6 +107,7 @@ def test_fit_then_evaluate_round_trip(dataset_dir, tmp_path):
     (["benchmark", "--profile", "huge"], "profile: unknown profile 'huge'"),
     (["benchmark", "--methods", "chi2,nope"], "unknown detector 'nope'"),
     (["resilience", "--threshold", "x"], "threshold: unknown choice"),
+    (["resilience", "--max-flights", "0"], "max-flights: must be at least 1"),
     (["fit", "--method", "cusum", "--data", "/nonexistent", "--out", "m.json"], "no such dataset"),
     (["evaluate", "--model", "/nonexistent.json", "--data", ".", "--out", "x"], "no such model file"),
 ])

@@ -299,6 +299,8 @@ def resilience(
     blend: float = typer.Option(2.0, help="Seconds over which re-admitted GPS goes from inflated to nominal noise."),
     threshold: str = typer.Option("f1", help="Alarm threshold chosen on validation flights: f1 (max F1) or budget "
                                   "(1 alarm per flight-hour on clean flights)."),
+    max_flights: Optional[int] = typer.Option(None, help="Fly only the first N test flights of each configuration "
+                                              "(by flight index; default: all)."),
     workers: Optional[int] = typer.Option(None, help="Processes (default: one per core)."),
     quiet: bool = typer.Option(False, help="No progress bars."),
 ) -> None:
@@ -321,10 +323,13 @@ def resilience(
         _fail(f"detector: one name, got {detector!r}")
     if threshold not in ("f1", "budget"):
         _fail(f"threshold: unknown choice {threshold!r}; choose from f1, budget")
+    if max_flights is not None and max_flights < 1:
+        _fail(f"max-flights: must be at least 1, got {max_flights}")
     _methods(detector)
     set_threads()
     results = run_resilience(profile, detector, out, cache, progress=not quiet, workers=workers, seed=seed,
-                             label_fraction=label_fraction, admission=adm, threshold=threshold)
+                             label_fraction=label_fraction, admission=adm, threshold=threshold,
+                             max_flights=max_flights)
     _print_resilience(results)
     typer.echo(f"\nresilience run took {results['timing_s']['total']:.0f} s")
     typer.echo(f"results: {(out / 'results.json').resolve()}")

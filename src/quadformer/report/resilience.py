@@ -107,7 +107,10 @@ def write_resilience_report(results: dict[str, Any], out: Path) -> Path:
     (out / "figures").mkdir(exist_ok=True)
     parts = [f"<h1>quadformer resilience: profile {html.escape(results['profile'])}, detector "
              f"{html.escape(results['detector'])} (threshold: {html.escape(results.get('threshold_rule', 'f1'))})</h1>",
-             f"<p>{html.escape(results['protocol'])}. Policies: naive (always fuse GPS), px4 (5-sigma "
+             f"<p>{html.escape(results['protocol'])}"
+             + (f" (the first {results['max_test_flights']} test flights of each configuration)"
+                if results.get("max_test_flights") else "")
+             + ". Policies: naive (always fuse GPS), px4 (5-sigma "
              "innovation gate, reset to GPS after 7 s of rejections), resilient (exclude GPS on the detector's "
              "alarm, re-admit after it has been clear and GPS has agreed with the estimate for the hold time, "
              "blended), oracle (excludes exactly the spoofed fixes). Deviations are of the true vehicle from "

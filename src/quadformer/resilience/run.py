@@ -227,7 +227,8 @@ def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: 
     tmp.replace(out / "alerts.csv")
     results = {
         "profile": prof.name, "flights_per_config": prof.flights, "duration_s": prof.duration,
-        "detector": detector, "threshold_rule": threshold, "seed": seed, "label_fraction": label_fraction,
+        "detector": detector, "threshold_rule": threshold, "max_test_flights": max_flights, "seed": seed,
+        "label_fraction": label_fraction,
         "policies": list(policies),
         "admission": vars(admission or AdmissionConfig()),
         "protocol": "detector tuned on train/validation flights as in the detection benchmark; test flights "
