@@ -8,6 +8,7 @@ test flights are scored once.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import time
@@ -69,6 +70,7 @@ def ensure_datasets(profile: Profile, cache_dir: Path, progress: bool = True,
     return paths
 
 
+@functools.lru_cache(maxsize=1)
 def _detectors_digest() -> str:
     """Hash of the detector code: a tuned model cached by an older version is not reused."""
     import quadformer.detectors as pkg
