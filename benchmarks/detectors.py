@@ -4,8 +4,8 @@ For each method: fit on the training flights of a simulated dataset (Model II, l
 bias), then
 - offline: GPS steps scored per second by ``decision_function`` on all flights (and the
   seconds to score one flight-hour, 36,000 steps);
-- online: latency of one ``stream().update(...)`` call per GPS step (window classifiers:
-  ``batch_stream(1)``), p50 and p99, one thread.
+- online: latency of one ``stream(1).update(...)`` call per GPS step, p50 and p99, one
+  thread.
 The last line printed is one JSON object.
 
     python benchmarks/detectors.py [--methods chi2,cusum,sprt,bht,quadformer] [--flights 40]
@@ -30,9 +30,9 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
 
+    from quadformer import load_dataset, simulate
     from quadformer.config import AttackConfig, SimConfig
     from quadformer.detectors import available, make
-    from quadformer.simulation import load_dataset, simulate
 
     if args.data:
         ds = load_dataset(args.data)
@@ -57,25 +57,16 @@ def main() -> None:
         steps_per_s = len(f) / min(reps)
         flight = f[f.flight_id == ids[-1]]
         lat = []
-        feats = getattr(det, "features_", None)
-        if hasattr(det, "stream"):
-            stream = det.stream()
-            # learned detectors take the residue vector, the classical ones the NIS
-            values = flight[feats].to_numpy() if feats else flight.res_gps_nis.to_numpy()
-            update = stream.update
-        elif hasattr(det, "batch_stream"):     # window classifiers: a batch of one flight
-            values = flight[feats].to_numpy()[:, None]
-            update = det.batch_stream(1).update
-        if hasattr(det, "stream") or hasattr(det, "batch_stream"):
-            for v in np.concatenate([values] * 3):
-                t0 = time.perf_counter_ns()
-                update(v)
-                lat.append(time.perf_counter_ns() - t0)
+        stream = det.stream(1)
+        for v in np.concatenate([flight[det.features_].to_numpy()] * 3):
+            t0 = time.perf_counter_ns()
+            stream.update(v)
+            lat.append(time.perf_counter_ns() - t0)
         lat_us = np.array(lat) / 1e3
         r = {"method": m, "fit_s": round(t_fit, 2), "offline_steps_per_s": round(steps_per_s),
              "seconds_per_flight_hour": round(36000 / steps_per_s, 3),
-             "online_p50_us": round(float(np.percentile(lat_us, 50)), 2) if lat else None,
-             "online_p99_us": round(float(np.percentile(lat_us, 99)), 2) if lat else None}
+             "online_p50_us": round(float(np.percentile(lat_us, 50)), 2),
+             "online_p99_us": round(float(np.percentile(lat_us, 99)), 2)}
         print(f"{m}: {r['offline_steps_per_s']} steps/s offline, online p50 {r['online_p50_us']} us, "
               f"p99 {r['online_p99_us']} us", flush=True)
         out.append(r)

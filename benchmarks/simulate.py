@@ -20,7 +20,9 @@ import time
 
 def child(batch: int, duration: float) -> dict:
     from quadformer.config import AttackConfig, SimConfig
-    from quadformer.simulation.dataset import set_threads, simulate, write_dataset
+    from quadformer.dataset import write_dataset
+    from quadformer.io import set_threads
+    from quadformer.simulation import simulate
 
     set_threads()
     cfg = SimConfig(model="II", noise="laplace", flights=batch, batch_size=batch, duration=duration,

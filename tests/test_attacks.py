@@ -72,6 +72,46 @@ def test_replay_freeze_and_intermittent():
     assert on == [True, True, False, False]
 
 
+def test_sinusoid_offset_and_its_consistent_velocity():
+    a = _batch(AttackConfig(kind="sinusoid", onset=(10.0, 10.0), duration=(20.0, 20.0)), B=50)
+    assert np.all((a.magnitude >= 1.5) & (a.magnitude <= 6.0))
+    assert np.all((a.frequency >= 0.05) & (a.frequency <= 0.5))
+    zero = torch.zeros(50, 3, dtype=torch.float64)
+    hist = torch.zeros(50, 600, 6, dtype=torch.float64)
+    w = 2 * np.pi * a.frequency
+    for t in (9.95, 10.0, 12.3, 17.75, 29.9, 30.0):
+        p, v, lab, d, dv = a.apply(t, int(round(t * 10)) - 1, zero, zero, hist, 10.0)
+        inside = 10.0 <= t < 30.0
+        assert np.all(lab == inside)
+        tau = t - 10.0
+        want = (a.magnitude * np.sin(w * tau))[:, None] * a.direction if inside else np.zeros((50, 3))
+        want_v = (a.magnitude * w * np.cos(w * tau))[:, None] * a.direction if inside else np.zeros((50, 3))
+        np.testing.assert_allclose(p.numpy(), want, atol=1e-12)
+        np.testing.assert_allclose(v.numpy(), want_v, atol=1e-12)
+    # the velocity offset is the time derivative of the position offset (central difference)
+    h = 1e-4
+    d1 = a.apply(15.0 + h, 150, zero, zero, hist, 10.0)[3]
+    d0 = a.apply(15.0 - h, 150, zero, zero, hist, 10.0)[3]
+    np.testing.assert_allclose((d1 - d0) / (2 * h), a.apply(15.0, 150, zero, zero, hist, 10.0)[4], atol=1e-6)
+
+
+def test_intermittent_bias_is_on_the_first_half_of_each_period():
+    a = _batch(AttackConfig(kind="intermittent", onset=(10.0, 10.0), duration=(20.0, 20.0)), B=20)
+    assert np.all((a.period >= 2.0) & (a.period <= 6.0))
+    zero = torch.zeros(20, 3, dtype=torch.float64)
+    hist = torch.zeros(20, 600, 6, dtype=torch.float64)
+    for t in np.arange(9.0, 31.0, 0.1):
+        p, v, lab, d, dv = a.apply(t, int(round(t * 10)) - 1, zero, zero, hist, 10.0)
+        on = (10.0 <= t < 30.0) & (np.mod(t - 10.0, a.period) < a.period / 2)
+        assert np.array_equal(lab, on), t
+        np.testing.assert_allclose(d, np.where(on[:, None], a.magnitude[:, None] * a.direction, 0.0), atol=1e-12)
+        assert np.all(dv == 0.0)
+    # over the window each flight is on about half of the time
+    ts = np.arange(10.0, 30.0, 0.1)
+    share = np.mean([a.apply(t, 0, zero, zero, hist, 10.0)[2] for t in ts], axis=0)
+    assert np.all(np.abs(share - 0.5) < 0.16)
+
+
 def test_attacked_fraction_is_exact_and_seeded():
     m = attacked_flights(7, 20, 0.5)
     assert m.sum() == 10

@@ -10,8 +10,9 @@ from typer.testing import CliRunner
 
 from quadformer.cli import app
 from quadformer.detectors import load
-from quadformer.evaluation.benchmark import PROFILES, dataset_key, profile_configs
-from quadformer.simulation import write_dataset
+from quadformer.dataset import write_dataset
+from quadformer.experiments.cache import dataset_key
+from quadformer.experiments.grid import PROFILES, profile_configs
 
 runner = CliRunner()
 
@@ -100,7 +101,7 @@ def test_fit_then_evaluate_round_trip(dataset_dir, tmp_path):
     res = runner.invoke(app, ["evaluate", "--model", str(model), "--data", str(dataset_dir),
                               "--out", str(tmp_path / "e2"), "--test-only"])
     assert res.exit_code == 0
-    assert pd.read_parquet(tmp_path / "e2" / "scores.parquet").flight_id.nunique() == len(det.test_flights_)
+    assert pd.read_parquet(tmp_path / "e2" / "scores.parquet").flight_id.nunique() == len(det.calibration_["test_flights"])
 
 
 @pytest.mark.parametrize("args, message", [

@@ -9,7 +9,8 @@ from typer.testing import CliRunner
 
 from quadformer.cli import app
 from quadformer.config import AttackConfig, ConfigError, SimConfig
-from quadformer.simulation import DatasetError, load_dataset, simulate, write_dataset
+from quadformer.dataset import DatasetError, load_dataset, write_dataset
+from quadformer.simulation import simulate
 from quadformer.simulation.closed_loop import simulate_batch
 
 SMALL = SimConfig(model="II", noise="exponential", flights=3, duration=6.0, seed=5,

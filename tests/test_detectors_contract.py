@@ -1,6 +1,7 @@
 """The contract every registered detector honours (run over all of them)."""
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from quadformer.detectors import NotFittedError, available, load
@@ -44,7 +45,7 @@ def test_init_stores_params_and_fit_returns_self(method, data):
     assert s.shape == (len(test),) and np.isfinite(s).all()
     with pytest.raises(NotFittedError, match="threshold"):
         det.predict(test)
-    det.threshold_ = float(np.median(s))
+    det.calibrate(float(np.median(s)))
     assert set(np.unique(det.predict(test))) <= {0, 1}
 
 
@@ -76,10 +77,10 @@ def test_causal(method, data):
 def test_save_load_round_trip(method, data, tmp_path):
     train, y, test = data
     det = make(method).fit(train, y)
-    det.threshold_ = 1.5
+    det.calibrate(1.5, 2.5)
     back = load(det.save(tmp_path / "m.json"))
     assert np.array_equal(back.decision_function(test), det.decision_function(test))
-    assert back.threshold_ == 1.5 and back.get_params() == det.get_params()
+    assert back.threshold_ == 1.5 and back.budget_threshold_ == 2.5 and back.get_params() == det.get_params()
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -94,14 +95,79 @@ def test_bad_input_is_named(method, data):
         det.decision_function(test.drop(columns=["res_gps_nis"]))
 
 
-@pytest.mark.parametrize("method", ["cusum", "sprt", "bht"])
-def test_streaming_equals_offline(method, data):
+@pytest.mark.parametrize("method", METHODS)
+def test_stream_of_several_flights_equals_offline(method, data):
+    """``stream(n)`` steps n flights together and gives each flight's offline scores and
+    alarms: exactly for the classical statistics (same arithmetic), to float32 rounding for the
+    networks (one window per call online, batches offline)."""
     train, y, test = data
     det = make(method).fit(train, y)
-    flight = test[test.flight_id == 4].reset_index(drop=True)
-    stream = det.stream()
-    online = [stream.update(v) for v in flight.res_gps_nis]
-    assert np.array_equal(np.array(online), det.decision_function(flight))
+    offline = det.decision_function(test)
+    det.calibrate(float(np.percentile(offline, 70)))
+    ids = test.flight_id.unique()
+    n_steps = len(test) // len(ids)
+    cols = {c: test[c].to_numpy().reshape(len(ids), n_steps) for c in test.columns if c.startswith("res_")}
+    stream = det.stream(len(ids))
+    steps = [stream.update({c: v[:, j] for c, v in cols.items()}) for j in range(n_steps)]
+    online = np.stack([s.score for s in steps], 1).reshape(-1)
+    alarms = np.stack([s.alarm for s in steps], 1).reshape(-1)
+    if method in ("chi2", "cusum", "sprt", "bht"):
+        assert np.array_equal(online, offline)
+    else:
+        np.testing.assert_allclose(online, offline, rtol=1e-5, atol=1e-6)
+    near = np.abs(offline - det.threshold_) < 1e-5      # rounding may flip only these
+    assert np.array_equal(alarms[~near], (offline > det.threshold_)[~near])
+    with pytest.raises(ValueError, match="missing"):
+        det.stream(len(ids)).update({"t": np.zeros(len(ids))})
+    with pytest.raises(ValueError, match="finite values"):
+        det.stream(1).update(np.full(len(det.features_), np.nan))
+
+
+def _nis(z, det):
+    """A one-flight frame whose normalised NIS is z."""
+    return pd.DataFrame({"flight_id": 0, "t": np.arange(len(z)) / 10.0, "res_gps_nis": np.asarray(z) * det.nis_scale_})
+
+
+Z = [2.0, 9.0, 14.0, 3.0, 30.0, 0.5, 0.0]
+
+
+def test_cusum_hand_case(data):
+    train, y, _ = data
+    det = make("cusum", drift=1.0).fit(train, y)
+    # S = max(0, S + z - b), b = 6 + 1 * sqrt(12) = 9.464102: by hand
+    expected = [0.0, 0.0, 4.535898, 0.0, 20.535898, 11.571797, 2.107695]
+    assert det.decision_function(_nis(Z, det)) == pytest.approx(expected, abs=1e-6)
+
+
+def test_sprt_hand_case(data):
+    train, y, _ = data
+    det = make("sprt", inflation=2.0, alpha=0.01, beta=0.01).fit(train, y)
+    llr = lambda z: -6 * np.log(2.0) + 0.5 * z * (1 - 1 / 4)   # noqa: E731
+    lo, hi = np.log(0.01 / 0.99), np.log(0.99 / 0.01)            # -4.595, 4.595
+    # llr(z) = -6 log 2 + 3 z / 8: z = 2 -> -3.41; 9 -> -0.78 (sum -4.19); 14 -> +1.09 (-3.10);
+    # 3 -> -3.03 (-6.13 <= lo: restart at 0); 30 -> +7.09 (held at hi); 0.5 -> -3.97 (0.63); 0 -> -4.16
+    s, expected = 0.0, []
+    for z in Z:
+        s = s + llr(z)
+        s = 0.0 if s <= lo else min(s, hi)
+        expected.append(s)
+    assert expected[3] == 0.0 and expected[4] == pytest.approx(hi)
+    assert det.decision_function(_nis(Z, det)) == pytest.approx(expected, abs=1e-12)
+
+
+def test_bht_hand_case(data):
+    train, y, _ = data
+    det = make("bht", inflation=3.0, onset_rate=0.01, end_rate=0.05).fit(train, y)
+    p = 0.01                                        # prior belief before the first step: the onset rate
+    expected = []
+    for z in Z:
+        prior = p * 0.95 + (1 - p) * 0.01
+        f1 = (1 / 3.0) ** 6 * np.exp(-z / (2 * 9))  # attacked: N(0, 9 I6), up to the common factor
+        f0 = np.exp(-z / 2)                         # nominal (common factors cancel)
+        post = prior * f1 / (prior * f1 + (1 - prior) * f0)
+        expected.append(np.log(post / (1 - post)))
+        p = post
+    assert det.decision_function(_nis(Z, det)) == pytest.approx(expected, rel=1e-9, abs=1e-9)
 
 
 def test_unknown_method_named():

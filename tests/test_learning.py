@@ -1,6 +1,7 @@
 """Learning baselines: windows, normalisation, augmentation, training reproducibility."""
 
 import json
+import pathlib
 
 import numpy as np
 import pandas as pd
@@ -9,7 +10,8 @@ import torch
 
 from quadformer.detectors import load, make
 from quadformer.detectors.base import check_residues
-from quadformer.detectors.windows import RESIDUE_FEATURES, AxisSymmetry, Normalizer, Windows
+from quadformer.detectors.windows import AxisSymmetry, Normalizer, Windows
+from quadformer.estimator.schema import DETECTOR_FEATURES
 
 
 def _two_flights():
@@ -47,22 +49,37 @@ def test_normaliser_is_fitted_on_training_rows_only(bias_dataset):
     before = det.normalizer_.mean_.copy()
     det.decision_function(test)
     assert np.array_equal(det.normalizer_.mean_, before)
-    assert "res_gps_s_px" not in cols and set(cols) <= set(RESIDUE_FEATURES)
+    assert "res_gps_s_px" not in cols and set(cols) <= set(DETECTOR_FEATURES)
 
 
 def test_axis_symmetry_flips_and_swaps_consistently():
     feats = ["res_gps_r_px", "res_gps_r_py", "res_gps_nis", "res_gps_w_px", "res_gps_w_py", "res_vio_r_vz"]
     aug = AxisSymmetry(feats)
-    x = torch.arange(1, 1 + 2 * 3 * 6, dtype=torch.float32).reshape(2, 3, 6)
+    n = 200
+    x = torch.arange(1, 1 + n * 3 * 6, dtype=torch.float32).reshape(n, 3, 6)   # every value distinct
     out = aug(x.clone(), np.random.default_rng(3))
-    for b in range(2):
-        # the NIS (sign-free) never changes; every other feature keeps its magnitude set
+    swapped, signs_x, signs_z = [], [], []
+    for b in range(n):
+        # the NIS (sign-free) never changes
         assert torch.equal(out[b, :, 2], x[b, :, 2])
-        assert sorted(out[b].abs().flatten().tolist()) == sorted(x[b].abs().flatten().tolist())
-        # raw and whitened px share one sign (or move together to py under a swap)
-        r = out[b, :, 0] / x[b, :, 0]
-        w = out[b, :, 3] / x[b, :, 3]
-        assert torch.all(r.abs() == 1) == torch.all(w.abs() == 1)
+        # raw px lands on px or on py (a swap), with one sign over the window
+        sw = bool(torch.equal(out[b, :, 1].abs(), x[b, :, 0]))
+        assert sw or torch.equal(out[b, :, 0].abs(), x[b, :, 0])
+        src_x, src_y = (1, 0) if sw else (0, 1)
+        sx = out[b, :, src_x] / x[b, :, 0]
+        sy = out[b, :, src_y] / x[b, :, 1]
+        assert torch.all(sx == sx[0]) and torch.all(sy == sy[0]) and abs(sx[0]) == 1 and abs(sy[0]) == 1
+        # the whitened innovation of an axis follows its raw one: same sign, same destination
+        assert torch.equal(out[b, :, 3 + src_x], x[b, :, 3] * sx[0])
+        assert torch.equal(out[b, :, 3 + src_y], x[b, :, 4] * sy[0])
+        sz = out[b, :, 5] / x[b, :, 5]
+        assert torch.all(sz.abs() == 1) and torch.all(sz == sz[0])
+        swapped.append(sw)
+        signs_x.append(float(sx[0]))
+        signs_z.append(float(sz[0]))
+    # both outcomes of every random choice occur, each about half of the time
+    for outcomes in (swapped, np.array(signs_x) > 0, np.array(signs_z) > 0):
+        assert 0.35 < np.mean(outcomes) < 0.65
 
 
 @pytest.mark.parametrize("method", ["cnn", "lstm"])
@@ -84,7 +101,7 @@ def test_checkpoint_is_state_dict_plus_json(bias_dataset, tmp_path):
     f = bias_dataset.flights
     train = f[f.flight_id < 4].reset_index(drop=True)
     det = make("lstm", epochs=2).fit(train, train.label.to_numpy())
-    det.threshold_ = 0.25
+    det.calibrate(0.25)
     det.save(tmp_path / "m.json")
     doc = json.loads((tmp_path / "m.json").read_text())
     assert doc["method"] == "lstm" and doc["params"]["hidden"] == 64
@@ -94,6 +111,33 @@ def test_checkpoint_is_state_dict_plus_json(bias_dataset, tmp_path):
     assert np.array_equal(back.decision_function(f), det.decision_function(f))
     (tmp_path / "m.pt").unlink()
     with pytest.raises(FileNotFoundError, match="weights of m.json are missing"):
+        load(tmp_path / "m.json")
+
+
+class _Payload:
+    """An object whose unpickling would run code (it writes a file)."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return (pathlib.Path.touch, (pathlib.Path(self.path),))
+
+
+def test_loading_weights_that_hold_pickled_objects_is_refused(bias_dataset, tmp_path):
+    f = bias_dataset.flights
+    train = f[f.flight_id < 4].reset_index(drop=True)
+    det = make("cnn", epochs=1).fit(train, train.label.to_numpy())
+    det.save(tmp_path / "m.json")
+    marker = tmp_path / "code-ran"
+    state = dict(det.model_.state_dict())
+    state["extra"] = _Payload(marker)
+    torch.save(state, tmp_path / "m.pt")
+    with pytest.raises(ValueError, match="m.pt: not a plain tensor state dict"):
+        load(tmp_path / "m.json")
+    assert not marker.exists()
+    (tmp_path / "m.pt").write_bytes(b"not a torch file")
+    with pytest.raises(ValueError, match="not a plain tensor state dict"):
         load(tmp_path / "m.json")
 
 

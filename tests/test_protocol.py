@@ -5,6 +5,7 @@ import pandas as pd
 import pytest
 
 from quadformer.evaluation.protocol import best_f1_threshold, budget_threshold, split_flights, tune
+from quadformer.detectors import runs
 from quadformer.evaluation.metrics import pointwise
 
 
@@ -51,6 +52,26 @@ def test_budget_threshold_allows_no_alarm_on_short_clean_time():
     assert np.all(s[fid == 0] <= 0.5)
 
 
+def test_budget_threshold_search_lowers_the_threshold_to_the_allowed_alarm_runs():
+    """Two clean flights, two hours: two alarm runs allowed. The search goes down from the
+    top through the candidate thresholds while at most two runs alarm."""
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0.0, 0.5, 200)
+    b = rng.uniform(0.0, 0.5, 200)
+    a[[20, 21, 22]], a[90], a[150] = 0.9, 0.8, 0.7       # one run of three steps and two single steps
+    b[60] = 0.95
+    s, fid = np.r_[a, b], np.repeat([0, 1], 200)
+
+    def n_runs(thr):
+        return sum(len(runs(s[fid == f] > thr)) for f in (0, 1))
+
+    thr = budget_threshold(s, fid, np.array([0, 1]), hours=2.0, per_hour=1.0)
+    assert 0.8 <= thr < 0.9 and n_runs(thr) == 2      # the 0.95 and 0.9 runs; 0.8 would make three
+    assert budget_threshold(s, fid, np.array([0, 1]), hours=3.0) < 0.8    # three runs allowed
+    assert budget_threshold(s, fid, np.array([0, 1]), hours=1.0) >= 0.9   # one run allowed
+    assert n_runs(budget_threshold(s, fid, np.array([0, 1]), hours=1.0)) == 1
+
+
 def test_tuning_reads_validation_only(bias_dataset):
     """Thresholds come from validation flights; test labels play no part."""
     f = bias_dataset.flights
@@ -58,5 +79,11 @@ def test_tuning_reads_validation_only(bias_dataset):
     y = train.label.to_numpy()
     tuned = tune("cusum", train, y, val)
     s = tuned.detector.decision_function(val)
-    assert tuned.threshold == pytest.approx(best_f1_threshold(s, val.label.to_numpy())[0])
+    assert tuned.detector.threshold_ == pytest.approx(best_f1_threshold(s, val.label.to_numpy())[0])
+    # the budget threshold: at most one alarm run per hour on the clean validation flights
+    clean = val.groupby("flight_id").label.max() == 0
+    hours = val.flight_id.isin(clean[clean].index).sum() / 10 / 3600
+    alarms = sum(len(runs(g.to_numpy() > tuned.detector.budget_threshold_))
+                 for f, g in pd.Series(s).groupby(val.flight_id.to_numpy()) if clean[f])
+    assert clean.any() and alarms <= int(hours)
     assert tuned.val_f1 == max(g["val_f1"] for g in tuned.grid)

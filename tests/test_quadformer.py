@@ -76,7 +76,7 @@ def fitted(bias_dataset):
     f = bias_dataset.flights
     train = f[f.flight_id < 4].reset_index(drop=True)
     det = make("quadformer", **TINY).fit(train, train.label.to_numpy())
-    det.threshold_ = float(np.percentile(det.decision_function(train), 80))
+    det.calibrate(float(np.percentile(det.decision_function(train), 80)))
     return det, f[f.flight_id >= 4].reset_index(drop=True)
 
 
@@ -87,26 +87,54 @@ def test_streaming_matches_offline(fitted):
     alarms = offline > det.threshold_
     types = det.predict_type(flight)
     stream = det.stream()
-    out = [stream.update(row) for row in flight[det.features_].to_dict("records")]
-    score = np.array([o[0] for o in out])
+    steps = [stream.update(row) for row in flight[det.features_].to_dict("records")]
+    score = np.array([s.score[0] for s in steps])
     # float32 network, one window at a time online vs batches offline: scores agree to 1e-5;
     # alarms and types are identical
     assert np.allclose(score, offline, rtol=1e-5, atol=1e-5)
-    assert np.array_equal(np.array([o[1] for o in out]), alarms)
-    assert [o[2] for o in out] == [t if a else "none" for t, a in zip(types, alarms)]
+    assert np.array_equal(np.array([s.alarm[0] for s in steps]), alarms)
+    assert [s.attack_type[0] for s in steps] == list(types)
     with pytest.raises(ValueError, match="finite values"):
         det.stream().update(np.full(len(det.features_), np.nan))
 
 
-def test_onsets_and_types(fitted):
+def test_onsets_and_types_of_every_alarm_run(fitted):
     det, test = fitted
-    alarms = det.decision_function(test) > det.threshold_
+    s = det.decision_function(test)
+    alarms = s > det.threshold_
+    starts = [(fid, t) for fid, g in test.assign(a=alarms).groupby("flight_id", sort=False)
+              for t in g.t.to_numpy()[g.a.to_numpy() & ~np.r_[False, g.a.to_numpy()[:-1]]]]
+    assert len(starts) >= 2                       # the fitted threshold (80th percentile) alarms
     onsets = det.onset_times(test, alarms)
-    assert len(onsets) == int((alarms & ~np.r_[False, alarms[:-1]]).sum()) or len(onsets) > 0
+    assert [(f, ta) for f, ta, _ in onsets] == starts
+    raw, _ = det.raw_scores(test)
     for fid, t_alarm, t_onset in onsets:
-        assert t_onset <= t_alarm
-        assert t_onset >= test[test.flight_id == fid].t.min()
-    assert set(det.predict_type(test)) <= set(CLASSES[1:])
+        g = test.flight_id.to_numpy() == fid
+        t, r = test.t.to_numpy()[g], raw[g]
+        assert t[0] <= t_onset <= t_alarm
+        # every step from the onset to the alarm scored above the back-tracking level, the one
+        # before the onset (if any) did not
+        inside = (t >= t_onset) & (t < t_alarm)
+        assert np.all(r[inside] > det._lower())
+        before = np.nonzero(t < t_onset)[0]
+        assert before.size == 0 or r[before[-1]] <= det._lower()
+    assert set(det.predict_type(test)) <= set(CLASSES[1:]) and det.classes_ == list(CLASSES)
+
+
+def test_alerts_carry_quadformer_onsets_and_types(fitted):
+    from quadformer.detectors import alerts_from_scores
+
+    det, test = fitted
+    s = det.decision_function(test)
+    alerts = alerts_from_scores(test, s, det)
+    onsets = det.onset_times(test, s > det.threshold_)
+    types = det.predict_type(test)
+    assert len(alerts) == len(onsets) >= 2
+    for a, (fid, t_alarm, t_onset) in zip(alerts, onsets):
+        assert (a.flight_id, a.start_s, a.onset_s) == (fid, t_alarm, t_onset)
+        row = np.nonzero((test.flight_id.to_numpy() == fid) & (test.t.to_numpy() == t_alarm))[0][0]
+        assert a.attack_type == types[row] and a.attack_type in CLASSES[1:]
+        assert a.score > det.threshold_
 
 
 def test_checkpoint_round_trip_and_variants(fitted, tmp_path):

@@ -1,4 +1,4 @@
-"""Resilient estimation: admission logic on hand-made streams, alerts, the online scorer,
+"""Resilient estimation: admission logic on hand-made streams, alerts, detector streams,
 and the policies in closed loop on small real flights."""
 
 from __future__ import annotations
@@ -10,10 +10,12 @@ import torch
 from typer.testing import CliRunner
 
 from quadformer.cli import app
+from quadformer.config import AttackConfig, SimConfig
 from quadformer.detectors import make
 from quadformer.evaluation.protocol import best_f1_threshold
-from quadformer.resilience import POLICIES, Admission, AdmissionConfig, OnlineScorer, alerts_from_scores
-from quadformer.resilience.run import flight_metrics
+from quadformer.detectors import alerts_from_scores
+from quadformer.evaluation.resilience import flight_metrics
+from quadformer.resilience import POLICIES, Admission, AdmissionConfig
 from quadformer.simulation.closed_loop import simulate_batch
 
 
@@ -106,31 +108,12 @@ def test_naive_always_fuses_and_bad_settings_are_named():
 def test_alerts_from_hand_made_scores():
     X = pd.DataFrame({"flight_id": [7] * 10 + [8] * 5, "t": np.r_[np.arange(10), np.arange(5)] * 0.1})
     s = np.array([0, 0, 5, 6, 0, 0, 0, 9, 9, 9, 0, 0, 0, 0, 0], dtype=float)
-    alerts = alerts_from_scores(X, s, 1.0)
+    alerts = alerts_from_scores(X, s, threshold=1.0)
     assert [(a.flight_id, a.start_s, a.end_s, a.score) for a in alerts] == [
         (7, pytest.approx(0.2), pytest.approx(0.4), 6.0), (7, pytest.approx(0.7), None, 9.0)]
     assert alerts[0].onset_s == alerts[0].start_s and alerts[0].attack_type == "attack"
     with pytest.raises(ValueError, match="scores for 15 rows"):
-        alerts_from_scores(X, s[:-1], 1.0)
-
-
-@pytest.mark.parametrize("method", ["cusum", "svm", "lstm", "quadformer"])
-def test_online_scorer_equals_offline_scores(bias_dataset, method):
-    """Batched streams (QUADFormer, CNN/LSTM) and the generic path over the latest context
-    (recursive statistics: the whole flight; SVM: its window) all equal offline scoring."""
-    f = bias_dataset.flights
-    kw = {"quadformer": {"window": 16, "d_model": 16, "heads": 2, "layers": 1, "epochs": 1, "steps_per_epoch": 3,
-                         "batch_size": 16},
-          "lstm": {"window": 16, "epochs": 1}, "svm": {"window": 8, "max_windows": 300}}.get(method, {})
-    det = make(method, **kw).fit(f, f.label.to_numpy())
-    det.threshold_ = float(np.median(det.decision_function(f)))
-    offline = det.decision_function(f)
-    ids = f.flight_id.unique()
-    scorer = OnlineScorer(det, len(ids))
-    res_cols = [c for c in f.columns if c.startswith("res_")]
-    by = {c: f[c].to_numpy().reshape(len(ids), -1) for c in res_cols}
-    online = np.stack([scorer.update({c: v[:, j] for c, v in by.items()})[0] for j in range(by[res_cols[0]].shape[1])], 1)
-    np.testing.assert_allclose(online.reshape(-1), offline, rtol=1e-5, atol=1e-6)
+        alerts_from_scores(X, s[:-1], threshold=1.0)
 
 
 @pytest.fixture(scope="module")
@@ -141,12 +124,12 @@ def loop(bias_dataset):
     f = bias_dataset.flights
     det = make("cusum").fit(f, f.label.to_numpy())
     s = det.decision_function(f)
-    det.threshold_ = best_f1_threshold(s, f.label.to_numpy())[0]
+    det.calibrate(best_f1_threshold(s, f.label.to_numpy())[0])
     att = bias_dataset.scenarios.attacked.to_numpy(bool)
     ids = np.arange(6)
     P = len(POLICIES)
     r = simulate_batch(cfg, np.tile(ids, P), np.tile(att, P), admission=Admission(np.repeat(POLICIES, 6), 10.0),
-                       scorer=OnlineScorer(det, 6 * P))
+                       stream=det.stream(6 * P))
     return {"r": r, "offline": s.reshape(6, -1), "att": att}
 
 
@@ -222,6 +205,78 @@ def test_readmission_blend_spreads_a_large_correction():
     abrupt, left_a = corrections(np.ones_like(scales))
     assert abrupt.max() > 1.5 and blended.max() < 0.4, (abrupt.max(), blended.max())
     assert left_b < 0.1 and left_a < 0.1       # both end on GPS
+
+
+# One flight with a 15 m bias on x from 6 s to 16 s, flown by the resilient policy (BHT
+# driving it) and by the PX4-like gate, and again with the rollback or the blend switched off.
+_JUMP = SimConfig(model="I", noise="gaussian", flights=1, duration=26.0, seed=2,
+                  attack=AttackConfig(kind="bias", fraction=1.0, onset=(6.0, 6.0), duration=(10.0, 10.0),
+                                      magnitude=(15.0, 15.0), axes="x"))
+
+
+@pytest.fixture(scope="module")
+def jump(bias_dataset):
+    f = bias_dataset.flights
+    det = make("bht", inflation=3.0).fit(f, f.label.to_numpy()).calibrate(0.0)   # posterior above 1/2
+    one, both = np.zeros(1, int), np.ones(2, bool)
+    runs = {"main": simulate_batch(_JUMP, np.zeros(2, int), both, admission=Admission(["resilient", "px4"], 10.0),
+                                   stream=det.stream(2))}
+    for name, cfg in (("no_rollback", AdmissionConfig(rollback_s=0.0)), ("no_blend", AdmissionConfig(blend_s=0.0))):
+        runs[name] = simulate_batch(_JUMP, one, both[:1], admission=Admission(["resilient"], 10.0, cfg),
+                                    stream=det.stream(1))
+    return runs
+
+
+def test_px4_gate_resets_onto_the_spoofed_fix_after_seven_seconds_in_the_loop(jump):
+    r = jump["main"]
+    adm, b = r["admission"], 1
+    t = r["t"]
+    # 69 rejected fixes, reset on the 70th: once onto the spoof, once back when the honest fixes
+    # have been rejected for as long after the attack
+    resets = np.nonzero(adm["reset"][b])[0]
+    assert t[resets] == pytest.approx([6.0 + 6.9, 16.0 + 6.9])
+    k = resets[0]
+    assert not adm["fused"][b, 59:k].any() and adm["fused"][b, :59].all() and adm["fused"][b, k:159].all()
+    np.testing.assert_array_equal(r["est_pos"][b, k], r["gps_pos"][b, k])           # the estimate jumps onto the spoof
+    assert np.linalg.norm(adm["correction"][b, k]) > 10.0
+    # the estimate now lives in the spoofed frame: the vehicle follows it (at the bounded pace of
+    # its position controller) and keeps doing so after the attack, while the honest fixes are
+    # rejected, until the second reset: dragged more than 10 m off its mission
+    dev = np.linalg.norm(r["true_pos"][b] - r["ref_pos"][b], axis=1)
+    assert dev[k:resets[1]].max() > 10.0 and dev[:59].max() < 2.0
+    resilient = np.linalg.norm(r["true_pos"][0] - r["ref_pos"][0], axis=1)
+    assert resilient.max() < 2.0
+
+
+def test_exclusion_rolls_back_the_last_second_of_gps_corrections_in_the_loop(jump):
+    r, alt = jump["main"], jump["no_rollback"]
+    c = r["admission"]["correction"][0]
+    e0 = int(np.argmax(~r["admission"]["fused"][0]))          # the first excluded fix
+    assert e0 == 59                                            # BHT alarms on the first spoofed fix
+    np.testing.assert_allclose(c[e0], -c[e0 - 10:e0].sum(0), atol=1e-12)
+    assert np.linalg.norm(c[e0]) > 1e-3
+    # the two runs are identical before; at the exclusion the estimate differs by the rollback
+    np.testing.assert_array_equal(r["est_pos"][0, :e0], alt["est_pos"][0, :e0])
+    np.testing.assert_allclose(r["est_pos"][0, e0] - alt["est_pos"][0, e0], c[e0], atol=1e-12)
+    assert np.all(alt["admission"]["correction"][0, e0] == 0.0)
+
+
+def test_readmission_blends_the_gps_correction_in_the_loop(jump):
+    r, alt = jump["main"], jump["no_blend"]
+    fused, scale = r["admission"]["fused"][0], r["admission"]["std_scale"][0]
+    back = 159 + int(np.argmax(fused[159:]))                  # first fix fused after the attack
+    assert not fused[back - 1] and np.array_equal(fused, alt["admission"]["fused"][0])
+    # the noise is inflated 10x at re-admission and decays geometrically to nominal over 2 s
+    np.testing.assert_allclose(scale[back:back + 20], 10.0 ** (1 - np.arange(20) / 20))
+    assert np.all(scale[back + 20:] == 1.0) and np.all(alt["admission"]["std_scale"][0] == 1.0)
+    # same state before the re-admission; the blended first correction is a fraction of the nominal one
+    np.testing.assert_array_equal(r["est_pos"][0, :back], alt["est_pos"][0, :back])
+    cb, cn = (np.linalg.norm(x["admission"]["correction"][0, back]) for x in (r, alt))
+    assert 0 < cb < 0.5 * cn
+    # over the blend both converge on GPS: the summed corrections of the two runs agree
+    total_b = np.linalg.norm(r["admission"]["correction"][0, back:back + 40].sum(0))
+    total_n = np.linalg.norm(alt["admission"]["correction"][0, back:back + 40].sum(0))
+    assert total_b == pytest.approx(total_n, rel=0.5, abs=0.1)
 
 
 def test_resilience_cli_names_bad_input(tmp_path):

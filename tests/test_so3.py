@@ -4,7 +4,7 @@ import numpy as np
 import roma
 import torch
 
-from quadformer.estimator.so3 import exp_quat, exp_rotmat, log_quat
+from quadformer.geometry import exp_quat, exp_rotmat, log_quat
 
 
 def test_maps_match_roma_small_and_large_angles():

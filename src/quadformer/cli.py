@@ -78,6 +78,15 @@ def _fail(msg: str) -> None:
     raise typer.Exit(2)
 
 
+def _profile(name: str):
+    from quadformer.experiments.grid import get_profile
+
+    try:
+        return get_profile(name)
+    except ValueError as e:
+        _fail(str(e))
+
+
 @app.command()
 def simulate(
     out: Path = typer.Option(..., "--out", help="Dataset directory to create."),
@@ -100,7 +109,9 @@ def simulate(
     quiet: bool = typer.Option(False, help="No progress bar."),
 ) -> None:
     """Simulate flights and write DIR/flights.parquet, scenarios.parquet and meta.json."""
-    from quadformer.simulation.dataset import set_threads, simulate as run, write_dataset
+    from quadformer.dataset import write_dataset
+    from quadformer.io import set_threads
+    from quadformer.simulation import simulate as run
 
     atk = {"kind": attack, "fraction": attack_fraction, "onset": _pair("--onset", onset),
            "duration": _pair("--attack-duration", attack_duration), "magnitude": _pair("--magnitude", magnitude),
@@ -159,11 +170,10 @@ def benchmark(
     quiet: bool = typer.Option(False, help="No progress bars."),
 ) -> None:
     """Simulate (or reuse) the 8 configurations, tune and evaluate methods, write tables and a report."""
-    from quadformer.evaluation.benchmark import PROFILES, run_benchmark
-    from quadformer.simulation.dataset import set_threads
+    from quadformer.experiments.detection import run_benchmark
+    from quadformer.io import set_threads
 
-    if profile not in PROFILES:
-        _fail(f"profile: unknown profile {profile!r}; choose from {', '.join(PROFILES)}")
+    _profile(profile)
     if not 0.0 <= label_fraction <= 1.0:
         _fail(f"label-fraction: must be in [0, 1], got {label_fraction}")
     names = _methods(methods)
@@ -186,8 +196,8 @@ def fit(
     label_fraction: float = typer.Option(0.2, help="Share of training flights whose labels may be used."),
 ) -> None:
     """Fit and calibrate one detector on a dataset's train and validation flights."""
-    from quadformer.evaluation.protocol import split_flights, training_labels, tune
-    from quadformer.simulation.dataset import DatasetError, load_dataset
+    from quadformer.dataset import DatasetError, load_dataset
+    from quadformer.evaluation.protocol import split_flights, tune
 
     _methods(method)
     try:
@@ -195,17 +205,13 @@ def fit(
     except DatasetError as e:
         _fail(str(e))
     sp = split_flights(ds.scenarios, seed, label_fraction=label_fraction)
-    f = ds.flights
-    train = f[f.flight_id.isin(sp.train)].reset_index(drop=True)
-    val = f[f.flight_id.isin(sp.val)].reset_index(drop=True)
-    tuned = tune(method, train, training_labels(train, sp.labelled), val, gps_rate_hz=ds.config.gps.rate_hz)
+    parts = sp.frames(ds.flights)
+    tuned = tune(method, parts.train, parts.y_train, parts.val, gps_rate_hz=ds.config.gps.rate_hz)
     det = tuned.detector
-    det.budget_threshold_ = tuned.budget_threshold
-    det.split_seed_ = seed
-    det.test_flights_ = sp.test.tolist()
-    out.parent.mkdir(parents=True, exist_ok=True)
+    det.calibrate(det.threshold_, det.budget_threshold_, data=str(data), split_seed=seed,
+                  label_fraction=label_fraction, test_flights=sp.test.tolist())
     det.save(out)
-    typer.echo(f"{method}: params {tuned.params}, threshold {tuned.threshold:.4g}, "
+    typer.echo(f"{method}: params {tuned.params}, threshold {det.threshold_:.4g}, "
                f"validation F1 {tuned.val_f1:.3f}; saved {out}")
 
 
@@ -217,14 +223,12 @@ def evaluate(
     test_only: bool = typer.Option(False, help="Score only the test flights of the split the model was fit with."),
 ) -> None:
     """Score a dataset with a fitted detector; metrics when it has labels."""
-    import json
-
     import numpy as np
 
-    from quadformer.detectors import load
+    from quadformer.dataset import DatasetError, load_dataset
+    from quadformer.detectors import alerts_from_scores, load, write_alerts
     from quadformer.evaluation.metrics import evaluate as metrics
-    from quadformer.resilience.alerts import alerts_from_scores, write_alerts
-    from quadformer.simulation.dataset import DatasetError, load_dataset
+    from quadformer.io import atomic_path, write_json
 
     try:
         det = load(model)
@@ -233,7 +237,7 @@ def evaluate(
         _fail(str(e.args[0] if e.args else e))
     f = ds.flights
     if test_only:
-        f = f[f.flight_id.isin(getattr(det, "test_flights_", []))].reset_index(drop=True)
+        f = f[f.flight_id.isin(getattr(det, "calibration_", {}).get("test_flights", []))].reset_index(drop=True)
     try:
         s = det.decision_function(f)
     except ValueError as e:
@@ -251,15 +255,12 @@ def evaluate(
             if "atk_d_x" in f.columns else None
         res["metrics"] = metrics(f.flight_id.to_numpy(), f.t.to_numpy(), f.label.to_numpy(), s, alarms == 1,
                                  gps_rate_hz=ds.config.gps.rate_hz, offsets=offsets)
-    tmp = out / "scores.parquet.tmp"
-    table.to_parquet(tmp, index=False)
-    tmp.replace(out / "scores.parquet")
-    alerts = alerts_from_scores(f, s, det.threshold_, det)
+    with atomic_path(out / "scores.parquet") as tmp:
+        table.to_parquet(tmp, index=False)
+    alerts = alerts_from_scores(f, s, det)
     write_alerts(alerts, out / "alerts.csv")
     res["alerts"] = len(alerts)
-    tmp = out / "results.json.tmp"
-    tmp.write_text(json.dumps(res, indent=2, default=float))
-    tmp.replace(out / "results.json")
+    write_json(out / "results.json", res)
     if "metrics" in res:
         m = res["metrics"]
         typer.echo(f"{det.name}: P {m['precision']:.3f} R {m['recall']:.3f} F1 {m['f1']:.3f} "
@@ -277,7 +278,7 @@ def _print_alerts(alerts, limit: int = 10) -> None:
 
 
 def _print_resilience(results: dict) -> None:
-    from quadformer.report.resilience import overall_table
+    from quadformer.report import overall_table
 
     typer.echo(f"\nResilience, detector {results['detector']}, all configurations (test flights flown again "
                "under each policy):")
@@ -306,13 +307,11 @@ def resilience(
 ) -> None:
     """Fly each configuration's test flights in closed loop under four GPS policies (naive, PX4-like,
     resilient with DETECTOR, oracle); write results.json, alerts.csv, tables and a report."""
-    from quadformer.evaluation.benchmark import PROFILES
+    from quadformer.experiments.resilience import run_resilience
+    from quadformer.io import set_threads
     from quadformer.resilience import AdmissionConfig
-    from quadformer.resilience.run import run_resilience
-    from quadformer.simulation.dataset import set_threads
 
-    if profile not in PROFILES:
-        _fail(f"profile: unknown profile {profile!r}; choose from {', '.join(PROFILES)}")
+    _profile(profile)
     if not 0.0 <= label_fraction <= 1.0:
         _fail(f"label-fraction: must be in [0, 1], got {label_fraction}")
     try:
@@ -345,10 +344,12 @@ def demo(
 ) -> None:
     """The demo profile end to end: simulate, residues, every detector, tables, report; then a
     short resilience run (QUADFormer driving the resilient estimator, beside the other policies)."""
-    from quadformer.evaluation.benchmark import PROFILES, ensure_datasets, run_benchmark
-    from quadformer.resilience.run import run_resilience
-    from quadformer.simulation.dataset import load_dataset, set_threads
-    from quadformer.simulation.grid import dataset_summary, summary_table
+    from quadformer.dataset import load_dataset
+    from quadformer.experiments.cache import ensure_datasets
+    from quadformer.experiments.detection import run_benchmark
+    from quadformer.experiments.grid import PROFILES, dataset_summary, summary_table
+    from quadformer.experiments.resilience import run_resilience
+    from quadformer.io import set_threads
 
     import time
 

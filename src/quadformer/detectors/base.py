@@ -5,7 +5,12 @@
   step, -1 where unknown) is optional, for methods that use labels.
 - ``decision_function(X)`` returns one score per row, higher meaning more anomalous. It is
   causal: the score of a step uses that flight's steps up to it only.
-- ``threshold_`` is set by ``calibrate`` on validation flights; ``predict`` gives 0/1.
+- ``calibrate(threshold, ...)`` sets the alarm rule (``score > threshold_``) chosen on
+  validation flights; it is learned state, saved and loaded with the detector, so a saved
+  model alone reproduces its alarms. ``predict`` gives 0/1.
+- ``stream(n_flights)`` scores n flights online, one GPS step at a time, with the same
+  scores and alarms as ``decision_function`` (see ``detectors.streams``).
+- ``features_`` (learned) names the residue columns the detector reads.
 
 ``X`` is a DataFrame of GPS steps with ``flight_id``, ``t`` and the ``res_*`` residues,
 rows grouped by flight and ordered in time (as in a dataset's ``flights.parquet``).
@@ -13,13 +18,15 @@ rows grouped by flight and ordered in time (as in a dataset's ``flights.parquet`
 
 from __future__ import annotations
 
+import copy
 import inspect
-import json
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
+
+from quadformer.io import write_json
 
 
 class NotFittedError(RuntimeError):
@@ -43,16 +50,8 @@ class Detector:
     #: post-processing parameters (e.g. an alarm rule) tuned without refitting
     post_grid: ClassVar[dict[str, list[Any]]] = {}
 
-    @property
-    def context_steps(self) -> int | None:
-        """How many of a flight's latest steps the score of its latest step depends on (None:
-        the whole flight, as for recursive statistics). Online scorers keep that many."""
-        w = getattr(self, "window", None)
-        return int(w) if w is not None else None
-
     def with_post(self, **post: Any) -> "Detector":
         """A shallow copy sharing the fitted state, with post-processing parameters changed."""
-        import copy
         other = copy.copy(self)
         for k, v in post.items():
             setattr(other, k, v)
@@ -65,13 +64,39 @@ class Detector:
     def decision_function(self, X: pd.DataFrame) -> np.ndarray:
         raise NotImplementedError
 
+    def stream(self, n_flights: int = 1):
+        """Online scoring of ``n_flights`` flights stepped together (``detectors.streams``)."""
+        raise NotImplementedError
+
+    # -- alarm rule -------------------------------------------------------------------
+    def calibrate(self, threshold: float, budget_threshold: float | None = None,
+                  **provenance: Any) -> "Detector":
+        """Set the alarm rule, ``score > threshold``, chosen on validation flights (and the
+        threshold that meets a false-alarm budget, if known). ``provenance`` (e.g. the split
+        seed and test flights) is kept with it. Returns self."""
+        self.check_fitted()
+        if not np.isfinite(threshold):
+            raise ValueError(f"{self.name}: threshold must be finite, got {threshold!r}")
+        self.threshold_ = float(threshold)
+        self.budget_threshold_ = None if budget_threshold is None else float(budget_threshold)
+        if provenance:
+            self.calibration_ = dict(provenance)
+        return self
+
+    def at_budget(self) -> "Detector":
+        """A shallow copy whose alarm threshold is the false-alarm-budget one."""
+        if getattr(self, "budget_threshold_", None) is None:
+            raise NotFittedError(f"{self.name}: no false-alarm-budget threshold; calibrate it first")
+        return self.with_post(threshold_=self.budget_threshold_)
+
     def predict(self, X: pd.DataFrame) -> np.ndarray:
-        self._check_fitted()
+        self.check_fitted()
         if getattr(self, "threshold_", None) is None:
             raise NotFittedError(f"{self.name}: no threshold; call calibrate() on validation flights first")
         return (self.decision_function(X) > self.threshold_).astype(np.int8)
 
-    def _check_fitted(self) -> None:
+    def check_fitted(self) -> None:
+        """Raise ``NotFittedError`` unless ``fit`` (or ``load``) has run."""
         if not getattr(self, "fitted_", False):
             raise NotFittedError(f"{self.name}: call fit() before scoring")
 
@@ -90,14 +115,13 @@ class Detector:
             setattr(self, k, np.asarray(v) if isinstance(v, list) else v)
 
     def save(self, path: str | Path) -> Path:
-        """JSON with the method name, parameters and learned state (written atomically)."""
+        """JSON with the method name, parameters and learned state, alarm rule included
+        (written atomically, after any file ``save_extra`` writes beside it)."""
         path = Path(path)
         doc = {"method": self.name, "params": self.get_params(), "state": self.learned_state(),
                "format_version": 1}
         self.save_extra(path)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(doc, indent=2, default=_json_default))
-        tmp.replace(path)
+        write_json(path, doc)
         return path
 
     def save_extra(self, path: Path) -> None:
@@ -105,14 +129,6 @@ class Detector:
 
     def load_extra(self, path: Path) -> None:
         """Hook: read what ``save_extra`` wrote."""
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o)}")
 
 
 def flight_slices(X: pd.DataFrame) -> list[tuple[Any, np.ndarray]]:

@@ -17,9 +17,9 @@ from scipy import stats
 
 from quadformer.detectors.base import Detector, check_residues, flight_slices
 from quadformer.detectors.registry import register
+from quadformer.detectors.streams import DetectorStream
+from quadformer.estimator.schema import NIS
 
-NIS = "res_gps_nis"
-WHITENED = [f"res_gps_w_{a}" for a in ("px", "py", "pz", "vx", "vy", "vz")]
 DOF = 6
 
 
@@ -31,11 +31,12 @@ class _NominalNIS(Detector):
         if y is not None and np.any(np.asarray(y) == 0):
             nis = nis[np.asarray(y) == 0]
         self.nis_scale_ = float(np.median(nis) / stats.chi2.median(DOF))
+        self.features_ = [NIS]
         self.fitted_ = True
 
     def _z(self, X: pd.DataFrame) -> np.ndarray:
         """Per-step NIS normalised to the nominal chi-square (mean about 6)."""
-        self._check_fitted()
+        self.check_fitted()
         return check_residues(X, [NIS])[:, 0] / self.nis_scale_
 
 
@@ -58,9 +59,8 @@ class Chi2Gate(_NominalNIS):
     def decision_function(self, X: pd.DataFrame) -> np.ndarray:
         return self._z(X)
 
-    def stream(self) -> "PointwiseStream":
-        self._check_fitted()
-        return PointwiseStream(self.nis_scale_)
+    def stream(self, n_flights: int = 1) -> "PointwiseStream":
+        return PointwiseStream(self, n_flights)
 
     @staticmethod
     def gate_threshold(sigma: float = 5.0) -> float:
@@ -68,14 +68,11 @@ class Chi2Gate(_NominalNIS):
         return float(stats.chi2.isf(2 * stats.norm.sf(sigma), DOF))
 
 
-class PointwiseStream:
-    """Online use of the gate: ``update(nis) -> score``."""
+class PointwiseStream(DetectorStream):
+    """The gate online: the normalised NIS of each step."""
 
-    def __init__(self, scale: float):
-        self.scale = scale
-
-    def update(self, nis: float) -> float:
-        return float(nis) / self.scale
+    def _score(self, x):
+        return x[:, 0] / self.detector.nis_scale_, None
 
 
 class _Recursive(_NominalNIS):
@@ -111,22 +108,21 @@ class _Recursive(_NominalNIS):
             scores[idx] = out[f, : len(idx)]
         return scores
 
-    def stream(self) -> "RecursiveStream":
-        self._check_fitted()
-        return RecursiveStream(self)
+    def stream(self, n_flights: int = 1) -> "RecursiveStream":
+        return RecursiveStream(self, n_flights)
 
 
-class RecursiveStream:
-    """Online use of a recursive detector: ``update(nis) -> score`` for one flight."""
+class RecursiveStream(DetectorStream):
+    """A recursive detector online: the recursion's state per flight, the same ``_step`` as
+    offline (so scores are identical)."""
 
-    def __init__(self, det: _Recursive):
-        self.det = det
-        self.state = det._init(1)
+    def __init__(self, detector: _Recursive, n_flights: int):
+        super().__init__(detector, n_flights)
+        self.state = detector._init(self.n)
 
-    def update(self, nis: float) -> float:
-        z = np.array([float(nis) / self.det.nis_scale_])
-        self.state, s = self.det._step(self.state, z)
-        return float(s[0])
+    def _score(self, x):
+        self.state, s = self.detector._step(self.state, x[:, 0] / self.detector.nis_scale_)
+        return s, None
 
 
 @register("cusum")

@@ -60,11 +60,14 @@ def load(path: str | Path) -> Detector:
         doc = json.loads(path.read_text())
     except FileNotFoundError:
         raise FileNotFoundError(f"{path}: no such model file") from None
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"{path}: not a saved detector (invalid JSON: {e})") from None
     if not isinstance(doc, dict) or "method" not in doc:
         raise ValueError(f"{path}: not a saved detector (no 'method')")
-    det = make(doc["method"], **doc.get("params", {}))
+    try:
+        det = make(doc["method"], **doc.get("params", {}))
+    except TypeError as e:
+        raise ValueError(f"{path}: parameters do not fit detector {doc['method']!r} ({e})") from None
     det.load_state(doc.get("state", {}))
     det.load_extra(path)
     return det

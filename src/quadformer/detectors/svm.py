@@ -14,7 +14,7 @@ from sklearn.svm import SVC
 
 from quadformer.detectors.base import Detector, check_residues, labelled_split
 from quadformer.detectors.registry import register
-from quadformer.detectors.windows import RESIDUE_FEATURES, Normalizer, Windows
+from quadformer.detectors.windows import Normalizer, Windows, WindowStream, input_features
 
 
 def _window_features(w: np.ndarray) -> np.ndarray:
@@ -36,7 +36,7 @@ class SVMDetector(Detector):
     def fit(self, X: pd.DataFrame, y: np.ndarray | None = None) -> "SVMDetector":
         tr, ho = labelled_split(X, y, self.seed)
         rows = np.concatenate([tr, ho])          # no early stopping: use every labelled flight
-        self.features_ = [c for c in RESIDUE_FEATURES if c in X.columns]
+        self.features_ = input_features(X)
         self.normalizer_ = Normalizer().fit(check_residues(X, self.features_))
         win = Windows(X, self.features_, self.normalizer_, self.window)
         yl = np.asarray(y)[rows] == 1
@@ -55,17 +55,23 @@ class SVMDetector(Detector):
         return self
 
     def decision_function(self, X: pd.DataFrame) -> np.ndarray:
-        self._check_fitted()
+        self.check_fitted()
         win = Windows(X, self.features_, self.normalizer_, self.window)
         out = np.empty(len(win))
         for i in range(0, len(win), 4096):
             idx = np.arange(i, min(i + 4096, len(win)))
-            out[idx] = self.svc_.decision_function(_window_features(win[idx]))
+            out[idx] = self.score_windows(win[idx])[0]
         return out
+
+    def score_windows(self, windows: np.ndarray) -> tuple[np.ndarray, None]:
+        """SVM decision values of normalised windows (n, W, features)."""
+        return self.svc_.decision_function(_window_features(windows)), None
+
+    def stream(self, n_flights: int = 1) -> WindowStream:
+        return WindowStream(self, n_flights)
 
     def learned_state(self) -> dict:
         return {"features_": self.features_, "normalizer_": self.normalizer_.state(),
-                "threshold_": getattr(self, "threshold_", None),
                 **{k: v for k, v in vars(self).items()
                    if k.endswith("_") and k not in ("svc_", "normalizer_", "features_")},
                 "svc_": self.svc_.state()}

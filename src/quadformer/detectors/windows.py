@@ -12,19 +12,15 @@ import numpy as np
 import pandas as pd
 
 from quadformer.detectors.base import check_residues, flight_slices
+from quadformer.detectors.streams import DetectorStream, RingBuffer
+from quadformer.estimator.schema import DETECTOR_FEATURES, axis_columns
 
-# Default inputs of the learned detectors: raw and whitened GPS innovations, GPS NIS, the
-# leaky integral of GPS position corrections, and the VIO innovation statistics (datasets
-# written before the correction integral existed simply lack it). The predicted innovation std (res_gps_s_*) is left out: it varies
-# slowly with the flight's conditions and lets a network recognise flights instead of attacks.
-RESIDUE_FEATURES = (
-    [f"res_gps_r_{a}" for a in ("px", "py", "pz", "vx", "vy", "vz")]
-    + [f"res_gps_w_{a}" for a in ("px", "py", "pz", "vx", "vy", "vz")]
-    + ["res_gps_nis"]
-    + [f"res_gps_corr_{a}" for a in ("px", "py", "pz")]
-    + [f"res_vio_r_{a}" for a in ("vx", "vy", "vz", "thx", "thy", "thz")]
-    + ["res_vio_nis", "res_vio_nis_mean"]
-)
+
+
+def input_features(X) -> list[str]:
+    """The default detector inputs (``estimator.schema.DETECTOR_FEATURES``) present in X;
+    datasets written before the correction integral existed simply lack it."""
+    return [c for c in DETECTOR_FEATURES if c in X.columns]
 
 
 class Normalizer:
@@ -101,9 +97,7 @@ class AxisSymmetry:
         pos = {c: i for i, c in enumerate(features)}
         self.axes = []
         for a in "xyz":
-            names = [f"res_gps_r_p{a}", f"res_gps_r_v{a}", f"res_gps_w_p{a}", f"res_gps_w_v{a}",
-                     f"res_gps_corr_p{a}", f"res_vio_r_v{a}"]
-            self.axes.append([pos[n] for n in names if n in pos])
+            self.axes.append([pos[n] for n in axis_columns(a) if n in pos])
         self.perm = np.arange(len(features))
         for i, j in zip(self.axes[0], self.axes[1]):
             self.perm[i], self.perm[j] = j, i
@@ -122,3 +116,18 @@ class AxisSymmetry:
         if swap.any():
             xb[swap] = xb[swap][..., torch.from_numpy(self.perm)]
         return xb
+
+
+class WindowStream(DetectorStream):
+    """A window detector online: a ring buffer of the last ``window`` normalised residues
+    per flight (zeros before the first step, as offline), scored by the detector's
+    ``score_windows(windows (n, W, features)) -> (scores (n,), attack types (n,) or None)``,
+    the function its offline ``decision_function`` applies to every window."""
+
+    def __init__(self, detector, n_flights: int):
+        super().__init__(detector, n_flights)
+        self.buf = RingBuffer(self.n, detector.window, len(self.features))
+
+    def _score(self, x):
+        windows = self.buf.push(self.detector.normalizer_.transform(x))
+        return self.detector.score_windows(windows)

@@ -17,8 +17,7 @@ import numpy as np
 import roma
 import torch
 
-from quadformer.estimator._linalg import bmm, matvec
-from quadformer.estimator.so3 import exp_quat, exp_rotmat, log_quat
+from quadformer.geometry import bmm, exp_quat, exp_rotmat, log_quat, matvec
 
 ERROR_STATES = ("px", "py", "pz", "vx", "vy", "vz", "thx", "thy", "thz",
                 "bax", "bay", "baz", "bgx", "bgy", "bgz")

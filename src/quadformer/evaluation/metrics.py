@@ -16,12 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from sklearn.metrics import average_precision_score, roc_auc_score
 
-
-def runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """Half-open [start, end) index runs where ``mask`` is true."""
-    m = np.concatenate([[False], np.asarray(mask, dtype=bool), [False]])
-    d = np.diff(m.astype(np.int8))
-    return list(zip(np.nonzero(d == 1)[0], np.nonzero(d == -1)[0]))
+from quadformer.detectors.alarms import runs
 
 
 def prf(tp: int, fp: int, fn: int) -> tuple[float, float, float]:

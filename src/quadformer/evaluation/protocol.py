@@ -20,9 +20,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from quadformer.detectors import Detector, make
+from quadformer.detectors import Detector, get, make, runs
 from quadformer.detectors.base import flight_slices
-from quadformer.evaluation.metrics import runs
 
 
 @dataclass(frozen=True)
@@ -31,6 +30,20 @@ class Split:
     val: np.ndarray
     test: np.ndarray
     labelled: np.ndarray   # training flights whose labels the methods may use
+
+    def frames(self, flights: pd.DataFrame) -> "SplitFrames":
+        """The rows of each part (index reset) and the training labels methods may use."""
+        part = {k: flights[flights.flight_id.isin(getattr(self, k))].reset_index(drop=True)
+                for k in ("train", "val", "test")}
+        return SplitFrames(**part, y_train=training_labels(part["train"], self.labelled))
+
+
+@dataclass(frozen=True)
+class SplitFrames:
+    train: pd.DataFrame
+    val: pd.DataFrame
+    test: pd.DataFrame
+    y_train: np.ndarray    # label per training step, -1 on flights whose labels are withheld
 
 
 def split_flights(scenarios: pd.DataFrame, seed: int, fractions=(0.6, 0.2, 0.2),
@@ -110,11 +123,9 @@ def budget_threshold(scores: np.ndarray, flight_ids: np.ndarray, clean_flights: 
 
 @dataclass
 class Tuned:
-    detector: Detector
+    detector: Detector      # calibrated: threshold_ (max validation F1) and budget_threshold_
     params: dict[str, Any]
-    threshold: float
     val_f1: float
-    budget_threshold: float
     grid: list[dict[str, Any]] = field(default_factory=list)
     cached: bool = False    # loaded from a model cache instead of tuned now
 
@@ -127,13 +138,11 @@ def grid_points(grid: dict[str, list[Any]]) -> list[dict[str, Any]]:
 def tune(method: str, train: pd.DataFrame, y_train: np.ndarray, val: pd.DataFrame,
          gps_rate_hz: float = 10.0, budget_per_hour: float = 1.0,
          grid: dict[str, list[Any]] | None = None, **fixed: Any) -> Tuned:
-    """Steps 3 and 4 of the protocol for one method."""
-    from quadformer.detectors import get
-
+    """Steps 3 and 4 of the protocol for one method; the winner comes back calibrated."""
     cls = get(method)
     grid = cls.param_grid if grid is None else grid
     y_val = val["label"].to_numpy()
-    best: Tuned | None = None
+    best: tuple[Detector, dict[str, Any], float, float, np.ndarray] | None = None
     tried = []
     post_grid = cls.post_grid
     for point in grid_points(grid):
@@ -144,14 +153,12 @@ def tune(method: str, train: pd.DataFrame, y_train: np.ndarray, val: pd.DataFram
             s = det.decision_function(val)
             thr, f1 = best_f1_threshold(s, y_val)
             tried.append({**point, **post, "val_f1": f1, "threshold": thr})
-            if best is None or f1 > best.val_f1:
-                best = Tuned(det, {**fixed, **point, **post}, thr, f1, float("nan"))
-                best_scores = s
+            if best is None or f1 > best[3]:
+                best = (det, {**fixed, **point, **post}, thr, f1, s)
     assert best is not None
+    det, params, thr, f1, scores = best
     fid = val["flight_id"].to_numpy()
     clean = np.setdiff1d(np.unique(fid), np.unique(fid[y_val == 1]))
     hours = sum(len(i) for f, i in flight_slices(val) if f in set(clean.tolist())) / gps_rate_hz / 3600
-    best.budget_threshold = budget_threshold(best_scores, fid, clean, hours, budget_per_hour)
-    best.detector.threshold_ = best.threshold
-    best.grid = tried
-    return best
+    det.calibrate(thr, budget_threshold(scores, fid, clean, hours, budget_per_hour))
+    return Tuned(det, params, f1, tried)

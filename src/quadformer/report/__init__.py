@@ -1,5 +1,7 @@
-"""Benchmark outputs: tables in the paper's layout, figures and an offline HTML report."""
+"""Reports: the detection benchmark's tables in the paper's layout, figures and an offline
+HTML report; the resilience benchmark's policy tables and trajectory figures."""
 
-from quadformer.report._report import paper_tables, write_report
+from quadformer.report.detection import paper_tables, write_report
+from quadformer.report.resilience import overall_table, write_resilience_report
 
-__all__ = ["paper_tables", "write_report"]
+__all__ = ["overall_table", "paper_tables", "write_report", "write_resilience_report"]

@@ -9,7 +9,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from quadformer.report._report import _png, _write
+from quadformer.evaluation.resilience import summarize_policy
+from quadformer.io import atomic_write_text
+from quadformer.report.html import img, page, png, table
 
 COLUMNS = {
     "max_dev_median_m": "max deviation from mission, median (m)",
@@ -34,6 +36,21 @@ def policy_table(results: dict[str, Any]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+# the all-configurations table: policy summary key -> column title
+OVERALL = {
+    "attacked_flights": "attacked flights",
+    "max_dev_median_m": "max deviation median (m)",
+    "max_dev_p95_m": "max deviation p95 (m)",
+    "max_dev_max_m": "max deviation worst (m)",
+    "est_err_rms_median_m": "estimate error RMS median (m)",
+    "exclusion_delay_median_s": "onset to exclusion median (s)",
+    "readmit_delay_median_s": "end to re-admission median (s)",
+    "readmit_delay_p95_s": "end to re-admission p95 (s)",
+    "not_readmitted": "never re-admitted",
+    "wrongly_excluded_fraction": "wrongly excluded (clean time)",
+}
+
+
 def overall_table(results: dict[str, Any]) -> pd.DataFrame:
     """Per policy over all configurations' flights."""
     per: dict[str, list[dict[str, Any]]] = {}
@@ -41,27 +58,9 @@ def overall_table(results: dict[str, Any]) -> pd.DataFrame:
         for r in c["flights"]:
             per.setdefault(r["policy"], []).append(r)
     rows = []
-    for p, fl in per.items():
-        att = [r for r in fl if r["attacked"]]
-        clean = [r for r in fl if not r["attacked"]]
-
-        def vals(key, src=att):
-            return [r[key] for r in src if r.get(key) is not None]
-
-        dev = vals("max_dev_m")
-        rd = vals("readmit_delay_s")
-        rows.append({
-            "policy": p, "attacked flights": len(att),
-            "max deviation median (m)": np.median(dev) if dev else None,
-            "max deviation p95 (m)": np.percentile(dev, 95) if dev else None,
-            "max deviation worst (m)": np.max(dev) if dev else None,
-            "estimate error RMS median (m)": np.median(vals("est_err_rms_m")) if att else None,
-            "onset to exclusion median (s)": np.median(vals("exclusion_delay_s")) if vals("exclusion_delay_s") else None,
-            "end to re-admission median (s)": np.median(rd) if rd else None,
-            "end to re-admission p95 (s)": np.percentile(rd, 95) if rd else None,
-            "never re-admitted": sum(r.get("readmitted") is False for r in att),
-            "wrongly excluded (clean time)": np.mean(vals("excluded_fraction", clean)) if clean else None,
-        })
+    for p, flights in per.items():
+        summary = summarize_policy(flights)
+        rows.append({"policy": p, **{title: summary[k] for k, title in OVERALL.items()}})
     return pd.DataFrame(rows)
 
 
@@ -100,25 +99,26 @@ def write_resilience_report(results: dict[str, Any], out: Path) -> Path:
     import matplotlib.pyplot as plt
 
     out = Path(out)
-    table = policy_table(results)
+    per_config = policy_table(results)
     overall = overall_table(results)
-    _write(out / "policies.csv", table.to_csv(index=False))
-    _write(out / "overall.csv", overall.to_csv(index=False))
+    atomic_write_text(out / "policies.csv", per_config.to_csv(index=False))
+    atomic_write_text(out / "overall.csv", overall.to_csv(index=False))
     (out / "figures").mkdir(exist_ok=True)
+    adm = results["admission"]
     parts = [f"<h1>quadformer resilience: profile {html.escape(results['profile'])}, detector "
              f"{html.escape(results['detector'])} (threshold: {html.escape(results.get('threshold_rule', 'f1'))})</h1>",
              f"<p>{html.escape(results['protocol'])}"
              + (f" (the first {results['max_test_flights']} test flights of each configuration)"
                 if results.get("max_test_flights") else "")
-             + ". Policies: naive (always fuse GPS), px4 (5-sigma "
-             "innovation gate, reset to GPS after 7 s of rejections), resilient (exclude GPS on the detector's "
-             "alarm, re-admit after it has been clear and GPS has agreed with the estimate for the hold time, "
-             "blended), oracle (excludes exactly the spoofed fixes). Deviations are of the true vehicle from "
-             "its mission during the attack window.</p>",
+             + f". Policies: naive (always fuse GPS), px4 ({adm['gate_sigma']:g}-sigma innovation gate, reset "
+             f"to GPS after {adm['reset_after_s']:g} s of rejections), resilient (exclude GPS on the detector's "
+             f"alarm, re-admit after it has been clear and GPS has agreed with the estimate for "
+             f"{adm['hold_s']:g} s, blended over {adm['blend_s']:g} s), oracle (excludes exactly the spoofed "
+             "fixes). Deviations are of the true vehicle from its mission during the attack window.</p>",
              "<h2>All configurations</h2>",
-             overall.to_html(index=False, float_format=lambda v: f"{v:.2f}", na_rep="-", border=0, classes="t"),
+             table(overall, index=False),
              "<h2>Per configuration</h2>",
-             table.to_html(index=False, float_format=lambda v: f"{v:.3g}", na_rep="-", border=0, classes="t")]
+             table(per_config, ".3g", index=False)]
     for c in results["configs"]:
         path = out / "trajectories" / f"{c['name']}.parquet"
         if not path.exists():
@@ -132,14 +132,10 @@ def write_resilience_report(results: dict[str, Any], out: Path) -> Path:
                                  f"{c['name']}: test flight {worst} (attack that moved the naive vehicle most), "
                                  "from 5 s before the attack to 15 s after")
         fig.savefig(out / "figures" / f"trajectory_{c['name']}.png", dpi=110, bbox_inches="tight")
-        b64 = _png(fig)
+        b64 = png(fig)
         plt.close(fig)
-        parts.append(f"<h3>{html.escape(c['name'])}</h3><img src='data:image/png;base64,{b64}'/>")
+        parts.append(f"<h3>{html.escape(c['name'])}</h3>{img(b64)}")
     parts.append("<h2>Versions</h2><pre>" + html.escape(str(results.get("versions", {}))) + "</pre>")
-    style = ("<style>body{font-family:sans-serif;max-width:1300px;margin:auto}"
-             "table.t{border-collapse:collapse;font-size:12px}table.t td,table.t th{padding:2px 6px;"
-             "border-bottom:1px solid #ddd;text-align:right}img{max-width:100%}</style>")
-    doc = (f"<!doctype html><html><head><meta charset='utf-8'><title>quadformer resilience</title>{style}"
-           f"</head><body>{''.join(parts)}</body></html>")
-    _write(out / "report.html", doc)
+    doc = page("quadformer resilience", parts, width_px=1300)
+    atomic_write_text(out / "report.html", doc)
     return out / "report.html"

@@ -1,8 +1,5 @@
-"""Resilient state estimation: alerts, GPS admission policies, and the closed-loop benchmark."""
+"""Resilient state estimation: per-flight GPS admission policies driven by a detector."""
 
-from quadformer.resilience.admission import POLICIES, Admission, AdmissionConfig
-from quadformer.resilience.alerts import Alert, alerts_frame, alerts_from_scores, write_alerts
-from quadformer.resilience.online import OnlineScorer
+from quadformer.resilience.admission import POLICIES, Admission, AdmissionConfig, Decision
 
-__all__ = ["POLICIES", "Admission", "AdmissionConfig", "Alert", "OnlineScorer", "alerts_frame",
-           "alerts_from_scores", "write_alerts"]
+__all__ = ["POLICIES", "Admission", "AdmissionConfig", "Decision"]

@@ -84,7 +84,7 @@ class Admission:
         self.clear_time = torch.zeros(B, dtype=torch.float64)     # resilient: clear + agreeing
         self.blend_time = torch.zeros(B, dtype=torch.float64)
         self.reject_time = torch.zeros(B, dtype=torch.float64)    # px4: consecutive rejections
-        n_roll = max(1, int(round(self.cfg.rollback_s * gps_rate_hz)))
+        n_roll = int(round(self.cfg.rollback_s * gps_rate_hz))     # 0: no rollback
         self.recent = torch.zeros(B, n_roll, 3, dtype=torch.float64)   # last applied position corrections
 
     def decide(self, nis: torch.Tensor, w_component: torch.Tensor, alarm: torch.Tensor,
@@ -143,4 +143,5 @@ class Admission:
 
     def record(self, applied_dpos: torch.Tensor) -> None:
         """The position correction this GPS step applied per flight (zero where not fused)."""
-        self.recent = torch.cat([self.recent[:, 1:], applied_dpos[:, None].to(torch.float64)], 1)
+        if self.recent.shape[1]:
+            self.recent = torch.cat([self.recent[:, 1:], applied_dpos[:, None].to(torch.float64)], 1)

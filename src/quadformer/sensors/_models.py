@@ -16,8 +16,7 @@ import roma
 import torch
 
 from quadformer.config import GPSConfig, IMUConfig, VIOConfig
-from quadformer.estimator._linalg import matvec
-from quadformer.estimator.so3 import exp_quat
+from quadformer.geometry import exp_quat, matvec
 from quadformer.sensors.noise import batch_noise
 
 GRAVITY = torch.tensor([0.0, 0.0, -9.81], dtype=torch.float64)

@@ -1,14 +1,6 @@
-"""Closed-loop simulation of flights and the datasets built from them."""
+"""A source of flights: the closed-loop simulator and the datasets built from it."""
 
 from quadformer.simulation.closed_loop import simulate_batch
-from quadformer.simulation.dataset import (
-    Dataset,
-    DatasetError,
-    load_dataset,
-    simulate,
-    summarize,
-    write_dataset,
-)
+from quadformer.simulation.simulate import simulate
 
-__all__ = ["Dataset", "DatasetError", "load_dataset", "simulate", "simulate_batch", "summarize",
-           "write_dataset"]
+__all__ = ["simulate", "simulate_batch"]

@@ -21,35 +21,17 @@ import torch
 
 from quadformer.attacks import sample_attacks
 from quadformer.config import SimConfig
-from quadformer.estimator.residues import ResidueTracker
-from quadformer.estimator.so3 import exp_quat
 from quadformer.estimator.eskf import gps_update, init_state, nees, noise_model, predict, reset_to_gps, vio_update
+from quadformer.estimator.residues import ResidueTracker
+from quadformer.estimator.schema import RESIDUES, STATES, as_columns
+from quadformer.geometry import exp_quat
 from quadformer.missions import sample_missions
-from quadformer.plant import Plant, sample_wind
-from quadformer.plant._vehicle import DrydenWind
+from quadformer.plant import DrydenWind, Plant, sample_wind
 from quadformer.rng import Stream, batch_generators
 from quadformer.sensors import GPS, IMU, VIO, ChunkedNoise
 
-GPS_AXES = ("px", "py", "pz", "vx", "vy", "vz")
-VIO_AXES = ("vx", "vy", "vz", "thx", "thy", "thz")
-XYZ = ("x", "y", "z")
-
-# Recorded per GPS step: name -> number of columns (column names built in ``column_names``).
-RECORDS = {
-    "true_pos": 3, "true_vel": 3, "est_pos": 3, "est_vel": 3, "gps_pos": 3, "gps_vel": 3,
-    "vio_pos": 3, "atk_d": 3, "wind": 3,
-    "res_gps_r": 6, "res_gps_w": 6, "res_gps_s": 6, "res_gps_nis": 1, "res_gps_corr": 3,
-    "res_vio_r": 6, "res_vio_nis": 1, "res_vio_nis_mean": 1,
-}
-
-
-def column_names(name: str) -> list[str]:
-    n = RECORDS[name]
-    if n == 1:
-        return [name]
-    axes = GPS_AXES if name.startswith("res_gps") else VIO_AXES if name.startswith("res_vio") else XYZ
-    axes = axes[:n]
-    return [f"{name}_{a}" for a in axes]
+# Recorded per GPS step: the schema's groups (the reference is evaluated after the flight).
+RECORDS = {g.name: g.width for g in STATES + RESIDUES if g.name != "ref_pos"}
 
 
 class BatchResult(dict):
@@ -58,7 +40,7 @@ class BatchResult(dict):
 
 def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
                    progress: Callable[[float], None] | None = None, record_nees: bool = False,
-                   record_sensors: bool = False, admission=None, scorer=None) -> BatchResult:
+                   record_sensors: bool = False, admission=None, stream=None) -> BatchResult:
     """Simulate flights ``flights`` (indices into the dataset) of ``cfg`` together.
 
     record_nees: also the filter's NEES per GPS step (consistency checks); record_sensors:
@@ -66,8 +48,10 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     ``estimator.replay.run_ekf`` can process on their own.
 
     admission: a ``resilience.Admission`` over the batch's flights (GPS fused per policy);
-    scorer: a ``resilience.OnlineScorer`` whose alarms drive the ``resilient`` policy. Both
-    add per-step ``admission`` records (fused, noise scale, reset, score, alarm)."""
+    stream: a detector's online stream over the batch (``detector.stream(len(flights))``)
+    whose alarms drive the ``resilient`` policy. Both add per-step ``admission`` records
+    (fused, noise scale, reset, score, alarm, and the position correction GPS applied to the
+    estimate: the update's, a reset's jump and a rollback together)."""
     B = len(flights)
     dt, n_steps, spg, spv, n_gps = cfg.dt, cfg.n_steps, cfg.steps_per_gps, cfg.steps_per_vio, cfg.n_gps
     scn = batch_generators(cfg.seed, flights, Stream.SCENARIO)
@@ -108,9 +92,9 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     sensors = {"ekf0": ekf, "imu": [], "vio": [], "gps": []} if record_sensors else None
     block = 100
     ref_block = None
-    adm_rec = {k: np.zeros((B, n_gps), dtype=dt_) for k, dt_ in
-               (("fused", bool), ("std_scale", float), ("reset", bool), ("score", float), ("alarm", bool))} \
-        if admission is not None else None
+    adm_rec = {k: np.zeros((B, n_gps, *shape), dtype=dt_) for k, dt_, shape in
+               (("fused", bool, ()), ("std_scale", float, ()), ("reset", bool, ()), ("score", float, ()),
+                ("alarm", bool, ()), ("correction", float, (3,)))} if admission is not None else None
 
     for k in range(n_steps):
         if k % block == 0:
@@ -155,7 +139,7 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
                 ekf = proposed
             else:
                 ekf = _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, torch.from_numpy(np.asarray(active)),
-                             admission, scorer, residues, adm_rec, j)
+                             admission, stream, residues, adm_rec, j)
             label[:, j] = active
             for name, val in (
                 ("true_pos", state["x"]), ("true_vel", state["v"]), ("est_pos", ekf.p), ("est_vel", ekf.v),
@@ -184,16 +168,12 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     return out
 
 
-
-def _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, attacked, admission, scorer, residues, rec, j):
+def _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, attacked, admission, stream, residues, rec, j):
     """One GPS step under admission control: score, decide per flight, apply."""
     B = len(attacked)
-    if scorer is not None:
-        cols = {}
-        for name, val in res.items():
-            for c, col in zip(column_names(name), val.T):
-                cols[c] = col.numpy()
-        score, alarm = scorer.update(cols)
+    if stream is not None:
+        step = stream.update(as_columns(res))
+        score, alarm = step.score, step.alarm
     else:
         score, alarm = np.zeros(B), np.zeros(B, dtype=bool)
     dec = admission.decide(inn.nis, inn.r / inn.s_std, torch.from_numpy(np.asarray(alarm)), attacked)
@@ -218,4 +198,5 @@ def _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, attacked, admission, score
     rec["reset"][:, j] = dec.reset.numpy()
     rec["score"][:, j] = score
     rec["alarm"][:, j] = alarm
+    rec["correction"][:, j] = applied.numpy()
     return new

@@ -1,8 +1,7 @@
 """Neural detectors: modules, the shared training loop, and their detector classes."""
 
 from quadformer.detectors.neural.detector import CNNDetector, LSTMDetector, WindowClassifier
-from quadformer.detectors.neural.quadformer import QUADFormer, StreamingDetector
+from quadformer.detectors.neural.quadformer import QUADFormer
 from quadformer.detectors.neural.training import TrainConfig, train
 
-__all__ = ["CNNDetector", "LSTMDetector", "QUADFormer", "StreamingDetector", "TrainConfig",
-           "WindowClassifier", "train"]
+__all__ = ["CNNDetector", "LSTMDetector", "QUADFormer", "TrainConfig", "WindowClassifier", "train"]

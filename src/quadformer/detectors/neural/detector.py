@@ -18,12 +18,13 @@ import pandas as pd
 import torch
 from torch import nn
 
-from quadformer.detectors.base import Detector, labelled_split
+from quadformer.detectors.base import Detector, check_residues, labelled_split
 from quadformer.detectors.neural.cnn import CNN1d
 from quadformer.detectors.neural.lstm import LSTMNet
 from quadformer.detectors.neural.training import TrainConfig, train
 from quadformer.detectors.registry import register
-from quadformer.detectors.windows import RESIDUE_FEATURES, AxisSymmetry, Normalizer, Windows
+from quadformer.detectors.windows import AxisSymmetry, Normalizer, Windows, WindowStream, input_features
+from quadformer.io import atomic_path
 
 
 class TorchCheckpoint:
@@ -42,14 +43,23 @@ class TorchCheckpoint:
             setattr(self, k, Normalizer.from_state(v) if k == "normalizer_" else v)
 
     def save_extra(self, path: Path) -> None:
-        torch.save(self.model_.state_dict(), Path(path).with_suffix(".pt"))
+        with atomic_path(Path(path).with_suffix(".pt")) as tmp:
+            torch.save(self.model_.state_dict(), tmp)
 
     def load_extra(self, path: Path) -> None:
         wpath = Path(path).with_suffix(".pt")
         if not wpath.exists():
             raise FileNotFoundError(f"{wpath}: weights of {Path(path).name} are missing")
         model = self._build()
-        model.load_state_dict(torch.load(wpath, map_location=self.device, weights_only=True))
+        try:
+            # tensors only: a file holding pickled objects (code) is refused, never executed
+            state = torch.load(wpath, map_location=self.device, weights_only=True)
+        except Exception as e:   # UnpicklingError for objects, RuntimeError for corrupt files
+            raise ValueError(f"{wpath}: not a plain tensor state dict ({type(e).__name__}: "
+                             f"{str(e).splitlines()[0] if str(e) else ''})") from None
+        if not isinstance(state, dict):
+            raise ValueError(f"{wpath}: not a state dict")
+        model.load_state_dict(state)
         self.model_ = model.to(self.device).eval()
         self.fitted_ = True
 
@@ -75,8 +85,7 @@ class WindowClassifier(TorchCheckpoint, Detector):
 
     def fit(self, X: pd.DataFrame, y: np.ndarray | None = None) -> "WindowClassifier":
         tr, ho = labelled_split(X, y, self.seed)
-        self.features_ = [c for c in RESIDUE_FEATURES if c in X.columns]
-        from quadformer.detectors.base import check_residues
+        self.features_ = input_features(X)
         self.normalizer_ = Normalizer().fit(check_residues(X, self.features_))   # all training rows
         win = Windows(X, self.features_, self.normalizer_, self.window)
         rows = np.concatenate([tr, ho])
@@ -103,42 +112,23 @@ class WindowClassifier(TorchCheckpoint, Detector):
         return self
 
     def decision_function(self, X: pd.DataFrame) -> np.ndarray:
-        self._check_fitted()
+        self.check_fitted()
         win = Windows(X, self.features_, self.normalizer_, self.window)
         out = np.empty(len(win), dtype=np.float64)
-        dev = torch.device(self.device)
-        with torch.no_grad():
-            for i in range(0, len(win), 4096):
-                idx = np.arange(i, min(i + 4096, len(win)))
-                out[idx] = self.model_(torch.from_numpy(win[idx]).to(dev)).double().cpu().numpy()
+        for i in range(0, len(win), 4096):
+            idx = np.arange(i, min(i + 4096, len(win)))
+            out[idx] = self.score_windows(win[idx])[0]
         return out
 
-    def batch_stream(self, n_flights: int) -> "WindowBatchStream":
-        return WindowBatchStream(self, n_flights)
-
-
-class WindowBatchStream:
-    """A window classifier online over n flights stepped together:
-    ``update(residues (n, features)) -> (scores (n,), alarms (n,), None)``; a ring buffer of the
-    last W normalised residues per flight (zeros before the first step, as offline)."""
-
-    def __init__(self, det: WindowClassifier, n_flights: int):
-        det._check_fitted()
-        self.det = det
-        self.buf = np.zeros((n_flights, det.window, len(det.features_)), dtype=np.float32)
-
-    def update(self, residues: np.ndarray):
-        d = self.det
-        v = np.asarray(residues, dtype=float)
-        if v.shape != self.buf.shape[::2] or not np.isfinite(v).all():
-            raise ValueError(f"residues must be {len(self.buf)} rows of {len(d.features_)} finite values "
-                             f"({', '.join(d.features_)})")
-        self.buf[:, :-1] = self.buf[:, 1:]
-        self.buf[:, -1] = d.normalizer_.transform(v)
+    def score_windows(self, windows: np.ndarray) -> tuple[np.ndarray, None]:
+        """Logits of normalised windows (n, W, features)."""
         with torch.no_grad():
-            score = d.model_(torch.from_numpy(self.buf).to(torch.device(d.device))).double().cpu().numpy()
-        thr = getattr(d, "threshold_", None)
-        return score, (score > thr if thr is not None else np.zeros(len(score), bool)), None
+            x = torch.from_numpy(np.ascontiguousarray(windows)).to(torch.device(self.device))
+            return self.model_(x).double().cpu().numpy(), None
+
+    def stream(self, n_flights: int = 1) -> WindowStream:
+        return WindowStream(self, n_flights)
+
 
 @register("cnn")
 class CNNDetector(WindowClassifier):

@@ -35,6 +35,7 @@ above ``lower_`` (the 90th percentile of training scores on normal steps).
 
 from __future__ import annotations
 
+import hashlib
 import inspect
 from typing import Any
 
@@ -43,15 +44,17 @@ import pandas as pd
 import torch
 from torch import nn
 
-from quadformer.config import ATTACK_KINDS
+from quadformer.detectors.alarms import runs
 from quadformer.detectors.base import Detector, check_residues, flight_slices, labelled_split
 from quadformer.detectors.neural.detector import TorchCheckpoint
 from quadformer.detectors.neural.quadformer_net import QUADFormerNet, discrepancy
 from quadformer.detectors.neural.training import TrainConfig, train
 from quadformer.detectors.registry import register
-from quadformer.detectors.windows import RESIDUE_FEATURES, AxisSymmetry, Normalizer, Windows
+from quadformer.detectors.streams import RingBuffer
+from quadformer.detectors.windows import AxisSymmetry, Normalizer, Windows, WindowStream, input_features
+from quadformer.estimator.schema import ATTACK_TYPES
 
-CLASSES = ATTACK_KINDS          # "none" first
+CLASSES = ("none", *ATTACK_TYPES)   # the classifier's classes; a fitted model keeps its own (classes_)
 W_ANOMALY = (0.0, 0.5, 1.0)     # weights of the unsupervised statistic in the score
 
 
@@ -94,7 +97,7 @@ class QUADFormer(TorchCheckpoint, Detector):
         return self.use_prior and self.use_discrepancy
 
     def _build(self) -> nn.Module:
-        return QUADFormerNet(len(self.features_), len(CLASSES), self.window, self.d_model, self.heads,
+        return QUADFormerNet(len(self.features_), len(self.classes_), self.window, self.d_model, self.heads,
                              self.layers, use_prior=self.use_prior)
 
     def get_params(self) -> dict[str, Any]:
@@ -107,7 +110,8 @@ class QUADFormer(TorchCheckpoint, Detector):
             raise ValueError(f"k ({self.k}) must not exceed n ({self.n})")
         if float(self.w_anomaly) not in W_ANOMALY:
             raise ValueError(f"w_anomaly must be one of {W_ANOMALY}, got {self.w_anomaly!r}")
-        self.features_ = [c for c in RESIDUE_FEATURES if c in X.columns]
+        self.features_ = input_features(X)
+        self.classes_ = list(CLASSES)
         self.normalizer_ = Normalizer().fit(check_residues(X, self.features_))
         win = Windows(X, self.features_, self.normalizer_, self.window)
         n_rows = len(X)
@@ -120,8 +124,9 @@ class QUADFormer(TorchCheckpoint, Detector):
             types = X["attack_type"].astype(str).to_numpy() if "attack_type" in X.columns else None
             cls[known & (y == 0)] = 0
             att = known & (y == 1)
-            cls[att] = [CLASSES.index(t) if types is not None and t in CLASSES[1:] else 1 for t in
-                        (types[att] if types is not None else np.full(att.sum(), "bias"))]
+            # an attacked step of unknown or unnamed type counts as the first attack class
+            cls[att] = [self.classes_.index(t) if types is not None and t in self.classes_[1:] else 1 for t in
+                        (types[att] if types is not None else np.full(att.sum(), self.classes_[1]))]
         unl = np.nonzero(~(known & (y == 1)))[0]       # windows treated as mostly normal
         lab_tr, lab_ho = labelled_split(X, y, self.seed) if self.supervised else (np.zeros(0, int),) * 2
         dev = torch.device(self.device)
@@ -182,19 +187,27 @@ class QUADFormer(TorchCheckpoint, Detector):
     # -- scoring ----------------------------------------------------------------------------
     def _parts(self, win: Windows, idx: np.ndarray) -> dict[str, np.ndarray]:
         """Per-step ingredients of the score for windows idx (their last position)."""
-        out = {"err": [], "dis": [], "p_attack": [], "type": []}
-        dev = torch.device(self.device)
+        chunks = [self._window_parts(win[idx[i:i + 1024]]) for i in range(0, len(idx), 1024)]
+        return {k: np.concatenate([c[k] for c in chunks]) if chunks else np.zeros(0)
+                for k in ("err", "dis", "p_attack", "type")}
+
+    def _window_parts(self, windows: np.ndarray) -> dict[str, np.ndarray]:
+        """Score ingredients of the last position of normalised windows (n, W, features)."""
         with torch.no_grad():
-            for i in range(0, len(idx), 1024):
-                xb = torch.from_numpy(win[idx[i:i + 1024]]).to(dev)
-                o = self.model_(xb, last_only=True)
-                out["err"].append(((o["recon"][:, -1] - xb[:, -1]) ** 2).mean(-1).double().cpu().numpy())
-                d = discrepancy(o["series"], o["priors"])[:, -1] if self._disc else torch.zeros(len(xb))
-                out["dis"].append(d.double().cpu().numpy())
-                prob = torch.softmax(o["logits"][:, -1], dim=-1)
-                out["p_attack"].append((1 - prob[:, 0]).double().cpu().numpy())
-                out["type"].append((prob[:, 1:].argmax(-1) + 1).cpu().numpy())
-        return {k: np.concatenate(v) if v else np.zeros(0) for k, v in out.items()}
+            xb = torch.from_numpy(np.ascontiguousarray(windows)).to(torch.device(self.device))
+            o = self.model_(xb, last_only=True)
+            d = discrepancy(o["series"], o["priors"])[:, -1] if self._disc else torch.zeros(len(xb))
+            prob = torch.softmax(o["logits"][:, -1], dim=-1)
+            return {"err": ((o["recon"][:, -1] - xb[:, -1]) ** 2).mean(-1).double().cpu().numpy(),
+                    "dis": d.double().cpu().numpy(),
+                    "p_attack": (1 - prob[:, 0]).double().cpu().numpy(),
+                    "type": (prob[:, 1:].argmax(-1) + 1).cpu().numpy()}
+
+    def score_windows(self, windows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Raw scores (before the k-of-n rule) and predicted attack types of normalised windows
+        (n, W, features)."""
+        parts = self._window_parts(windows)
+        return self._raw(parts), np.array(self.classes_, dtype=object)[parts["type"].astype(int)]
 
     def _anomaly(self, parts: dict[str, np.ndarray]) -> np.ndarray:
         """Log of the discrepancy-weighted reconstruction error, err * exp(-Dis / tau), tau the
@@ -219,8 +232,7 @@ class QUADFormer(TorchCheckpoint, Detector):
 
         The last result is cached (shared with ``with_post`` copies), so tuning the alarm rule
         does not run the network again."""
-        self._check_fitted()
-        import hashlib
+        self.check_fitted()
         cols = [c for c in ["flight_id", *self.features_] if c in X.columns]
         key = hashlib.blake2b(np.ascontiguousarray(X[cols].to_numpy(dtype=float)).tobytes(),
                               digest_size=16).hexdigest()     # content, not identity
@@ -242,7 +254,7 @@ class QUADFormer(TorchCheckpoint, Detector):
     def predict_type(self, X: pd.DataFrame) -> np.ndarray:
         """Predicted attack type at each step (meaningful where an alarm is raised)."""
         _, t = self.raw_scores(X)
-        return np.array(CLASSES, dtype=object)[t]
+        return np.array(self.classes_, dtype=object)[t]
 
     def onset_times(self, X: pd.DataFrame, alarms: np.ndarray) -> list[tuple[Any, float, float]]:
         """(flight, alarm time, estimated onset time) for each alarm run."""
@@ -251,9 +263,7 @@ class QUADFormer(TorchCheckpoint, Detector):
         t = X["t"].to_numpy()
         out = []
         for fid, idx in flight_slices(X):
-            a = np.asarray(alarms)[idx].astype(bool)
-            starts = np.nonzero(a & ~np.r_[False, a[:-1]])[0]
-            for s in starts:
+            for s, _ in runs(np.asarray(alarms)[idx]):
                 j = s
                 while j > 0 and raw[idx[j - 1]] > lower:
                     j -= 1
@@ -265,15 +275,8 @@ class QUADFormer(TorchCheckpoint, Detector):
         (for the configured ``w_anomaly``)."""
         return float(self.lower_[str(float(self.w_anomaly) if self.supervised else 1.0)])
 
-    def stream(self) -> "StreamingDetector":
-        return StreamingDetector(self)
-
-    @property
-    def context_steps(self) -> int:
-        return self.window + self.n - 1
-
-    def batch_stream(self, n_flights: int) -> "BatchStream":
-        return BatchStream(self, n_flights)
+    def stream(self, n_flights: int = 1) -> "KofNStream":
+        return KofNStream(self, n_flights)
 
 
 FLOOR = -1e6   # score before k steps of a flight exist (never alarms)
@@ -291,66 +294,19 @@ def kth_of_last_n(raw: np.ndarray, X: pd.DataFrame, k: int, n: int) -> np.ndarra
     return out
 
 
-class BatchStream:
-    """Online QUADFormer for a batch of flights stepped together:
-    ``update(residues (B, features)) -> (scores (B,), alarms (B,), type indices (B,))``.
+class KofNStream(WindowStream):
+    """QUADFormer online: the window stream's raw scores and types, then the k-of-n rule over
+    a ring buffer of the last n raw scores per flight (``FLOOR`` before the flight's start)."""
 
-    Ring buffers of the last W normalised residues per flight (zeros before the first step,
-    as offline) and of the last n raw scores; one network call per step for the batch."""
+    def __init__(self, detector: QUADFormer, n_flights: int):
+        super().__init__(detector, n_flights)
+        self.last = RingBuffer(self.n, detector.n, fill=FLOOR, dtype=np.float64)
 
-    def __init__(self, det: "QUADFormer", n_flights: int):
-        det._check_fitted()
-        self.det = det
-        self.buf = np.zeros((n_flights, det.window, len(det.features_)), dtype=np.float32)
-        self.scores = np.full((n_flights, det.n), FLOOR)
-
-    def update(self, residues: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        d = self.det
-        v = np.asarray(residues, dtype=float)
-        if v.shape != (len(self.buf), len(d.features_)) or not np.isfinite(v).all():
-            raise ValueError(f"residues must be {len(self.buf)} rows of {len(d.features_)} finite values "
-                             f"({', '.join(d.features_)})")
-        self.buf[:, :-1] = self.buf[:, 1:]
-        self.buf[:, -1] = d.normalizer_.transform(v)
-        parts = d._parts(_Batch(self.buf), np.arange(len(self.buf)))
-        self.scores[:, :-1] = self.scores[:, 1:]
-        self.scores[:, -1] = d._raw(parts)
-        score = np.sort(self.scores, axis=1)[:, d.n - d.k]
-        thr = getattr(d, "threshold_", None)
-        alarm = score > thr if thr is not None else np.zeros(len(score), bool)
-        return score, alarm, parts["type"].astype(int)
-
-
-class StreamingDetector:
-    """Online QUADFormer for one flight: ``update(residue_vector) -> (score, alarm, attack_type)``.
-
-    ``residue_vector``: a mapping with the detector's feature names, or an array in the
-    order of ``features_``. Its outputs equal offline scoring of the same flight."""
-
-    def __init__(self, det: QUADFormer):
-        self.det = det
-        self._batch = BatchStream(det, 1)
-
-    def update(self, residue_vector) -> tuple[float, bool, str]:
-        d = self.det
-        if isinstance(residue_vector, dict) or hasattr(residue_vector, "keys"):
-            v = np.array([residue_vector[c] for c in d.features_], dtype=float)
-        else:
-            v = np.asarray(residue_vector, dtype=float)
-        if v.shape != (len(d.features_),) or not np.isfinite(v).all():
-            raise ValueError(f"residue vector must hold {len(d.features_)} finite values ({', '.join(d.features_)})")
-        score, alarm, kind = self._batch.update(v[None])
-        return float(score[0]), bool(alarm[0]), CLASSES[int(kind[0])] if alarm[0] else "none"
-
-
-class _Batch:
-    """The current windows of a batch, in the interface ``_parts`` expects."""
-
-    def __init__(self, buf: np.ndarray):
-        self.buf = buf
-
-    def __getitem__(self, idx):
-        return self.buf[idx]
+    def _score(self, x):
+        raw, types = super()._score(x)
+        last = self.last.push(raw)
+        d = self.detector
+        return np.sort(last, axis=1)[:, d.n - d.k], types
 
 
 def _variant(name: str, doc: str, **fixed: Any) -> type[QUADFormer]:

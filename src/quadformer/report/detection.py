@@ -1,15 +1,19 @@
-"""Tables (Markdown, CSV, LaTeX), figures (PNG) and report.html from a results dict."""
+"""The detection benchmark's outputs: tables in the paper's layout (Markdown, CSV, LaTeX),
+figures (PNG) and report.html, from a results dict."""
 
 from __future__ import annotations
 
-import base64
 import html
-import io
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
+
+from quadformer.dataset import load_dataset
+from quadformer.evaluation.metrics import flight_events
+from quadformer.io import atomic_write_text
+from quadformer.report.html import img, page, png, table
 
 NOISES = ("exponential", "laplace")
 ATTACKS = ("bias", "ramp")
@@ -69,12 +73,6 @@ def _f(v: Any) -> str:
     return "-" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.2f}"
 
 
-def _write(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
-
-
 def extra_table(results: dict[str, Any]) -> pd.DataFrame:
     rows = []
     for c in results["configs"]:
@@ -120,12 +118,6 @@ def confusion_table(results: dict[str, Any], method: str) -> pd.DataFrame | None
     return pd.DataFrame(total).T.fillna(0).astype(int)
 
 
-def _png(fig) -> str:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    return base64.b64encode(buf.getvalue()).decode()
-
-
 def _figures(results: dict[str, Any], out: Path) -> dict[str, str]:
     import matplotlib
     matplotlib.use("Agg")
@@ -145,7 +137,7 @@ def _figures(results: dict[str, Any], out: Path) -> dict[str, str]:
     ax.set_ylabel("point-wise F1 (test)")
     ax.set_ylim(0, 1)
     ax.legend(ncol=len(methods), fontsize=8)
-    figs["f1_by_config"] = _png(fig)
+    figs["f1_by_config"] = png(fig)
     fig.savefig(out / "figures" / "f1_by_config.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
 
@@ -160,7 +152,7 @@ def _figures(results: dict[str, Any], out: Path) -> dict[str, str]:
     if data:
         ax.boxplot(data, tick_labels=labels)
     ax.set_ylabel("detection delay (s), test windows found")
-    figs["delays"] = _png(fig)
+    figs["delays"] = png(fig)
     fig.savefig(out / "figures" / "delays.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
 
@@ -174,7 +166,6 @@ def _figures(results: dict[str, Any], out: Path) -> dict[str, str]:
             continue
         fid = attacked[attacked == 1].index[0]
         g = sc[sc.flight_id == fid]
-        from quadformer.simulation.dataset import load_dataset
         ds = load_dataset(c["dataset"]).flights
         d = ds[ds.flight_id == fid]
         fig, axes = plt.subplots(len(methods) + 1, 1, figsize=(9, 1.6 * (len(methods) + 1)), sharex=True)
@@ -197,14 +188,13 @@ def _figures(results: dict[str, Any], out: Path) -> dict[str, str]:
         axes[-1].set_xlabel("t (s)")
         fig.suptitle(f"{c['name']}: test flight {fid} (shaded: attack window; red: threshold, alarms)", fontsize=9)
         key = f"example_{c['name']}"
-        figs[key] = _png(fig)
+        figs[key] = png(fig)
         fig.savefig(out / "figures" / f"{key}.png", dpi=110, bbox_inches="tight")
         plt.close(fig)
     return figs
 
 
 def _delays(results, out: Path, method: str) -> list[float]:
-    from quadformer.evaluation.metrics import flight_events
     delays: list[float] = []
     for c in results["configs"]:
         p = out / "scores" / f"{c['name']}.parquet"
@@ -222,13 +212,13 @@ def write_report(results: dict[str, Any], out: Path) -> Path:
     tables = paper_tables(results)
     for key, df in tables.items():
         model = key.split("_")[1]
-        _write(out / f"table_{key}.md", _markdown(df))
+        atomic_write_text(out / f"table_{key}.md", _markdown(df))
         flat = df.copy()
         flat.columns = [f"{n}/{a}/{m}" for n, a, m in df.columns]
-        _write(out / f"table_{key}.csv", flat.to_csv(index_label="method"))
-        _write(out / f"table_{key}.tex", _latex(df, model))
+        atomic_write_text(out / f"table_{key}.csv", flat.to_csv(index_label="method"))
+        atomic_write_text(out / f"table_{key}.tex", _latex(df, model))
     extra = extra_table(results)
-    _write(out / "metrics.csv", extra.to_csv(index=False))
+    atomic_write_text(out / "metrics.csv", extra.to_csv(index=False))
     figs = _figures(results, out)
 
     parts = [f"<h1>quadformer benchmark: profile {html.escape(results['profile'])}</h1>",
@@ -237,32 +227,28 @@ def write_report(results: dict[str, Any], out: Path) -> Path:
              f"{results['label_fraction']:.0%} of the training flights are available to every method.</p>"]
     for key, df in tables.items():
         parts.append(f"<h2>Model {key.split('_')[1]}: point-wise precision, recall, F1 (test flights)</h2>")
-        parts.append(df.to_html(float_format=lambda v: f"{v:.2f}", na_rep="-", border=0, classes="t"))
+        parts.append(table(df))
     parts.append("<h2>All metrics</h2><p>Event-wise scores, detection delays, false alarms per hour on clean "
                  "test flights, threshold-free AUROC/AUPRC, scores at the false-alarm budget threshold. "
                  "The point-adjusted F1 is shown only for comparison with the literature: it inflates "
                  "scores and is not the result.</p>")
-    parts.append(extra.to_html(index=False, float_format=lambda v: f"{v:.2f}", na_rep="-", border=0, classes="t"))
+    parts.append(table(extra, index=False))
     for key, b64 in figs.items():
-        parts.append(f"<h3>{html.escape(key)}</h3><img src='data:image/png;base64,{b64}'/>")
+        parts.append(f"<h3>{html.escape(key)}</h3>{img(b64)}")
     abl = ablation_table(results)
     if abl is not None:
-        _write(out / "ablation.csv", abl.to_csv())
+        atomic_write_text(out / "ablation.csv", abl.to_csv())
         parts.append("<h2>QUADFormer ablations: point-wise F1 (test)</h2><p>noprior: no prior branch; nosup: no "
                      "supervised terms (no labels); nodisc: no discrepancy term.</p>")
-        parts.append(abl.to_html(float_format=lambda v: f"{v:.2f}", na_rep="-", border=0, classes="t"))
+        parts.append(table(abl))
     for m in results["methods_run"]:
         conf = confusion_table(results, m)
         if conf is not None:
             parts.append(f"<h2>{html.escape(m)}: attack type predicted at the first alarm of each alarm run</h2>"
                          "<p>Rows: true type (none: a false alarm); columns: predicted type; all test flights "
                          "of all configurations.</p>")
-            parts.append(conf.to_html(border=0, classes="t"))
+            parts.append(table(conf))
     parts.append("<h2>Versions</h2><pre>" + html.escape(str(results.get("versions", {}))) + "</pre>")
-    style = ("<style>body{font-family:sans-serif;max-width:1200px;margin:auto}"
-             "table.t{border-collapse:collapse;font-size:12px}table.t td,table.t th{padding:2px 6px;"
-             "border-bottom:1px solid #ddd;text-align:right}img{max-width:100%}</style>")
-    doc = f"<!doctype html><html><head><meta charset='utf-8'><title>quadformer report</title>{style}</head>" \
-          f"<body>{''.join(parts)}</body></html>"
-    _write(out / "report.html", doc)
+    doc = page("quadformer report", parts)
+    atomic_write_text(out / "report.html", doc)
     return out / "report.html"

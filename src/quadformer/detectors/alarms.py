@@ -1,4 +1,4 @@
-"""Alert events: a detector's alarm runs, as an operator or an autopilot would see them.
+"""Alarm runs and alert events: a detector's alarms as an operator or an autopilot sees them.
 
 One alert per run of consecutive alarmed steps of a flight: when it was raised, the
 estimated onset of the attack (from the detector's onset criterion where it has one, else
@@ -17,8 +17,26 @@ import numpy as np
 import pandas as pd
 
 from quadformer.detectors.base import flight_slices
+from quadformer.io import atomic_path
 
 ALERT_COLUMNS = ["flight_id", "start_s", "onset_s", "attack_type", "score", "end_s"]
+
+
+def runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Half-open [start, end) index runs where ``mask`` is true."""
+    m = np.concatenate([[False], np.asarray(mask, dtype=bool), [False]])
+    d = np.diff(m.astype(np.int8))
+    return list(zip(np.nonzero(d == 1)[0].tolist(), np.nonzero(d == -1)[0].tolist()))
+
+
+def run_starts(X: pd.DataFrame, alarms: np.ndarray) -> np.ndarray:
+    """Boolean mask of the rows of X where an alarm run of a flight starts."""
+    alarms = np.asarray(alarms, dtype=bool)
+    out = np.zeros(len(alarms), dtype=bool)
+    for _, idx in flight_slices(X):
+        for s, _ in runs(alarms[idx]):
+            out[idx[s]] = True
+    return out
 
 
 @dataclass(frozen=True)
@@ -36,12 +54,18 @@ class Alert:
                 f"(onset ~{self.onset_s:.1f} s, until {end}, peak score {self.score:.3g})")
 
 
-def alerts_from_scores(X: pd.DataFrame, scores: np.ndarray, threshold: float, detector=None) -> list[Alert]:
+def alerts_from_scores(X: pd.DataFrame, scores: np.ndarray, detector=None, *,
+                       threshold: float | None = None) -> list[Alert]:
     """Alerts of the flights in X (rows grouped by ``flight_id``, time ``t``) for per-step
-    ``scores`` and an alarm ``threshold``."""
+    ``scores``, under the detector's alarm rule (``score > detector.threshold_``), or under
+    ``threshold`` for scores that come without a detector."""
     scores = np.asarray(scores, dtype=float)
     if len(scores) != len(X):
         raise ValueError(f"{len(scores)} scores for {len(X)} rows")
+    if threshold is None:
+        threshold = getattr(detector, "threshold_", None)
+        if threshold is None:
+            raise ValueError("alerts need an alarm threshold: a calibrated detector or threshold=")
     alarms = scores > threshold
     onsets: dict[tuple[Any, float], float] = {}
     if detector is not None and hasattr(detector, "onset_times"):
@@ -50,17 +74,14 @@ def alerts_from_scores(X: pd.DataFrame, scores: np.ndarray, threshold: float, de
     t = X["t"].to_numpy(dtype=float)
     out = []
     for fid, idx in flight_slices(X):
-        a = alarms[idx]
-        starts = np.nonzero(a & ~np.r_[False, a[:-1]])[0]
-        ends = np.nonzero(a & ~np.r_[a[1:], False])[0]
-        for s, e in zip(starts, ends):
+        for s, e in runs(alarms[idx]):
             t0 = float(t[idx[s]])
             out.append(Alert(
                 flight_id=fid.item() if hasattr(fid, "item") else fid, start_s=t0,
                 onset_s=float(onsets.get((fid, t0), t0)),
                 attack_type=str(types[idx[s]]) if types is not None else "attack",
-                score=float(scores[idx[s:e + 1]].max()),
-                end_s=float(t[idx[e + 1]]) if e + 1 < len(idx) else None))
+                score=float(scores[idx[s:e]].max()),
+                end_s=float(t[idx[e]]) if e < len(idx) else None))
     return out
 
 
@@ -68,11 +89,9 @@ def alerts_frame(alerts: list[Alert]) -> pd.DataFrame:
     return pd.DataFrame([asdict(a) for a in alerts], columns=ALERT_COLUMNS)
 
 
-def write_alerts(alerts: list[Alert], path: Path) -> Path:
+def write_alerts(alerts: list[Alert] | pd.DataFrame, path: Path) -> Path:
     """CSV of alerts, written to a temporary sibling and moved into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    alerts_frame(alerts).to_csv(tmp, index=False)
-    tmp.replace(path)
-    return path
+    frame = alerts if isinstance(alerts, pd.DataFrame) else alerts_frame(alerts)
+    with atomic_path(path) as tmp:
+        frame.to_csv(tmp, index=False)
+    return Path(path)

@@ -1,12 +1,10 @@
-"""The paper's eight configurations: Model I/II x exponential/laplace noise x bias/ramp."""
+"""The paper's eight configurations (Model I/II x exponential/laplace noise x bias/ramp) and
+the benchmark profiles that size them."""
 
 from __future__ import annotations
 
 import itertools
-import multiprocessing
-import os
-from concurrent.futures import ProcessPoolExecutor
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -14,9 +12,33 @@ import pandas as pd
 from scipy import stats
 
 from quadformer.config import SimConfig
-from quadformer.simulation.dataset import Dataset, simulate, write_dataset
+from quadformer.dataset import Dataset
 
 PAPER_GRID = tuple(itertools.product(("I", "II"), ("exponential", "laplace"), ("bias", "ramp")))
+
+
+@dataclass(frozen=True)
+class Profile:
+    name: str
+    flights: int            # per configuration
+    duration: float = 60.0  # s per flight
+    seed: int = 0
+
+
+PROFILES = {
+    "demo": Profile("demo", 20),
+    "quick": Profile("quick", 60),
+    "paper": Profile("paper", 600),
+}
+
+
+def get_profile(profile: str | Profile) -> Profile:
+    if isinstance(profile, Profile):
+        return profile
+    try:
+        return PROFILES[profile]
+    except KeyError:
+        raise ValueError(f"profile: unknown profile {profile!r}; choose from {', '.join(PROFILES)}") from None
 
 
 def config_name(model: str, noise: str, attack: str) -> str:
@@ -46,6 +68,12 @@ def config_seed(seed: int, model: str, noise: str, attack: str) -> int:
     return int(np.random.SeedSequence(seed, spawn_key=(0xC0F, idx)).generate_state(1)[0])
 
 
+def profile_configs(profile: Profile) -> list[tuple[str, SimConfig]]:
+    """(name, config) of the eight configurations at the profile's size."""
+    base = SimConfig(flights=profile.flights, duration=profile.duration, seed=profile.seed)
+    return [(config_name(*c), grid_config(base, *c)) for c in PAPER_GRID]
+
+
 def grid_config(base: SimConfig, model: str, noise: str, attack: str) -> SimConfig:
     """``base`` with one paper configuration and its derived seed; attack ranges take that
     attack's defaults."""
@@ -53,49 +81,6 @@ def grid_config(base: SimConfig, model: str, noise: str, attack: str) -> SimConf
            "frequency": None, "period": None, "delay": None}
     return base.replace(model=model, noise=noise, attack=base.attack.__class__(**atk),
                         seed=config_seed(base.seed, model, noise, attack))
-
-
-def _simulate_one(cfg: SimConfig, out: Path, overwrite: bool, threads: int) -> dict[str, Any]:
-    from quadformer.simulation.dataset import set_threads
-
-    set_threads(threads)
-    ds = simulate(cfg, progress=False)
-    write_dataset(ds, out, overwrite=overwrite)
-    return dataset_summary(ds)
-
-
-def simulate_jobs(jobs: list[tuple[str, SimConfig, Path]], progress: bool = True, overwrite: bool = False,
-                  workers: int | None = None) -> dict[str, dict[str, Any]]:
-    """Simulate (name, config, output directory) jobs in ``workers`` processes (default: one
-    per core, at most one per job); the data do not depend on it. Returns summaries by name."""
-    if not jobs:
-        return {}
-    workers = workers or min(len(jobs), os.cpu_count() or 1)
-    threads = max(1, (os.cpu_count() or 1) // workers)
-    summaries: dict[str, dict[str, Any]] = {}
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=len(jobs), unit="dataset", desc="simulate")
-    try:
-        if workers == 1:
-            for name, cfg, path in jobs:
-                summaries[name] = _simulate_one(cfg, path, overwrite, threads)
-                if bar is not None:
-                    bar.update(1)
-        else:
-            ctx = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-                futures = {pool.submit(_simulate_one, cfg, path, overwrite, threads): name
-                           for name, cfg, path in jobs}
-                for fut in futures:
-                    summaries[futures[fut]] = fut.result()
-                    if bar is not None:
-                        bar.update(1)
-    finally:
-        if bar is not None:
-            bar.close()
-    return summaries
 
 
 def summary_table(rows: list[dict[str, Any]]) -> pd.DataFrame:

@@ -1,0 +1,82 @@
+"""One streaming contract for every detector: ``detector.stream(n_flights)``.
+
+``stream.update(residues)`` takes one GPS step of ``n_flights`` flights stepped together,
+either a mapping ``column -> (n,) values`` (extra columns are ignored) or an array
+``(n, len(features_))`` in the order of the detector's ``features_`` (``(features,)`` when
+n is 1), and returns a ``StreamStep``: each flight's score, its alarm under the detector's
+alarm rule (``score > threshold_``; no alarm before ``calibrate``) and, for detectors that
+classify attacks, the predicted attack type. A stream's scores and alarms equal the
+detector's offline ``decision_function`` on the same flights (every detector is causal):
+exactly for the recursive statistics, to float32 rounding for the networks.
+
+State is bounded: a recursion's state, or ring buffers of the last steps a window needs;
+no history grows. The closed loop, and any live loop, drive the same objects.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class StreamStep:
+    score: np.ndarray                   # (n,) higher = more anomalous
+    alarm: np.ndarray                   # (n,) bool
+    attack_type: np.ndarray | None      # (n,) predicted type names (classifiers), else None
+
+
+class DetectorStream:
+    """Input checking and the alarm rule; subclasses implement ``_score``."""
+
+    def __init__(self, detector, n_flights: int):
+        detector.check_fitted()
+        if not (isinstance(n_flights, (int, np.integer)) and n_flights >= 1):
+            raise ValueError(f"n_flights must be an integer >= 1, got {n_flights!r}")
+        self.detector = detector
+        self.n = int(n_flights)
+        self.features = list(detector.features_)
+
+    def _matrix(self, residues) -> np.ndarray:
+        n, d = self.n, len(self.features)
+        if isinstance(residues, Mapping):
+            missing = [c for c in self.features if c not in residues]
+            if missing:
+                raise ValueError(f"{self.detector.name}: residue column {missing[0]!r} missing "
+                                 f"(needs {', '.join(self.features)})")
+            x = np.stack([np.broadcast_to(np.asarray(residues[c], dtype=float), (n,)) for c in self.features],
+                         axis=1)
+        else:
+            x = np.asarray(residues, dtype=float)
+            if n == 1 and x.ndim == 1:
+                x = x[None]
+        if x.shape != (n, d) or not np.isfinite(x).all():
+            raise ValueError(f"{self.detector.name}: residues must be {n} row(s) of {d} finite values "
+                             f"({', '.join(self.features)})")
+        return x
+
+    def update(self, residues) -> StreamStep:
+        score, types = self._score(self._matrix(residues))
+        thr = getattr(self.detector, "threshold_", None)
+        alarm = score > thr if thr is not None else np.zeros(self.n, dtype=bool)
+        return StreamStep(score, alarm, types)
+
+    def _score(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        raise NotImplementedError
+
+
+class RingBuffer:
+    """The last ``length`` rows of each of ``n`` flights, oldest first, filled with ``fill``
+    before the first push (zero-padded windows, as offline)."""
+
+    def __init__(self, n: int, length: int, width: int | None = None, fill: float = 0.0,
+                 dtype: type = np.float32):
+        shape = (n, length) if width is None else (n, length, width)
+        self.data = np.full(shape, fill, dtype=dtype)
+
+    def push(self, rows: np.ndarray) -> np.ndarray:
+        self.data[:, :-1] = self.data[:, 1:]
+        self.data[:, -1] = rows
+        return self.data

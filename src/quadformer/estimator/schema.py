@@ -1,0 +1,107 @@
+"""The flight table's columns: names, groups and units, in one place.
+
+Every source of flights (the simulator, a flight log, a live link) produces rows of this
+table, one per GPS step; every detector reads its ``res_*`` residue columns. A group of
+columns shares a prefix and a unit; its columns are ``{group}_{axis}`` (or the group name
+alone for a scalar). Frames: world ENU, body FLU, SI units.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from quadformer.config import ATTACK_KINDS
+
+XYZ = ("x", "y", "z")
+GPS_AXES = ("px", "py", "pz", "vx", "vy", "vz")      # GPS innovation: position then velocity
+VIO_AXES = ("vx", "vy", "vz", "thx", "thy", "thz")   # VIO innovation: velocity then attitude
+
+#: attack types a flight's ``attack_type`` column may hold besides "none" (the label vocabulary)
+ATTACK_TYPES = tuple(k for k in ATTACK_KINDS if k != "none")
+
+
+@dataclass(frozen=True)
+class Group:
+    name: str
+    axes: tuple[str, ...]    # () for a scalar column
+    unit: str
+    meaning: str
+
+    @property
+    def columns(self) -> list[str]:
+        return [f"{self.name}_{a}" for a in self.axes] if self.axes else [self.name]
+
+    @property
+    def width(self) -> int:
+        return max(1, len(self.axes))
+
+
+#: identification and labels, first in the table
+KEYS = ("flight_id", "t", "label", "attack_type")
+
+#: states, references and sensor values recorded per GPS step (ENU)
+STATES = (
+    Group("true_pos", XYZ, "m", "true position (simulation)"),
+    Group("true_vel", XYZ, "m/s", "true velocity (simulation)"),
+    Group("ref_pos", XYZ, "m", "mission reference position"),
+    Group("est_pos", XYZ, "m", "filter estimate after this step's update"),
+    Group("est_vel", XYZ, "m/s", "filter velocity estimate after this step's update"),
+    Group("gps_pos", XYZ, "m", "GPS position as received (spoofed when label is 1)"),
+    Group("gps_vel", XYZ, "m/s", "GPS velocity as received"),
+    Group("vio_pos", XYZ, "m", "VIO position in its own drifting odometry frame"),
+    Group("atk_d", XYZ, "m", "injected position offset d"),
+    Group("wind", XYZ, "m/s", "wind at the vehicle (simulation)"),
+)
+
+#: the residues: what the filter's updates say at each GPS step
+RESIDUES = (
+    Group("res_gps_r", GPS_AXES, "m, m/s", "raw GPS innovation z - h(x)"),
+    Group("res_gps_w", GPS_AXES, "1", "whitened GPS innovation L^-1 r, S = L L^T"),
+    Group("res_gps_s", GPS_AXES, "m, m/s", "predicted innovation std sqrt(diag S)"),
+    Group("res_gps_nis", (), "1", "GPS normalised innovation squared r^T S^-1 r (chi-square, 6 dof, nominal)"),
+    Group("res_gps_corr", ("px", "py", "pz"), "m",
+          "leaky integral (20 s) of the position corrections GPS updates applied"),
+    Group("res_vio_r", VIO_AXES, "m/s, rad", "latest VIO innovation"),
+    Group("res_vio_nis", (), "1", "latest VIO NIS"),
+    Group("res_vio_nis_mean", (), "1", "mean VIO NIS since the previous GPS step"),
+)
+
+GROUPS = {g.name: g for g in STATES + RESIDUES}
+
+
+def columns(*groups: str) -> list[str]:
+    """Column names of the named groups, in order."""
+    out: list[str] = []
+    for g in groups:
+        try:
+            out += GROUPS[g].columns
+        except KeyError:
+            raise KeyError(f"unknown column group {g!r}; known: {', '.join(GROUPS)}") from None
+    return out
+
+
+RESIDUE_COLUMNS = columns(*(g.name for g in RESIDUES))
+NIS = "res_gps_nis"
+WHITENED = columns("res_gps_w")
+
+#: default inputs of the learned detectors: every residue except the predicted innovation std
+#: (``res_gps_s_*``), which varies slowly with the flight's conditions and lets a network
+#: recognise flights instead of attacks
+DETECTOR_FEATURES = columns("res_gps_r", "res_gps_w", "res_gps_nis", "res_gps_corr", "res_vio_r",
+                            "res_vio_nis", "res_vio_nis_mean")
+
+
+def axis_columns(axis: str) -> list[str]:
+    """Residue columns that point along world axis ``axis`` ('x', 'y' or 'z'), in the same
+    order for every axis: the columns that flip sign when the axis does."""
+    return [f"res_gps_r_p{axis}", f"res_gps_r_v{axis}", f"res_gps_w_p{axis}", f"res_gps_w_v{axis}",
+            f"res_gps_corr_p{axis}", f"res_vio_r_v{axis}"]
+
+
+def as_columns(groups: dict[str, object]) -> dict[str, object]:
+    """{group: (n, width) array} -> {column: (n,) array}, for the groups present."""
+    out = {}
+    for name, val in groups.items():
+        for i, c in enumerate(GROUPS[name].columns):
+            out[c] = val[:, i]
+    return out

@@ -1,0 +1,1 @@
+"""Honest evaluation: detection metrics, the split / tuning protocol, resilience metrics."""

@@ -1,0 +1,71 @@
+"""Metrics of resilient state estimation: closed-loop flights under a GPS admission policy.
+
+Per flight (attack steps: fixes that are spoofed):
+- estimate error during attacks: RMS and max of |estimated - true position|;
+- the largest deviation of the true vehicle from its mission during attacks (and in the 10 s
+  after);
+- time from attack onset to the first excluded fix (detected flights);
+- time from the first honest fix after the attack to re-admission (flights excluded at the
+  end of the attack);
+- share of clean-flight time with GPS wrongly excluded.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+
+def flight_metrics(t: np.ndarray, label: np.ndarray, true_pos: np.ndarray, est_pos: np.ndarray,
+                   ref_pos: np.ndarray, fused: np.ndarray) -> dict[str, Any]:
+    """Metrics of one flight (arrays per GPS step)."""
+    err = np.linalg.norm(est_pos - true_pos, axis=1)
+    dev = np.linalg.norm(true_pos - ref_pos, axis=1)
+    out: dict[str, Any] = {"attacked": bool(label.any()), "max_dev_flight_m": float(dev.max())}
+    if not label.any():
+        out["excluded_fraction"] = float(1.0 - fused.mean())
+        return out
+    att = np.nonzero(label)[0]
+    a0, a1 = att[0], att[-1]
+    out.update(est_err_rms_m=float(np.sqrt(np.mean(err[att] ** 2))), est_err_max_m=float(err[att].max()),
+               max_dev_m=float(dev[att].max()))
+    excl = np.nonzero(~fused[a0:a1 + 1])[0]
+    out["exclusion_delay_s"] = float(t[a0 + excl[0]] - t[a0]) if len(excl) else None
+    out["excluded_at_end"] = bool(not fused[a1])
+    out["readmit_delay_s"], out["readmitted"] = None, None
+    if not fused[a1] and a1 + 1 < len(t):
+        back = np.nonzero(fused[a1 + 1:])[0]
+        out["readmitted"] = bool(len(back))
+        out["readmit_delay_s"] = float(t[a1 + 1 + back[0]] - t[a1 + 1]) if len(back) else None
+    after = slice(a1 + 1, min(len(t), a1 + 1 + int(round(10 / (t[1] - t[0])))))
+    out["max_dev_after_m"] = float(dev[after].max()) if after.start < after.stop else None
+    return out
+
+
+def summarize_policy(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Summary of one policy over the per-flight metrics of its flights (``flight_metrics``)."""
+    att = [r for r in rows if r["attacked"]]
+    clean = [r for r in rows if not r["attacked"]]
+
+    def stat(key, fn, src=att):
+        v = [r[key] for r in src if r.get(key) is not None and np.isfinite(r[key])]
+        return float(fn(v)) if v else None
+
+    return {
+        "attacked_flights": len(att), "clean_flights": len(clean),
+        "max_dev_median_m": stat("max_dev_m", np.median), "max_dev_p95_m": stat("max_dev_m", lambda v: np.percentile(v, 95)),
+        "max_dev_max_m": stat("max_dev_m", np.max),
+        "est_err_rms_median_m": stat("est_err_rms_m", np.median), "est_err_max_median_m": stat("est_err_max_m", np.median),
+        "est_err_max_max_m": stat("est_err_max_m", np.max),
+        "max_dev_after_median_m": stat("max_dev_after_m", np.median),
+        "excluded_during_attack": sum(r["exclusion_delay_s"] is not None for r in att),
+        "exclusion_delay_median_s": stat("exclusion_delay_s", np.median),
+        "excluded_at_end": sum(bool(r["excluded_at_end"]) for r in att),
+        "readmit_delay_median_s": stat("readmit_delay_s", np.median),
+        "readmit_delay_p95_s": stat("readmit_delay_s", lambda v: np.percentile(v, 95)),
+        "readmit_delay_max_s": stat("readmit_delay_s", np.max),
+        "not_readmitted": sum(r["readmitted"] is False for r in att),
+        "wrongly_excluded_fraction": stat("excluded_fraction", np.mean, clean),
+        "clean_max_dev_median_m": stat("max_dev_flight_m", np.median, clean),
+    }

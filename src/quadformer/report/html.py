@@ -1,0 +1,33 @@
+"""Building blocks of the offline HTML reports: embedded PNG figures, tables, the page."""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+
+import pandas as pd
+
+
+def png(fig) -> str:
+    """A matplotlib figure as base64 PNG, for an ``<img src='data:image/png;base64,...'>``."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    return base64.b64encode(buf.getvalue()).decode()
+
+
+def img(b64: str) -> str:
+    return f"<img src='data:image/png;base64,{b64}'/>"
+
+
+def table(df: pd.DataFrame, digits: str = ".2f", index: bool = True) -> str:
+    return df.to_html(index=index, float_format=lambda v: f"{v:{digits}}", na_rep="-", border=0, classes="t")
+
+
+def page(title: str, parts: list[str], width_px: int = 1200) -> str:
+    """A self-contained page (no external resources: it reads offline)."""
+    style = (f"<style>body{{font-family:sans-serif;max-width:{width_px}px;margin:auto}}"
+             "table.t{border-collapse:collapse;font-size:12px}table.t td,table.t th{padding:2px 6px;"
+             "border-bottom:1px solid #ddd;text-align:right}img{max-width:100%}</style>")
+    return (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>{style}"
+            f"</head><body>{''.join(parts)}</body></html>")
