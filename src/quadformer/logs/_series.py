@@ -14,9 +14,15 @@ def relative_seconds(stamps: np.ndarray, start: int, scale: float) -> np.ndarray
     as unsigned integers; here they become negative seconds instead. scale: seconds per tick.
     """
     s = np.asarray(stamps)
+    if s.dtype.kind not in "iu":   # a damaged format definition can change the field type
+        with np.errstate(all="ignore"):
+            return (s.astype(np.float64) - float(start)) * scale
     if s.dtype.kind == "u":
         s = s.astype(np.uint64).view(np.int64)
-    return (s.astype(np.int64) - np.int64(start)).astype(np.float64) * scale
+    start = int(start) % (1 << 64)
+    start = start - (1 << 64) if start >= (1 << 63) else start   # the same int64 view
+    with np.errstate(over="ignore"):
+        return (s.astype(np.int64) - np.int64(start)).astype(np.float64) * scale
 
 
 def median_period(t: np.ndarray) -> float:
@@ -77,3 +83,11 @@ def quat_interp(t_dst: np.ndarray, t_src: np.ndarray, q_src: np.ndarray) -> np.n
         flips = np.where(np.sum(q[1:] * q[:-1], axis=1) < 0, -1.0, 1.0)
         q[1:] *= np.cumprod(flips)[:, None]
     return quat_normalize(interp_linear(t_dst, t_src, q))
+
+
+def row_max(values: np.ndarray) -> np.ndarray:
+    """Largest finite value of each row (n, k); NaN for a row without one."""
+    v = np.asarray(values, dtype=float).reshape(len(values), -1)
+    finite = np.isfinite(v)
+    out = np.where(finite, v, -np.inf).max(axis=1, initial=-np.inf)
+    return np.where(finite.any(axis=1), out, np.nan)

@@ -177,8 +177,14 @@ class _DataflashReader:
         if reports:
             self.notes.append(f"file: DFReader skipped damaged data ({reports} reports)")
 
+    def us(self, rows: list[dict]) -> np.ndarray:
+        """TimeUS after the first one, as float64 microseconds. The difference is taken on
+        Python integers: a damaged TimeUS may exceed the int64 range."""
+        first = self.first_us
+        return np.fromiter((r["TimeUS"] - first for r in rows), dtype=np.float64, count=len(rows))
+
     def t(self, rows: list[dict]) -> np.ndarray:
-        return (np.array([r["TimeUS"] for r in rows], dtype=np.int64) - self.first_us) * 1e-6
+        return self.us(rows) * 1e-6
 
     def instance(self, name: str, label: str, field: str = "I") -> list[dict]:
         rows = self.rows[name]
@@ -284,10 +290,9 @@ class _DataflashReader:
                "satellites": _col(rows, "NSats"), "vel": vel}
         gpa = self.instance("GPA", "gps")
         if gpa:
-            tg = np.array([r["TimeUS"] for r in gpa], dtype=np.int64)
-            tr = np.array([r["TimeUS"] for r in rows], dtype=np.int64)
+            tg, tr = self.us(gpa), self.us(rows)
             order = np.argsort(tg, kind="stable")
-            j = nearest_index(tr.astype(float), tg[order].astype(float), 0.0)
+            j = nearest_index(tr, tg[order], 0.0)
             j = np.where(j >= 0, order[np.clip(j, 0, None)], -1)
             for src, dst in (("HAcc", "eph"), ("VAcc", "epv"), ("SAcc", "speed_acc")):
                 out[dst] = take(_col(gpa, src), j)

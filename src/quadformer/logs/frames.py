@@ -62,8 +62,8 @@ def wxyz_to_xyzw(q: np.ndarray) -> np.ndarray:
 def quat_normalize(q: np.ndarray) -> np.ndarray:
     """Unit quaternions (..., 4); a zero or non-finite quaternion becomes NaN."""
     q = np.asarray(q, dtype=float)
-    n = np.linalg.norm(q, axis=-1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        n = np.linalg.norm(q, axis=-1, keepdims=True)
         out = q / n
     return np.where(n > 0, out, np.nan)
 

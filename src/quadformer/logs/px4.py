@@ -48,6 +48,8 @@ Pitfalls handled (each noted in ``FlightLog.notes``):
   re-expressed about the first one;
 * field names and types that change between versions (see gps above);
 * appended data sections (crash dumps): read by pyulog, noted;
+* damaged files: pyulog reads from memory with its work bounded by the file size (over a
+  damaged stretch its definitions parser otherwise does quadratic work);
 * dropouts and gaps: logger dropouts are noted; gaps split ``segments``;
 * several IMU or EKF instances: ``sensor_combined`` is the primary IMU; estimator topics are
   filtered by ``estimator_selector_status``.
@@ -66,7 +68,7 @@ from pyulog import ULog
 
 from quadformer.logs import frames
 from quadformer.logs._series import (interp_linear, median_period, nearest_index, quat_interp,
-                                     relative_seconds, step_lookup, take)
+                                     relative_seconds, row_max, step_lookup, take)
 from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, LogError, assemble, make_stream
 
 __all__ = ["read_ulog"]
@@ -81,6 +83,33 @@ def read_ulog(path: str | Path, *, imu_gap: float = IMU_GAP, gps_gap: float = GP
     return _UlogReader(ulog, path).read(imu_gap, gps_gap)
 
 
+class _WorkLimit(Exception):
+    pass
+
+
+class _BoundedBytes(io.BytesIO):
+    """The file's bytes for pyulog, with a bound on the reading work.
+
+    On a header it cannot use, pyulog's definitions parser moves on by one byte after
+    reading the whole claimed message (up to 64 KiB): over a damaged stretch this is
+    quadratic work, minutes for a few hundred KiB. A clean parse reads each byte about once
+    in about one read call per byte or fewer, so reads are limited to 2.5 calls and 8 bytes
+    per byte of file (plus a margin); beyond that the file is reported as corrupt."""
+
+    def __init__(self, data: bytes) -> None:
+        super().__init__(data)
+        self.calls_left = int(2.5 * len(data)) + 10_000
+        self.bytes_left = 8 * len(data) + (1 << 20)
+
+    def read(self, size: int | None = -1) -> bytes:
+        out = super().read(size)
+        self.calls_left -= 1
+        self.bytes_left -= len(out)
+        if self.calls_left < 0 or self.bytes_left < 0:
+            raise _WorkLimit("the parser kept re-reading the same bytes")
+        return out
+
+
 def _load(path: Path) -> ULog:
     if not path.is_file():
         raise LogError(f"{path}: no such file")
@@ -89,7 +118,7 @@ def _load(path: Path) -> ULog:
     captured = io.StringIO()
     try:
         with contextlib.redirect_stdout(captured):
-            return ULog(str(path))
+            return ULog(_BoundedBytes(path.read_bytes()))
     # pyulog raises many exception types on damaged input (struct.error, IndexError,
     # ValueError, UnicodeDecodeError, its own ULogException, ...): all mean the same here.
     except Exception as exc:
@@ -410,10 +439,10 @@ class _UlogReader:
                     values[f"var_vel_{a}"] = vvar[:, k]
             dr, j = self._match(t, "estimator_innovation_test_ratios", d.multi_id)
             if dr is not None:
-                values["ratio_pos"] = take(np.nanmax(self.vector(dr, "gps_hpos", 2), axis=1), j)
+                values["ratio_pos"] = take(row_max(self.vector(dr, "gps_hpos", 2)), j)
                 values["ratio_hgt"] = take(self.field(dr, "gps_vpos"), j)
-                values["ratio_vel"] = take(np.nanmax(np.column_stack(
-                    [self.vector(dr, "gps_hvel", 2), self.field(dr, "gps_vvel")]), axis=1), j)
+                values["ratio_vel"] = take(row_max(np.column_stack(
+                    [self.vector(dr, "gps_hvel", 2), self.field(dr, "gps_vvel")])), j)
             parts.append(make_stream("innovations", t, values)[rows])
         if not parts:
             self.notes.append("innovations: no rows from the primary estimator instance")
@@ -473,8 +502,9 @@ class _UlogReader:
         if reset.any():
             dxy = self.vector(d, "delta_xy", 2, required=False)
             dz = self.field(d, "delta_z", required=False)
-            big_xy = np.nanmax(np.hypot(dxy[reset, 0], dxy[reset, 1])) if dxy is not None else np.nan
-            big_z = np.nanmax(np.abs(dz[reset])) if dz is not None else np.nan
+            big_xy = row_max(np.hypot(dxy[reset, 0], dxy[reset, 1])[None])[0] \
+                if dxy is not None else np.nan
+            big_z = row_max(np.abs(dz[reset])[None].astype(float))[0] if dz is not None else np.nan
             self.notes.append(f"estimate: {int(reset.sum())} position resets (reset counters) at t = "
                               + ", ".join(f"{v:.3f}" for v in t[reset][:10])
                               + f" s; largest |delta_xy| {big_xy:.3f} m, |delta_z| {big_z:.3f} m")
