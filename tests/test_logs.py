@@ -411,6 +411,8 @@ def test_dataflash_streams_rates_and_vehicle(logs):
     assert len(log.gps) == 305 and 1 / np.median(np.diff(log.gps["t"])) == pytest.approx(5, rel=0.05)
     assert log.duration == pytest.approx(60.88, abs=0.01)
     assert _has(log.notes, "IMU instances [0, 1]", "kept instance 0")
+    # instance 1 shares instance 0's TimeUS: had it been kept, samples would be dropped as repeats
+    assert not _has(log.notes, "imu: dropped")
     assert _has(log.notes, "ARM events", "armed 11.99 s")
 
 
