@@ -7,22 +7,29 @@ import numpy as np
 from quadformer.logs.frames import quat_normalize
 
 
-def relative_seconds(stamps: np.ndarray, start: int, scale: float) -> np.ndarray:
-    """Integer clock stamps -> float seconds after ``start``, in signed arithmetic.
+def relative_ticks(stamps: np.ndarray, start: int) -> np.ndarray:
+    """Integer clock stamps minus ``start``, in signed 64-bit arithmetic.
 
-    Unsigned stamps earlier than ``start`` would wrap around to ~1.8e13 s when subtracted
-    as unsigned integers; here they become negative seconds instead. scale: seconds per tick.
-    """
+    Unsigned stamps earlier than ``start`` would wrap around to ~1.8e19 ticks when
+    subtracted as unsigned integers; here they become negative. Values beyond the int64
+    range (only in damaged files) wrap silently."""
     s = np.asarray(stamps)
-    if s.dtype.kind not in "iu":   # a damaged format definition can change the field type
-        with np.errstate(all="ignore"):
-            return (s.astype(np.float64) - float(start)) * scale
     if s.dtype.kind == "u":
         s = s.astype(np.uint64).view(np.int64)
     start = int(start) % (1 << 64)
     start = start - (1 << 64) if start >= (1 << 63) else start   # the same int64 view
     with np.errstate(over="ignore"):
-        return (s.astype(np.int64) - np.int64(start)).astype(np.float64) * scale
+        return s.astype(np.int64) - np.int64(start)
+
+
+def relative_seconds(stamps: np.ndarray, start: int, scale: float) -> np.ndarray:
+    """Clock stamps -> float seconds after ``start`` (``relative_ticks`` times scale, the
+    seconds per tick)."""
+    s = np.asarray(stamps)
+    if s.dtype.kind not in "iu":   # a damaged format definition can change the field type
+        with np.errstate(all="ignore"):
+            return (s.astype(np.float64) - float(start)) * scale
+    return relative_ticks(s, start).astype(np.float64) * scale
 
 
 def median_period(t: np.ndarray) -> float:
@@ -91,3 +98,9 @@ def row_max(values: np.ndarray) -> np.ndarray:
     finite = np.isfinite(v)
     out = np.where(finite, v, -np.inf).max(axis=1, initial=-np.inf)
     return np.where(finite.any(axis=1), out, np.nan)
+
+
+def first_fix(gps: dict) -> tuple[float, float, float]:
+    """(lat, lon, alt) of the earliest fix of raw GPS columns ``t``, ``lat``, ``lon``, ``alt``."""
+    i = int(np.argmin(np.where(np.isfinite(gps["t"]), gps["t"], np.inf)))
+    return float(gps["lat"][i]), float(gps["lon"][i]), float(gps["alt"][i])

@@ -46,8 +46,8 @@ import numpy as np
 from pymavlink import DFReader
 
 from quadformer.logs import frames
-from quadformer.logs._series import (interp_linear, median_period, nearest_index, step_lookup,
-                                     take)
+from quadformer.logs._series import (first_fix, interp_linear, median_period, nearest_index,
+                                     step_lookup, take)
 from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, LogError, assemble, make_stream
 
 __all__ = ["read_dataflash"]
@@ -320,8 +320,7 @@ class _DataflashReader:
                                       f"{len(moved)} other values; the first is used")
                 return origin, "autopilot local origin"
         if gps_raw is not None:
-            return (float(gps_raw["lat"][0]), float(gps_raw["lon"][0]),
-                    float(gps_raw["alt"][0])), "first GPS fix"
+            return first_fix(gps_raw), "first GPS fix"
         self.notes.append("origin: no ORGN message and no GPS fix; origin is NaN")
         return (math.nan,) * 3, "none"
 

@@ -67,8 +67,9 @@ import pandas as pd
 from pyulog import ULog
 
 from quadformer.logs import frames
-from quadformer.logs._series import (interp_linear, median_period, nearest_index, quat_interp,
-                                     relative_seconds, row_max, step_lookup, take)
+from quadformer.logs._series import (first_fix, interp_linear, median_period, nearest_index,
+                                     quat_interp, relative_seconds, relative_ticks, row_max,
+                                     step_lookup, take)
 from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, LogError, assemble, make_stream
 
 __all__ = ["read_ulog"]
@@ -178,14 +179,15 @@ class _UlogReader:
                               f"log start (earliest {np.nanmin(t):.3f} s); kept with negative t")
         return t
 
-    def embedded(self, d, rel_field: str, label: str) -> np.ndarray:
+    def embedded(self, d, rel_field: str, label: str) -> tuple[np.ndarray, np.ndarray]:
         """Indices of the distinct samples of a sensor embedded in old ``sensor_combined``
         rows (``timestamp + <sensor>_timestamp_relative``, repeated until a new sample
         arrives) and their times; rows marked invalid are left out."""
         rel = self.field(d, rel_field).astype(np.int64)
         stamps = d.data["timestamp"]
         valid = (rel != _INVALID_RELATIVE) & (np.asarray(stamps) != 0)
-        ticks = relative_seconds(stamps, self.start, 1.0).astype(np.int64) + rel
+        with np.errstate(over="ignore"):
+            ticks = relative_ticks(stamps, self.start) + rel
         idx = np.flatnonzero(valid)
         _, first = np.unique(ticks[idx], return_index=True)
         idx = np.sort(idx[first])
@@ -212,8 +214,7 @@ class _UlogReader:
         if ref_origin is not None:
             origin, origin_source = ref_origin, "autopilot local origin"
         elif gps_raw is not None:
-            origin = (float(gps_raw["lat"][0]), float(gps_raw["lon"][0]), float(gps_raw["alt"][0]))
-            origin_source = "first GPS fix"
+            origin, origin_source = first_fix(gps_raw), "first GPS fix"
         else:
             origin, origin_source = (math.nan,) * 3, "none"
             self.notes.append("origin: no autopilot local origin and no GPS fix; origin is NaN")
@@ -544,27 +545,25 @@ class _UlogReader:
         if d is None:
             return None
         t = self.times(d, "odometry")
-        if "position[0]" in d.data:
-            pos = self.vector(d, "position", 3)
-            vel = self.vector(d, "velocity", 3)
+        if "position[0]" in d.data:      # v1.14+: position/velocity with pose_frame
+            pos, vel = self.vector(d, "position", 3), self.vector(d, "velocity", 3)
             pose_frame = self.field(d, "pose_frame", required=False)
-            vel_frame = self.field(d, "velocity_frame", required=False)
-            body = 3
-        else:
+        else:                            # older: x/y/z, vx/vy/vz with local_frame
             pos = np.stack([self.field(d, k).astype(float) for k in "xyz"], axis=-1)
             vel = np.stack([self.field(d, k).astype(float) for k in ("vx", "vy", "vz")], axis=-1)
             pose_frame = self.field(d, "local_frame", required=False)
-            vel_frame = self.field(d, "velocity_frame", required=False)
-            body = 3
+        # BODY_FRD is 3 in both layouts (VELOCITY_FRAME_BODY_FRD, BODY_FRAME_FRD)
+        vel_frame = self.field(d, "velocity_frame", required=False)
         q = frames.wxyz_to_xyzw(self.vector(d, "q", 4))
-        if vel_frame is not None and np.any(vel_frame == body):
-            b = vel_frame == body
+        if vel_frame is not None and np.any(vel_frame == 3):
+            b = vel_frame == 3
             vel[b] = frames.quat_rotate(frames.quat_normalize(q[b]), vel[b])
             self.notes.append(f"odometry: {int(b.sum())} body-frame velocities rotated to the "
                               "world frame")
-        self.notes.append("odometry: vehicle_visual_odometry in its own NED/FRD world frame "
-                          f"(pose frame codes {sorted(set(np.asarray(pose_frame).tolist())) if pose_frame is not None else 'n/a'}); "
-                          "converted like NED (an FRD world frame keeps its heading offset)")
+        codes = sorted(set(np.asarray(pose_frame).tolist())) if pose_frame is not None else "n/a"
+        self.notes.append(f"odometry: vehicle_visual_odometry in its own NED/FRD world frame "
+                          f"(pose frame codes {codes}); converted like NED (an FRD world frame "
+                          "keeps its heading offset)")
         p, v = frames.ned_to_enu(pos), frames.ned_to_enu(vel)
         qe = frames.quat_ned_frd_to_enu_flu(q)
         return make_stream("odometry", t, {

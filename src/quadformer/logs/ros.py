@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from quadformer.logs import frames
-from quadformer.logs._series import median_period, nearest_index, take
+from quadformer.logs._series import first_fix, median_period, nearest_index, take
 from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, LogError, assemble, make_stream
 
 __all__ = ["RosTopics", "read_rosbag"]
@@ -257,8 +257,7 @@ def _assemble(path: Path, version: int, topics: RosTopics, raw: dict, info: dict
         elif gps_raw is not None:
             notes.append("gps: no velocity topic; vx/vy/vz NaN")
     if gps_raw is not None:
-        origin = (float(gps_raw["lat"][0]), float(gps_raw["lon"][0]), float(gps_raw["alt"][0]))
-        origin_source = "first GPS fix"
+        origin, origin_source = first_fix(gps_raw), "first GPS fix"
         enu = frames.geodetic_to_enu(gps_raw["lat"], gps_raw["lon"], gps_raw["alt"], origin)
         vel = gps_raw.get("vel", np.full((len(enu), 3), np.nan))
         streams["gps"] = make_stream("gps", gps_raw["t"], {
