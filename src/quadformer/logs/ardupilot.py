@@ -71,6 +71,7 @@ _WANTED = {
     "ARM": ("ArmState",),
     "VER": ("BT", "BST", "Maj", "Min", "Pat", "FWT", "GH", "FWS", "APJ"),
     "MSG": ("Message",),
+    "NKF3": (),
 }
 
 
@@ -158,7 +159,8 @@ def _collect(path: Path) -> tuple[dict[str, list[dict]], int, int]:
                        "the file is truncated or corrupt") from exc
     if first_us is None:
         raise LogError(f"{path}: no timestamped (TimeUS) message; the log is empty or truncated "
-                       "before its first data message")
+                       "before its first data message (logs timed in TimeMS only, from before "
+                       "ArduPilot 3.3, are not supported)")
     text = out.getvalue() + err.getvalue()
     reports = sum(text.count(k) for k in ("bad header", "Skipped", "Failed to parse", "bad msg"))
     return rows, first_us, reports
@@ -391,7 +393,8 @@ class _DataflashReader:
     def innovations(self, cores: dict):
         rows, core = self.primary_rows("XKF3", cores, "innovations")
         if not rows:
-            self.notes.append("innovations: no XKF3 messages")
+            ekf2 = " (EKF2 NKF* messages are present but not read)" if self.rows["NKF3"] else ""
+            self.notes.append(f"innovations: no XKF3 (EKF3) messages{ekf2}")
             return None
         self.require(rows, "XKF3", ("IPN", "IPE", "IPD", "IVN", "IVE", "IVD"))
         t = self.t(rows)
