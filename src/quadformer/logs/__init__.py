@@ -1,0 +1,91 @@
+"""Flight-log readers: PX4 ULog, ArduPilot DataFlash and ROS bags -> ``FlightLog``.
+
+A reader is a file in and typed, timestamped streams out (``FlightLog``: imu, gps,
+odometry, baro, mag, innovations, estimate, truth as pandas DataFrames in SI units, ENU
+world and FLU body frames), nothing else; it knows nothing of filters or detectors.
+``read_log`` picks the reader from the file's content:
+
+* PX4 ULog: the magic bytes ``ULog`` 0x01 0x12 0x35;
+* ArduPilot DataFlash: a message header 0xA3 0x95 at the start;
+* ROS 1 bag: the line ``#ROSBAG V2.0``;
+* ROS 2 bag: a directory holding ``metadata.yaml``, ``.db3`` or ``.mcap`` files, or a single
+  ``.db3`` (SQLite) / ``.mcap`` file.
+
+This package depends only on numpy, pandas, pymap3d, pyulog, pymavlink and rosbags.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from quadformer.logs.ardupilot import read_dataflash
+from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, STREAMS, FlightLog, LogError
+from quadformer.logs.px4 import read_ulog
+from quadformer.logs.ros import RosTopics, read_rosbag
+
+__all__ = ["FORMATS", "GPS_GAP", "IMU_GAP", "STREAMS", "FlightLog", "LogError", "RosTopics",
+           "detect_format", "read_dataflash", "read_log", "read_rosbag", "read_ulog"]
+
+FORMATS = ("px4", "ardupilot", "ros")
+_ULOG_MAGIC = b"ULog\x01\x12\x35"
+_DATAFLASH = b"\xa3\x95"
+_ROSBAG1 = b"#ROSBAG V2.0"
+_SQLITE = b"SQLite format 3\x00"
+_MCAP = b"\x89MCAP"
+
+
+def _describe(head: bytes) -> str:
+    if not head:
+        return "an empty file"
+    text = head[:16]
+    return f"a file starting with bytes {text.hex(' ')} ({text!r})"
+
+
+def detect_format(path: str | Path) -> str | None:
+    """"px4", "ardupilot" or "ros" from the content of path; None when unknown."""
+    path = Path(path)
+    if path.is_dir():
+        if (path / "metadata.yaml").exists() or any(path.glob("*.db3")) or any(path.glob("*.mcap")):
+            return "ros"
+        return None
+    if not path.is_file():
+        return None
+    with open(path, "rb") as fh:
+        head = fh.read(16)
+    if head.startswith(_ULOG_MAGIC):
+        return "px4"
+    if head.startswith(_DATAFLASH):
+        return "ardupilot"
+    if head.startswith(_ROSBAG1) or head.startswith(_SQLITE) or head.startswith(_MCAP):
+        return "ros"
+    return None
+
+
+def read_log(path: str | Path, format: str | None = None, **options) -> FlightLog:
+    """Read a flight log of any supported format.
+
+    format: None (detect from the content) or one of "px4", "ardupilot", "ros"; a forced
+    format that contradicts the content raises LogError. options go to the reader
+    (``imu_gap``, ``gps_gap``; ``topics`` for ROS bags)."""
+    path = Path(path)
+    if format is not None and format not in FORMATS:
+        raise LogError(f"{path}: unknown format {format!r}; choose one of {FORMATS} or None "
+                       "to detect it from the content")
+    if not path.exists():
+        raise LogError(f"{path}: no such file or directory")
+    found = detect_format(path)
+    if found is None and format is None:
+        if path.is_dir():
+            raise LogError(f"{path}: a directory without metadata.yaml, .db3 or .mcap files; not "
+                           "a ROS 2 bag. Give a log file (.ulg, .bin, .bag) or a ROS 2 bag")
+        with open(path, "rb") as fh:
+            head = fh.read(16)
+        raise LogError(f"{path}: unknown log format: {_describe(head)}; expected a PX4 ULog "
+                       "(ULog magic), an ArduPilot DataFlash .bin (0xA3 0x95) or a ROS bag "
+                       "(#ROSBAG V2.0, or a ROS 2 bag directory); pass format= to force a reader")
+    if format is not None and found is not None and found != format:
+        raise LogError(f"{path}: format={format!r} was asked but the content is a {found!r} log; "
+                       f"use format={found!r} or leave format=None")
+    fmt = format or found
+    reader = {"px4": read_ulog, "ardupilot": read_dataflash, "ros": read_rosbag}[fmt]
+    return reader(path, **options)

@@ -1,0 +1,290 @@
+"""A flight log as typed, timestamped streams, and the validation layer every reader uses.
+
+``FlightLog`` holds one ``pandas.DataFrame`` per stream (or ``None`` when the log lacks
+it), each with a float64 column ``t`` (seconds from the log start, strictly increasing)
+and exactly the columns of ``STREAMS``, in SI units, world frame ENU and body frame FLU
+(see ``frames``). Readers build raw frames with ``make_stream`` and hand them to
+``assemble``, which runs the same checks for every format:
+
+* rows with a non-finite time, or a non-finite value in a stream's ``REQUIRED`` columns,
+  are dropped (other columns may hold NaN where the format does not log them);
+* time that goes backwards is reported and the samples are sorted; repeated timestamps
+  keep their first sample;
+* gaps longer than ``imu_gap`` in the IMU (default 0.5 s) or ``gps_gap`` in the GPS
+  (default 2 s) split the log into ``segments`` (dropouts, logs recorded only while armed).
+
+Every such repair is written to ``notes`` as "stream: what was done", so that nothing is
+changed silently. Any problem with a log file raises ``LogError`` (a ``ValueError``) whose
+message names the file, what is wrong or missing, and what would help.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+import pandas as pd
+
+__all__ = ["GPS_GAP", "IMU_GAP", "REQUIRED", "SOURCES", "STREAMS", "FlightLog", "LogError",
+           "assemble", "clean_stream", "find_segments", "make_stream"]
+
+IMU_GAP = 0.5   # s, an IMU interval longer than this ends a segment
+GPS_GAP = 2.0   # s, a GPS interval longer than this ends a segment
+
+SOURCES = ("px4-ulog", "ardupilot-dataflash", "ros1-bag", "ros2-bag", "arrays")
+
+_XYZ = ("x", "y", "z")
+_VXYZ = ("vx", "vy", "vz")
+_Q = ("qx", "qy", "qz", "qw")
+
+STREAMS: dict[str, tuple[str, ...]] = {
+    # specific force (m/s^2) and body rate (rad/s), body FLU
+    "imu": ("t", "ax", "ay", "az", "gx", "gy", "gz"),
+    # ENU position (m) about the origin, ENU velocity (m/s), geodetic fix, receiver indicators
+    "gps": ("t", *_XYZ, *_VXYZ, "lat", "lon", "alt", "fix_type", "satellites", "eph", "epv",
+            "speed_acc", "jamming", "spoofing"),
+    # visual / external odometry: ENU world (its own origin), quaternion body FLU -> world
+    "odometry": ("t", *_XYZ, *_VXYZ, *_Q),
+    # barometric altitude as logged (m)
+    "baro": ("t", "alt"),
+    # magnetic field (gauss), body FLU
+    "mag": ("t", "mx", "my", "mz"),
+    # the autopilot's GPS innovations (ENU, m and m/s), their variances and test ratios
+    "innovations": ("t", "pos_x", "pos_y", "pos_z", "vel_x", "vel_y", "vel_z",
+                    "var_pos_x", "var_pos_y", "var_pos_z", "var_vel_x", "var_vel_y", "var_vel_z",
+                    "ratio_pos", "ratio_vel", "ratio_hgt"),
+    # the autopilot's local position estimate in the frame of the gps stream
+    "estimate": ("t", *_XYZ, *_VXYZ, "reset"),
+    # simulator ground truth
+    "truth": ("t", *_XYZ, *_VXYZ, *_Q),
+}
+
+# Columns that must be finite for a row to be kept; for the other streams a row is kept
+# when at least one of its value columns is finite.
+REQUIRED: dict[str, tuple[str, ...]] = {
+    "imu": ("ax", "ay", "az", "gx", "gy", "gz"),
+    "gps": (*_XYZ, "lat", "lon", "alt"),
+    "baro": ("alt",),
+    "mag": ("mx", "my", "mz"),
+    "estimate": ("x", "y"),
+    "truth": ("x", "y"),
+}
+
+
+class LogError(ValueError):
+    """A log file that cannot be read as asked; the message names the file and the fix."""
+
+
+def _frame_errors(name: str, df: pd.DataFrame) -> list[str]:
+    errors = []
+    if tuple(df.columns) != STREAMS[name]:
+        errors.append(f"{name}: columns {list(df.columns)} != {list(STREAMS[name])}")
+        return errors
+    for col in df.columns:
+        want = np.bool_ if (name, col) == ("estimate", "reset") else np.float64
+        if df[col].dtype != want:
+            errors.append(f"{name}.{col}: dtype {df[col].dtype}, expected {np.dtype(want)}")
+    t = df["t"].to_numpy()
+    if len(t) == 0:
+        errors.append(f"{name}: empty (use None for a missing stream)")
+    elif not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+        errors.append(f"{name}: t is not finite and strictly increasing")
+    return errors
+
+
+@dataclass(frozen=True, eq=False)
+class FlightLog:
+    """Timestamped streams of one flight log; ``None`` marks a stream the log lacks.
+
+    origin is (lat deg, lon deg, alt m) of the local ENU frame of ``gps``, ``estimate`` and
+    ``truth``; origin_source says where it came from ("autopilot local origin", "first GPS
+    fix", or "none" with a NaN origin when the log has neither). notes lists every repair or
+    choice the reader made; segments are the spans (s) without long gaps.
+    """
+
+    source: str
+    path: Path
+    vehicle: dict = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    origin: tuple[float, float, float] = (math.nan, math.nan, math.nan)
+    origin_source: str = "none"
+    imu: pd.DataFrame | None = None
+    gps: pd.DataFrame | None = None
+    odometry: pd.DataFrame | None = None
+    baro: pd.DataFrame | None = None
+    mag: pd.DataFrame | None = None
+    innovations: pd.DataFrame | None = None
+    estimate: pd.DataFrame | None = None
+    truth: pd.DataFrame | None = None
+    segments: list[tuple[float, float]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        errors = [] if self.source in SOURCES else [f"source {self.source!r} not in {SOURCES}"]
+        if len(self.origin) != 3:
+            errors.append(f"origin must be (lat, lon, alt), got {self.origin!r}")
+        for name in STREAMS:
+            df = getattr(self, name)
+            if df is not None:
+                errors += _frame_errors(name, df)
+        for a, b in self.segments:
+            if not (math.isfinite(a) and math.isfinite(b) and a <= b):
+                errors.append(f"segment ({a}, {b}) is not a finite span")
+        if errors:
+            raise LogError(f"{self.path}: invalid FlightLog: " + "; ".join(errors))
+
+    @property
+    def streams(self) -> dict[str, pd.DataFrame]:
+        """The streams present in this log, by name."""
+        return {n: getattr(self, n) for n in STREAMS if getattr(self, n) is not None}
+
+    @property
+    def duration(self) -> float:
+        """Seconds from the start of the first segment to the end of the last (gaps included)."""
+        return self.segments[-1][1] - self.segments[0][0] if self.segments else 0.0
+
+    def segment(self, i: int) -> FlightLog:
+        """This log restricted to segment i (times kept as they are, from the log start)."""
+        a, b = self.segments[i]
+        cut = {}
+        for name, df in self.streams.items():
+            t = df["t"].to_numpy()
+            part = df[(t >= a) & (t <= b)].reset_index(drop=True)
+            cut[name] = part if len(part) else None
+        return dataclasses.replace(self, segments=[(a, b)],
+                                   notes=[*self.notes, f"segment {i}: {a:.3f} s to {b:.3f} s"],
+                                   **cut)
+
+
+def make_stream(name: str, t: np.ndarray, values: Mapping[str, np.ndarray | float],
+                notes: list[str] | None = None) -> pd.DataFrame:
+    """A frame with exactly the columns of stream ``name``.
+
+    Columns missing from ``values`` are filled with NaN (``reset`` with False) and, when
+    ``notes`` is given, listed there as not logged."""
+    unknown = set(values) - set(STREAMS[name])
+    if unknown:
+        raise KeyError(f"{name}: unknown columns {sorted(unknown)}")
+    t = np.asarray(t, dtype=np.float64).reshape(-1)
+    cols: dict[str, np.ndarray] = {"t": t}
+    missing = []
+    for col in STREAMS[name][1:]:
+        if col == "reset":
+            v = values.get(col, False)
+            cols[col] = np.broadcast_to(np.asarray(v, dtype=bool), t.shape).copy()
+            continue
+        if col not in values:
+            missing.append(col)
+        v = values.get(col, np.nan)
+        cols[col] = np.broadcast_to(np.asarray(v, dtype=np.float64), t.shape).copy()
+    if missing and notes is not None:
+        notes.append(f"{name}: not logged, NaN: {', '.join(missing)}")
+    return pd.DataFrame(cols)
+
+
+def clean_stream(name: str, df: pd.DataFrame | None, notes: list[str]) -> pd.DataFrame | None:
+    """Drop unusable rows, sort and deduplicate times; every change is noted."""
+    if df is None:
+        return None
+    n0 = len(df)
+    t = df["t"].to_numpy(dtype=np.float64)
+    bad_t = ~np.isfinite(t)
+    if bad_t.any():
+        notes.append(f"{name}: dropped {int(bad_t.sum())} of {n0} samples with a non-finite time")
+        df = df[~bad_t]
+    values = [c for c in df.columns if c not in ("t", "reset")]
+    req = REQUIRED.get(name)
+    if req:
+        ok = np.isfinite(df[list(req)].to_numpy(dtype=np.float64)).all(axis=1)
+        what = f"a non-finite {'/'.join(req)}"
+    else:
+        ok = np.isfinite(df[values].to_numpy(dtype=np.float64)).any(axis=1)
+        what = "no finite value"
+    if (~ok).any():
+        notes.append(f"{name}: dropped {int((~ok).sum())} of {n0} samples with {what}")
+        df = df[ok]
+    t = df["t"].to_numpy(dtype=np.float64)
+    dt = np.diff(t)
+    back = dt < 0
+    if back.any():
+        largest = float(-dt[back].min())
+        reset = f"; the largest, {largest:.3f} s, exceeds {IMU_GAP} s (a clock reset?)" \
+            if largest > IMU_GAP else ""
+        notes.append(f"{name}: time went backwards {int(back.sum())} times (largest step back "
+                     f"{largest:.6f} s); samples sorted by time{reset}")
+        df = df.iloc[np.argsort(t, kind="stable")]
+        t = df["t"].to_numpy(dtype=np.float64)
+    dup = np.concatenate([[False], np.diff(t) == 0])
+    if dup.any():
+        notes.append(f"{name}: dropped {int(dup.sum())} samples with a repeated timestamp "
+                     "(first kept)")
+        df = df[~dup]
+    if len(df) == 0:
+        notes.append(f"{name}: no usable samples; stream omitted")
+        return None
+    return df.reset_index(drop=True)
+
+
+def find_segments(imu_t: np.ndarray | None, gps_t: np.ndarray | None,
+                  imu_gap: float = IMU_GAP, gps_gap: float = GPS_GAP) -> tuple[
+                      list[tuple[float, float]], list[str]]:
+    """Spans of the IMU time range (GPS range without an IMU) free of long gaps.
+
+    A gap is an interval between consecutive IMU samples longer than imu_gap, or between
+    consecutive GPS samples longer than gps_gap. Returns (segments, descriptions of gaps)."""
+    ref = imu_t if imu_t is not None and len(imu_t) else gps_t
+    if ref is None or len(ref) == 0:
+        return [], []
+    start, end = float(ref[0]), float(ref[-1])
+    cuts: list[tuple[float, float, str]] = []
+    for label, t, gap in (("imu", imu_t, imu_gap), ("gps", gps_t, gps_gap)):
+        if t is None or len(t) < 2:
+            continue
+        d = np.diff(t)
+        for i in np.flatnonzero(d > gap):
+            cuts.append((float(t[i]), float(t[i + 1]), label))
+    cuts.sort()
+    segments, described = [], []
+    cursor = start
+    for a, b, label in cuts:
+        described.append(f"{label} gap of {b - a:.3f} s at {a:.3f} s")
+        if a > cursor:
+            segments.append((cursor, min(a, end)))
+        cursor = max(cursor, b)
+    if end > cursor:
+        segments.append((cursor, end))
+    return [s for s in segments if s[1] > s[0]], described
+
+
+def assemble(source: str, path: Path, streams: Mapping[str, pd.DataFrame | None],
+             notes: list[str], vehicle: dict | None = None,
+             origin: tuple[float, float, float] = (math.nan, math.nan, math.nan),
+             origin_source: str = "none", imu_gap: float = IMU_GAP,
+             gps_gap: float = GPS_GAP) -> FlightLog:
+    """Validate raw streams (``clean_stream``), find segments and build the FlightLog."""
+    for name, gap in (("imu_gap", imu_gap), ("gps_gap", gps_gap)):
+        if not (isinstance(gap, (int, float)) and math.isfinite(gap) and gap > 0):
+            raise ValueError(f"{name} must be a positive number of seconds, got {gap!r}")
+    unknown = set(streams) - set(STREAMS)
+    if unknown:
+        raise KeyError(f"unknown streams {sorted(unknown)}")
+    clean = {name: clean_stream(name, streams.get(name), notes) for name in STREAMS}
+    if all(v is None for v in clean.values()):
+        raise LogError(f"{path}: no usable samples in any stream (IMU, GPS, baro, ...); "
+                       "the log is empty or holds none of the topics/messages this reader knows")
+    imu_t = clean["imu"]["t"].to_numpy() if clean["imu"] is not None else None
+    gps_t = clean["gps"]["t"].to_numpy() if clean["gps"] is not None else None
+    segments, gaps = find_segments(imu_t, gps_t, imu_gap, gps_gap)
+    if gaps:
+        notes.append(f"segments: {len(segments)} spans split at {'; '.join(gaps)} "
+                     f"(gap thresholds: imu {imu_gap} s, gps {gps_gap} s)")
+    if not segments:
+        t_all = np.concatenate([df["t"].to_numpy() for df in clean.values() if df is not None])
+        segments = [(float(t_all.min()), float(t_all.max()))]
+        notes.append("segments: no IMU or GPS span; one segment over all samples")
+    return FlightLog(source=source, path=Path(path), vehicle=dict(vehicle or {}), notes=notes,
+                     origin=tuple(float(v) for v in origin), origin_source=origin_source,
+                     segments=segments, **clean)
