@@ -198,15 +198,15 @@ def test_flightlog_segment_and_validation():
 # ============================================================================ PX4
 EXPECTED_PX4 = {
     # name: (streams present, imu rate Hz, gps rate Hz or None, origin_source)
-    "sample.ulg": ({"imu", "mag", "estimate"}, 250, None, "none"),
-    "sample_appended_multiple.ulg": ({"imu", "baro", "mag", "innovations", "estimate"}, 250, None,
-                                     "none"),
-    "sample_log_small.ulg": ({"imu", "gps", "baro", "mag", "innovations", "estimate"}, 205, 5,
+    "sample.ulg": ({"imu", "mag", "estimate", "attitude"}, 250, None, "none"),
+    "sample_appended_multiple.ulg": ({"imu", "baro", "mag", "innovations", "estimate", "attitude"}, 250,
+                                     None, "none"),
+    "sample_log_small.ulg": ({"imu", "gps", "baro", "mag", "innovations", "estimate", "attitude"}, 205, 5,
                              "first GPS fix"),
     "sample_logging_tagged_and_default_params.ulg": (
-        {"imu", "gps", "baro", "mag", "innovations", "estimate", "truth"}, 250, 19,
+        {"imu", "gps", "baro", "mag", "innovations", "estimate", "attitude", "truth"}, 250, 19,
         "autopilot local origin"),
-    "sample_px4_events.ulg": ({"imu", "gps", "baro", "mag", "innovations", "estimate"}, 250, 19,
+    "sample_px4_events.ulg": ({"imu", "gps", "baro", "mag", "innovations", "estimate", "attitude"}, 250, 19,
                               "autopilot local origin"),
 }
 
@@ -403,7 +403,7 @@ def test_px4_sitl_truth(logs):
 def test_dataflash_streams_rates_and_vehicle(logs):
     log = logs("copter-sitl-4.3.bin")
     assert log.source == "ardupilot-dataflash"
-    assert set(log.streams) == {"imu", "gps", "baro", "mag", "innovations", "estimate", "truth"}
+    assert set(log.streams) == {"imu", "gps", "baro", "mag", "innovations", "estimate", "attitude", "truth"}
     assert log.vehicle["firmware"].startswith("ArduCopter V4.3.0") and log.vehicle["frame"] == "QUAD/PLUS"
     assert log.origin_source == "autopilot local origin"
     assert log.origin == pytest.approx((-35.3632621, 149.1652374, 584.09))
@@ -713,3 +713,22 @@ def test_ulog_with_only_a_header_raises_logerror(tmp_path):
     p.write_bytes(buf.getvalue())
     with pytest.raises(LogError, match="no usable samples"):
         read_ulog(p)
+
+
+@pytest.mark.parametrize("name, worst_deg", [("copter-sitl-4.3.bin", 5.0),
+                                             ("sample_logging_tagged_and_default_params.ulg", 1.0)])
+def test_autopilot_attitude_agrees_with_simulator_truth(name, worst_deg, logs):
+    """The attitude estimate (ArduPilot ATT Euler angles, PX4 vehicle_attitude quaternion),
+    converted to ENU/FLU, against the SITL simulator's true attitude: within a few degrees."""
+    log = logs(name)
+    a, tr = log.attitude, log.truth
+    qa = np.stack([np.interp(tr.t, a.t, a[c]) for c in ("qx", "qy", "qz", "qw")], -1)
+    qa /= np.linalg.norm(qa, axis=1, keepdims=True)
+    qt = tr[["qx", "qy", "qz", "qw"]].to_numpy()
+    ok = np.isfinite(qt).all(axis=1)
+    angle = np.degrees(2 * np.arccos(np.clip(np.abs((qa[ok] * qt[ok]).sum(1)), 0, 1)))
+    assert ok.sum() > 500 and angle.max() < worst_deg
+    # yaw is not trivially zero: the vehicles face north-east-ish, not east
+    yaw = np.degrees(np.arctan2(2 * (qt[ok, 3] * qt[ok, 2] + qt[ok, 0] * qt[ok, 1]),
+                                1 - 2 * (qt[ok, 1] ** 2 + qt[ok, 2] ** 2)))
+    assert np.abs(yaw).max() > 20

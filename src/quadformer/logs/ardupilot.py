@@ -59,6 +59,7 @@ _WANTED = {
     "GPA": ("I", "HAcc", "VAcc", "SAcc", "VV"),
     "BARO": ("I", "Alt"),
     "MAG": ("I", "MagX", "MagY", "MagZ"),
+    "ATT": ("Roll", "Pitch", "Yaw"),
     "XKF1": ("C", "Core", "PN", "PE", "PD", "VN", "VE", "VD"),
     "XKF3": ("C", "Core", "IPN", "IPE", "IPD", "IVN", "IVE", "IVD"),
     "XKF4": ("C", "Core", "SV", "SP", "SH", "OFN", "OFE", "PI"),
@@ -218,6 +219,7 @@ class _DataflashReader:
             "mag": self.simple("MAG", "mag", ("MagX", "MagY", "MagZ"), self._mag),
             "innovations": self.innovations(cores),
             "estimate": self.estimate(cores),
+            "attitude": self.simple("ATT", "attitude", ("Roll", "Pitch", "Yaw"), self._attitude),
             "odometry": self.odometry(),
             "truth": self.truth(origin),
         }
@@ -340,6 +342,12 @@ class _DataflashReader:
     def _mag(v: np.ndarray) -> dict:
         m = frames.frd_to_flu(v * 1e-3)   # milligauss -> gauss
         return {"mx": m[:, 0], "my": m[:, 1], "mz": m[:, 2]}
+
+    @staticmethod
+    def _attitude(v: np.ndarray) -> dict:
+        """ATT Roll, Pitch, Yaw (deg; body FRD -> world NED) -> quaternion FLU -> ENU."""
+        q = frames.quat_ned_frd_to_enu_flu(frames.euler_to_quat(*np.deg2rad(v).T))
+        return {"qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3]}
 
     def simple(self, name: str, label: str, fields: tuple[str, ...], convert):
         rows = self.instance(name, label)

@@ -59,6 +59,8 @@ STREAMS: dict[str, tuple[str, ...]] = {
                     "ratio_pos", "ratio_vel", "ratio_hgt"),
     # the autopilot's local position estimate in the frame of the gps stream
     "estimate": ("t", *_XYZ, *_VXYZ, "reset"),
+    # the autopilot's attitude estimate: quaternion body FLU -> world ENU
+    "attitude": ("t", *_Q),
     # simulator ground truth
     "truth": ("t", *_XYZ, *_VXYZ, *_Q),
 }
@@ -71,6 +73,7 @@ REQUIRED: dict[str, tuple[str, ...]] = {
     "baro": ("alt",),
     "mag": ("mx", "my", "mz"),
     "estimate": ("x", "y"),
+    "attitude": _Q,
     "truth": ("x", "y"),
 }
 
@@ -119,6 +122,7 @@ class FlightLog:
     mag: pd.DataFrame | None = None
     innovations: pd.DataFrame | None = None
     estimate: pd.DataFrame | None = None
+    attitude: pd.DataFrame | None = None
     truth: pd.DataFrame | None = None
     segments: list[tuple[float, float]] = field(default_factory=list)
 

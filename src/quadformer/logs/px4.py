@@ -225,6 +225,7 @@ class _UlogReader:
             "mag": self.mag(),
             "innovations": self.innovations(),
             "estimate": self.estimate_stream(est_raw, origin),
+            "attitude": self.attitude(),
             "odometry": self.odometry(),
             "truth": self.truth(origin),
         }
@@ -569,6 +570,15 @@ class _UlogReader:
         return make_stream("odometry", t, {
             "x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "vx": v[:, 0], "vy": v[:, 1], "vz": v[:, 2],
             "qx": qe[:, 0], "qy": qe[:, 1], "qz": qe[:, 2], "qw": qe[:, 3]})
+
+    def attitude(self):
+        d = self.dataset("vehicle_attitude")
+        if d is None:
+            self.notes.append("attitude: no vehicle_attitude topic")
+            return None
+        q = frames.quat_ned_frd_to_enu_flu(frames.wxyz_to_xyzw(self.vector(d, "q", 4)))
+        return make_stream("attitude", self.times(d, "attitude"),
+                           {"qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3]})
 
     def truth(self, origin):
         lp = self.dataset("vehicle_local_position_groundtruth")

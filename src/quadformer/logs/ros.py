@@ -111,8 +111,10 @@ def _stamp_ns(header) -> int:
 def _extract(name: str, msg) -> tuple[int, list[float]]:
     """(header stamp in ns, values) of one message."""
     if name == "imu":
-        a, g = msg.linear_acceleration, msg.angular_velocity
-        return _stamp_ns(msg.header), [a.x, a.y, a.z, g.x, g.y, g.z]
+        a, g, q = msg.linear_acceleration, msg.angular_velocity, msg.orientation
+        known = msg.orientation_covariance[0] != -1 and (q.x, q.y, q.z, q.w) != (0, 0, 0, 0)
+        return _stamp_ns(msg.header), [a.x, a.y, a.z, g.x, g.y, g.z,
+                                       *((q.x, q.y, q.z, q.w) if known else (np.nan,) * 4)]
     if name == "fix":
         cov = np.asarray(msg.position_covariance, dtype=float)
         return _stamp_ns(msg.header), [msg.status.status, msg.latitude, msg.longitude,
@@ -241,6 +243,9 @@ def _assemble(path: Path, version: int, topics: RosTopics, raw: dict, info: dict
         v = arrays["imu"][2]
         streams["imu"] = make_stream("imu", times["imu"], {
             "ax": v[:, 0], "ay": v[:, 1], "az": v[:, 2], "gx": v[:, 3], "gy": v[:, 4], "gz": v[:, 5]})
+        if np.isfinite(v[:, 6:10]).all(axis=1).any():   # the orientation the IMU driver estimates
+            streams["attitude"] = make_stream("attitude", times["imu"], {
+                "qx": v[:, 6], "qy": v[:, 7], "qz": v[:, 8], "qw": v[:, 9]})
     gps_raw = None
     if "fix" in arrays:
         gps_raw = _fix(arrays["fix"][2], times["fix"], notes)
