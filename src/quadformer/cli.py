@@ -148,8 +148,15 @@ def _methods(text: Optional[str]) -> list[str]:
 
 
 def _print_tables(results: dict) -> None:
-    from quadformer.report import paper_tables
+    from quadformer.report import dataset_table, paper_tables
 
+    if results.get("profile") is None:
+        df = dataset_table(results)
+        typer.echo("\nPoint-wise P / R / F1 on test flights")
+        flat = df.copy()
+        flat.columns = [f"{d}-{m}" for d, m in df.columns]
+        typer.echo(flat.to_string(float_format=lambda v: f"{v:.2f}"))
+        return
     for key, df in paper_tables(results).items():
         typer.echo(f"\nModel {key.split('_')[1]}: point-wise P / R / F1 on test flights")
         flat = df.copy()
@@ -162,6 +169,8 @@ def benchmark(
     profile: str = typer.Option("demo", help="demo (20 flights/config), quick (60) or paper (600)."),
     methods: Optional[str] = typer.Option(None, help="Comma-separated detector names; default: every registered "
                                           "detector except ablations; 'all': every one."),
+    data: list[Path] = typer.Option([], "--data", help="Benchmark on these dataset directories instead of a "
+                                    "profile (repeatable): simulated ones or `quadformer logs import` ones."),
     out: Path = typer.Option(Path("runs/benchmark"), "--out", help="Output directory."),
     cache: Path = typer.Option(Path("runs/cache"), help="Dataset cache directory."),
     seed: int = typer.Option(0, help="Split seed."),
@@ -169,17 +178,26 @@ def benchmark(
     workers: Optional[int] = typer.Option(None, help="Simulation processes (default: one per core)."),
     quiet: bool = typer.Option(False, help="No progress bars."),
 ) -> None:
-    """Simulate (or reuse) the 8 configurations, tune and evaluate methods, write tables and a report."""
-    from quadformer.experiments.detection import run_benchmark
+    """Simulate (or reuse) the 8 configurations, tune and evaluate methods, write tables and a report.
+    With --data, the same protocol on given datasets."""
+    from quadformer.dataset import DatasetError
+    from quadformer.experiments.detection import run_benchmark, run_datasets
     from quadformer.io import set_threads
 
-    _profile(profile)
+    if not data:
+        _profile(profile)
     if not 0.0 <= label_fraction <= 1.0:
         _fail(f"label-fraction: must be in [0, 1], got {label_fraction}")
     names = _methods(methods)
     set_threads()
-    results = run_benchmark(profile, names, out, cache, progress=not quiet, workers=workers, seed=seed,
-                            label_fraction=label_fraction)
+    try:
+        if data:
+            results = run_datasets(data, names, out, progress=not quiet, seed=seed, label_fraction=label_fraction)
+        else:
+            results = run_benchmark(profile, names, out, cache, progress=not quiet, workers=workers, seed=seed,
+                                    label_fraction=label_fraction)
+    except (DatasetError, ValueError) as e:
+        _fail(str(e))
     _print_tables(results)
     typer.echo(f"\nbenchmark took {results['timing_s']['total']:.0f} s "
                f"(simulation {results['timing_s']['simulate']:.0f} s)")
@@ -206,7 +224,7 @@ def fit(
         _fail(str(e))
     sp = split_flights(ds.scenarios, seed, label_fraction=label_fraction)
     parts = sp.frames(ds.flights)
-    tuned = tune(method, parts.train, parts.y_train, parts.val, gps_rate_hz=ds.config.gps.rate_hz)
+    tuned = tune(method, parts.train, parts.y_train, parts.val, gps_rate_hz=ds.gps_rate_hz)
     det = tuned.detector
     det.calibrate(det.threshold_, det.budget_threshold_, data=str(data), split_seed=seed,
                   label_fraction=label_fraction, test_flights=sp.test.tolist())
@@ -254,7 +272,7 @@ def evaluate(
         offsets = np.linalg.norm(f[["atk_d_x", "atk_d_y", "atk_d_z"]].to_numpy(), axis=1) \
             if "atk_d_x" in f.columns else None
         res["metrics"] = metrics(f.flight_id.to_numpy(), f.t.to_numpy(), f.label.to_numpy(), s, alarms == 1,
-                                 gps_rate_hz=ds.config.gps.rate_hz, offsets=offsets)
+                                 gps_rate_hz=ds.gps_rate_hz, offsets=offsets)
     with atomic_path(out / "scores.parquet") as tmp:
         table.to_parquet(tmp, index=False)
     alerts = alerts_from_scores(f, s, det)
@@ -334,6 +352,225 @@ def resilience(
     typer.echo(f"results: {(out / 'results.json').resolve()}")
     typer.echo(f"alerts:  {(out / 'alerts.csv').resolve()}")
     typer.echo(f"report:  {(out / 'report.html').resolve()}")
+
+
+def _replay_config(sensors: Optional[str], imu_rate: float, gps_rate: float, min_segment: float):
+    from quadformer.logs.replay import ReplayConfig
+
+    try:
+        return ReplayConfig(sensors=sensors, imu_rate_hz=imu_rate, gps_rate_hz=gps_rate, min_segment_s=min_segment)
+    except ValueError as e:
+        _fail(str(e))
+
+
+def _log_paths(paths: list[Path], format: Optional[str]) -> list[Path]:
+    """The logs named, directories searched for files whose content is a known log format."""
+    from quadformer.logs import FORMATS, detect_format
+
+    if format is not None and format not in FORMATS:
+        _fail(f"format: unknown format {format!r}; choose from {', '.join(FORMATS)}")
+    out: list[Path] = []
+    for p in paths:
+        if not p.exists():
+            _fail(f"{p}: no such file or directory")
+        if p.is_dir() and detect_format(p) is None:
+            found = sorted(q for q in p.rglob("*") if (q.is_file() or q.is_dir()) and detect_format(q) is not None
+                           and not any(detect_format(par) for par in q.parents if par != p and p in par.parents))
+            if not found:
+                _fail(f"{p}: no flight log in this directory (PX4 .ulg, ArduPilot .bin, ROS bags)")
+            out += found
+        else:
+            out.append(p)
+    return out
+
+
+_RESIDUES_HELP = ("ekf: replay the project's filter over the log's sensors; autopilot: the autopilot's own "
+                  "logged GPS innovations, whitened by its logged variances.")
+
+
+@app.command()
+def detect(
+    logs: list[Path] = typer.Argument(..., help="Flight logs (PX4 .ulg, ArduPilot .bin, ROS 1/2 bags) or "
+                                      "directories holding them."),
+    model: Path = typer.Option(..., help="Model file written by `quadformer fit`."),
+    residues: str = typer.Option("ekf", help=_RESIDUES_HELP),
+    out: Path = typer.Option(Path("runs/detect"), "--out", help="Output directory (one folder per log)."),
+    format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot or ros (default: detected)."),
+    sensors: Optional[str] = typer.Option(None, help="Sensors the replayed filter fuses, e.g. gps+imu+mag+baro "
+                                          "(default: every sensor the log has)."),
+    imu_rate: float = typer.Option(100.0, help="IMU averaged down to at most this rate (Hz)."),
+    gps_rate: float = typer.Option(10.0, help="At most this many fixes per second are fused (Hz)."),
+    min_segment: float = typer.Option(3.0, help="Seconds of GPS a segment needs to be replayed."),
+    quiet: bool = typer.Option(False, help="No progress bar."),
+) -> None:
+    """Detect GPS spoofing in flight logs: per-step scores, alerts (printed and CSV) and a report per log."""
+    import numpy as np
+    import pandas as pd
+
+    from quadformer.detectors import alerts_frame, load
+    from quadformer.io import atomic_dir, atomic_path, set_threads, write_json
+    from quadformer.logs import LogError
+    from quadformer.logs.detect import DetectorInputError, detect_log
+    from quadformer.report.logs import write_log_report
+
+    try:
+        det = load(model)
+    except (FileNotFoundError, ValueError, KeyError) as e:
+        _fail(str(e.args[0] if e.args else e))
+    if getattr(det, "threshold_", None) is None:
+        _fail(f"{model}: the detector has no alarm threshold; write it with `quadformer fit`")
+    if residues not in ("ekf", "autopilot"):
+        _fail(f"residues: unknown source {residues!r}; choose from ekf, autopilot")
+    config = _replay_config(sensors, imu_rate, gps_rate, min_segment)
+    paths = _log_paths(logs, format)
+    set_threads(1)
+    bar = None
+    if not quiet and len(paths) > 1:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=len(paths), unit="log", desc="detect")
+    summary, all_alerts, failed = [], [], []
+    used: set[str] = set()
+    for path in paths:
+        name = path.name
+        while name in used:
+            name = f"{path.parent.name}-{name}" if not name.startswith(path.parent.name) else f"{name}-1"
+        used.add(name)
+        try:
+            res = detect_log(path, det, residues, config, format=format)
+        except (LogError, DetectorInputError, ValueError) as e:
+            failed.append((path, str(e)))
+            typer.secho(f"{path}: {e}", fg=typer.colors.RED, err=True)
+            if bar is not None:
+                bar.update(1)
+            continue
+        frame = alerts_frame(res.alerts)
+        with atomic_dir(out / name, overwrite=True) as tmp:
+            table = res.rows.copy()
+            table["score"] = res.scores
+            table["alarm"] = res.alarms.astype(np.int8)
+            table.to_csv(tmp / "scores.csv", index=False)
+            frame.to_csv(tmp / "alerts.csv", index=False)
+            write_log_report(res, tmp, str(model))
+            info = {"log": str(path), "format": res.log.source, "residues": residues, "sensors": res.sensors,
+                    "detector": det.name, "model": str(model), "threshold": det.threshold_,
+                    "duration_s": res.log.duration, "segments": len(res.log.segments),
+                    "steps": int(len(res.rows)), "alarmed_steps": int(res.alarms.sum()), "alerts": len(res.alerts),
+                    "notes": [*res.log.notes, *res.notes]}
+            write_json(tmp / "summary.json", info)
+        summary.append({k: info[k] for k in ("log", "format", "duration_s", "segments", "steps", "alarmed_steps",
+                                             "alerts")})
+        all_alerts.append(frame.assign(log=str(path)))
+        if bar is not None:
+            bar.update(1)
+        hours = len(res.rows) / config.gps_rate_hz / 3600
+        typer.echo(f"{path}: {res.log.source}, {res.log.duration:.1f} s, {len(res.rows)} GPS steps scored "
+                   f"({residues} residues, {res.sensors}): {len(res.alerts)} alert(s) "
+                   f"({len(res.alerts) / hours:.1f} per flight-hour)" if hours else "")
+        _print_alerts(res.alerts)
+    if bar is not None:
+        bar.close()
+    if summary:
+        with atomic_path(out / "summary.csv") as tmp:
+            pd.DataFrame(summary).to_csv(tmp, index=False)
+        with atomic_path(out / "alerts.csv") as tmp:
+            pd.concat(all_alerts, ignore_index=True).to_csv(tmp, index=False)
+        typer.echo(f"wrote {out.resolve()}: a folder per log (report.html, scores.csv, alerts.csv, summary.json), "
+                   "summary.csv and alerts.csv")
+    if failed:
+        typer.secho(f"{len(failed)} of {len(paths)} log(s) could not be processed", fg=typer.colors.RED, err=True)
+        raise typer.Exit(2 if len(failed) == len(paths) else 1)
+
+
+logs_app = typer.Typer(no_args_is_help=True, help="Flight logs: what a log holds; datasets from logs.")
+app.add_typer(logs_app, name="logs")
+
+
+@logs_app.command("info")
+def logs_info(
+    log: Path = typer.Argument(..., help="A flight log."),
+    format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot or ros."),
+) -> None:
+    """What a log holds: streams with their rates, segments, origin and the reader's notes."""
+    import numpy as np
+
+    from quadformer.logs import LogError, read_log
+
+    try:
+        fl = read_log(log, format=format)
+    except LogError as e:
+        _fail(str(e))
+    typer.echo(f"{log}: {fl.source}, {fl.duration:.1f} s in {len(fl.segments)} segment(s), origin {fl.origin} "
+               f"({fl.origin_source})")
+    for k, v in fl.vehicle.items():
+        typer.echo(f"  {k}: {v}")
+    for name, df in fl.streams.items():
+        t = df["t"].to_numpy()
+        rate = 1.0 / np.median(np.diff(t)) if len(t) > 1 else float("nan")
+        typer.echo(f"  {name:12s} {len(df):7d} samples, {rate:7.1f} Hz, {t[0]:.2f} to {t[-1]:.2f} s")
+    for n in fl.notes:
+        typer.echo(f"  note: {n}")
+
+
+@logs_app.command("import")
+def logs_import(
+    logs: list[Path] = typer.Argument(..., help="Flight logs or directories holding them."),
+    out: Path = typer.Option(..., "--out", help="Dataset directory to create."),
+    residues: str = typer.Option("ekf", help=_RESIDUES_HELP),
+    inject: Optional[str] = typer.Option(None, help=f"Spoof to inject into the logged GPS before the replay: "
+                                         f"{', '.join(k for k in ATTACK_KINDS if k != 'none')} (open loop)."),
+    attack_fraction: Optional[float] = typer.Option(None, help="Share of flights attacked (default 0.5)."),
+    onset: Optional[str] = typer.Option(None, help="Attack onset range 'low,high' in s from each flight's first "
+                                        "fix (clipped to the flight's first half)."),
+    attack_duration: Optional[str] = typer.Option(None, help="Attack duration range 'low,high' in s."),
+    magnitude: Optional[str] = typer.Option(None, help="Offset norm range 'low,high' in m."),
+    rate: Optional[str] = typer.Option(None, help="Ramp drift rate range 'low,high' in m/s."),
+    axes: Optional[str] = typer.Option(None, help="Fixed attacked axes, e.g. 'x' or 'xy'."),
+    seed: int = typer.Option(0, help="Seed of which flights are attacked and of the attacks' parameters."),
+    repeat: int = typer.Option(1, help="Replay each log segment this many times (each with its own injection)."),
+    format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot or ros."),
+    sensors: Optional[str] = typer.Option(None, help="Sensors the replayed filter fuses (default: all the log has)."),
+    imu_rate: float = typer.Option(100.0, help="IMU averaged down to at most this rate (Hz)."),
+    gps_rate: float = typer.Option(10.0, help="At most this many fixes per second are fused (Hz)."),
+    min_segment: float = typer.Option(3.0, help="Seconds of GPS a segment needs to be replayed."),
+    overwrite: bool = typer.Option(False, help="Replace DIR if it exists."),
+) -> None:
+    """A dataset (the format of `quadformer simulate`) from flight logs: one flight per log segment,
+    optionally with spoofs injected into the logged GPS and labelled. `benchmark --data`, `fit` and
+    `evaluate` take it."""
+    from quadformer.config import AttackConfig
+    from quadformer.dataset import write_dataset
+    from quadformer.io import set_threads
+    from quadformer.logs import LogError
+    from quadformer.logs.detect import logs_dataset
+
+    if residues not in ("ekf", "autopilot"):
+        _fail(f"residues: unknown source {residues!r}; choose from ekf, autopilot")
+    if out.exists() and not overwrite:
+        _fail(f"{out} already exists (use --overwrite to replace it)")
+    attack = None
+    if inject is not None:
+        opts = {"kind": inject, "fraction": attack_fraction, "onset": _pair("--onset", onset),
+                "duration": _pair("--attack-duration", attack_duration), "magnitude": _pair("--magnitude", magnitude),
+                "rate": _pair("--rate", rate), "axes": axes}
+        try:
+            attack = AttackConfig(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in opts.items()
+                                     if v is not None})
+        except (ConfigError, TypeError) as e:
+            _fail(str(e))
+    config = _replay_config(sensors, imu_rate, gps_rate, min_segment)
+    paths = _log_paths(logs, format)
+    set_threads(1)
+    try:
+        ds = logs_dataset(paths, residues, config, attack=attack, seed=seed, format=format, repeat=repeat)
+    except (LogError, ValueError) as e:
+        _fail(str(e))
+    write_dataset(ds, out, overwrite=overwrite)
+    s = ds.meta["summary"]
+    for log, notes in ds.meta["notes"].items():
+        for n in notes:
+            typer.echo(f"{log}: {n}")
+    typer.echo(f"wrote {out}: {s['flights']} flights ({s['attacked_flights']} attacked) from {len(paths)} log(s), "
+               f"{s['rows']} GPS steps, {residues} residues")
 
 
 @app.command()

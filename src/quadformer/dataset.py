@@ -36,7 +36,18 @@ class Dataset:
 
     @property
     def config(self) -> SimConfig:
+        """The simulation config of a simulated dataset."""
+        if "config" not in self.meta:
+            raise DatasetError(f"a dataset from {self.meta.get('source', 'an unknown source')} has no simulation "
+                               "config")
         return SimConfig.from_dict(self.meta["config"])
+
+    @property
+    def gps_rate_hz(self) -> float:
+        """GPS steps per second (the rows' rate)."""
+        if "gps_rate_hz" in self.meta:
+            return float(self.meta["gps_rate_hz"])
+        return self.config.gps.rate_hz
 
     @property
     def residue_columns(self) -> list[str]:
@@ -45,19 +56,25 @@ class Dataset:
 
 def summarize(flights: pd.DataFrame, scenarios: pd.DataFrame) -> dict[str, Any]:
     lab = flights["label"].to_numpy() == 1
-    nis = flights["res_gps_nis"].to_numpy()
-    dev = np.linalg.norm(flights[["true_pos_x", "true_pos_y", "true_pos_z"]].to_numpy()
-                         - flights[["ref_pos_x", "ref_pos_y", "ref_pos_z"]].to_numpy(), axis=1)
+    nis = flights["res_gps_nis"].to_numpy() if "res_gps_nis" in flights.columns else np.full(len(flights), np.nan)
+    cols = ["true_pos_x", "true_pos_y", "true_pos_z", "ref_pos_x", "ref_pos_y", "ref_pos_z"]
+    dev = np.linalg.norm(flights[cols[:3]].to_numpy() - flights[cols[3:]].to_numpy(), axis=1) \
+        if set(cols) <= set(flights.columns) else np.full(len(flights), np.nan)
     return {
         "flights": int(len(scenarios)),
         "attacked_flights": int(scenarios["attacked"].sum()),
         "rows": int(len(flights)),
         "attacked_rows": int(lab.sum()),
-        "mean_nis_clean": float(nis[~lab].mean()) if (~lab).any() else None,
-        "mean_nis_attacked": float(nis[lab].mean()) if lab.any() else None,
-        "max_deviation_clean_m": float(dev[~lab].max()) if (~lab).any() else None,
-        "max_deviation_attacked_m": float(dev[lab].max()) if lab.any() else None,
+        "mean_nis_clean": _finite(np.mean, nis[~lab]),
+        "mean_nis_attacked": _finite(np.mean, nis[lab]),
+        "max_deviation_clean_m": _finite(np.max, dev[~lab]),
+        "max_deviation_attacked_m": _finite(np.max, dev[lab]),
     }
+
+
+def _finite(fn, x: np.ndarray) -> float | None:
+    """fn of the values, None when there are none (or the column is absent: NaN)."""
+    return float(fn(x)) if len(x) and np.isfinite(x).all() else None
 
 
 def write_dataset(ds: Dataset, out: str | os.PathLike, overwrite: bool = False) -> Path:
@@ -74,7 +91,7 @@ class DatasetError(ValueError):
     """A dataset directory that is missing, incomplete or corrupt."""
 
 
-REQUIRED = ("flight_id", "t", "label", "attack_type", "res_gps_nis")
+REQUIRED = ("flight_id", "t", "label", "attack_type")
 
 
 def load_dataset(path: str | os.PathLike) -> Dataset:

@@ -20,9 +20,21 @@ ATTACKS = ("bias", "ramp")
 ATTACK_TITLE = {"bias": "Attack I (bias)", "ramp": "Attack II (ramp)"}
 
 
+def dataset_table(results: dict[str, Any]) -> pd.DataFrame:
+    """Rows are methods; columns dataset x P/R/F1 (runs on given datasets)."""
+    cols = pd.MultiIndex.from_tuples([(c["name"], m) for c in results["configs"] for m in ("P", "R", "F1")])
+    rows = [[v for c in results["configs"] for v in (
+        (c["methods"][m]["precision"], c["methods"][m]["recall"], c["methods"][m]["f1"])
+        if m in c["methods"] else (np.nan,) * 3)] for m in results["methods_run"]]
+    return pd.DataFrame(rows, index=list(results["methods_run"]), columns=cols)
+
+
 def paper_tables(results: dict[str, Any]) -> dict[str, pd.DataFrame]:
-    """One table per model: rows are methods; columns noise x attack x P/R/F1."""
+    """One table per model: rows are methods; columns noise x attack x P/R/F1 (profile runs;
+    none for runs on given datasets)."""
     tables = {}
+    if results.get("profile") is None:
+        return tables
     methods = results["methods_run"]
     for model in ("I", "II"):
         cols = pd.MultiIndex.from_tuples([(n, ATTACK_TITLE[a], m) for n in NOISES for a in ATTACKS
@@ -158,7 +170,7 @@ def _figures(results: dict[str, Any], out: Path) -> dict[str, str]:
 
     # example flights: the first attacked test flight of each attack type, Model II
     for c in results["configs"]:
-        if c["model"] != "II" or c["noise"] != "laplace":
+        if c.get("model") != "II" or c.get("noise") != "laplace":
             continue
         sc = pd.read_parquet(out / "scores" / f"{c['name']}.parquet")
         attacked = sc.groupby("flight_id").label.max()
@@ -221,12 +233,23 @@ def write_report(results: dict[str, Any], out: Path) -> Path:
     atomic_write_text(out / "metrics.csv", extra.to_csv(index=False))
     figs = _figures(results, out)
 
-    parts = [f"<h1>quadformer benchmark: profile {html.escape(results['profile'])}</h1>",
-             f"<p>{results['flights_per_config']} flights of {results['duration_s']:.0f} s per configuration; "
-             f"protocol: {html.escape(results['protocol'])}. Labels of "
+    if results.get("profile") is not None:
+        head = (f"<h1>quadformer benchmark: profile {html.escape(results['profile'])}</h1>"
+                f"<p>{results['flights_per_config']} flights of {results['duration_s']:.0f} s per configuration; ")
+    else:
+        head = (f"<h1>quadformer benchmark: {len(results['configs'])} dataset(s)</h1><p>datasets: "
+                + ", ".join(html.escape(c["dataset"]) for c in results["configs"]) + "; ")
+    parts = [head + f"protocol: {html.escape(results['protocol'])}. Labels of "
              f"{results['label_fraction']:.0%} of the training flights are available to every method.</p>"]
     for key, df in tables.items():
         parts.append(f"<h2>Model {key.split('_')[1]}: point-wise precision, recall, F1 (test flights)</h2>")
+        parts.append(table(df))
+    if not tables:
+        df = dataset_table(results)
+        flat = df.copy()
+        flat.columns = [f"{d}/{m}" for d, m in df.columns]
+        atomic_write_text(out / "table_datasets.csv", flat.to_csv(index_label="method"))
+        parts.append("<h2>Point-wise precision, recall, F1 (test flights)</h2>")
         parts.append(table(df))
     parts.append("<h2>All metrics</h2><p>Event-wise scores, detection delays, false alarms per hour on clean "
                  "test flights, threshold-free AUROC/AUPRC, scores at the false-alarm budget threshold. "

@@ -1,0 +1,164 @@
+"""Detection on a flight log and a dataset from flight logs.
+
+``detect_log``: read a log, turn each segment into rows of the flight table (``replay``),
+score them with a fitted, calibrated detector and collect its alerts.
+``logs_dataset``: the rows of many logs (optionally with injected spoofs, labelled) as a
+dataset in the project's format, which ``benchmark --data``, ``fit`` and ``evaluate`` take.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from quadformer.logs import read_log
+from quadformer.logs.flightlog import FlightLog, LogError
+from quadformer.logs.replay import (RESIDUE_SOURCES, LogFlight, ReplayConfig, autopilot_rows, ekf_rows,
+                                    missing_features)
+
+MIN_DETECT_S = 1.0   # s, a segment shorter than this is not scored
+
+
+class DetectorInputError(ValueError):
+    """A detector that needs residue columns a log's residues do not provide."""
+
+
+@dataclass
+class LogDetection:
+    log: FlightLog
+    residues: str
+    rows: pd.DataFrame                 # the flight table of every replayed segment (flight_id: segment)
+    scores: np.ndarray
+    alarms: np.ndarray
+    alerts: list
+    sensors: str
+    detector: Any
+    notes: list[str] = field(default_factory=list)   # what the replay did, segments skipped and why
+
+
+def log_rows(log: FlightLog, residues: str = "ekf", config: ReplayConfig = ReplayConfig(),
+             attacks: dict[int, Any] | None = None) -> tuple[list[LogFlight], list[str]]:
+    """Every usable segment of ``log`` as rows; (flights, notes on the segments skipped).
+    ``attacks``: segment index -> one-flight ``AttackBatch`` to inject (``ekf`` only)."""
+    if residues not in RESIDUE_SOURCES:
+        raise ValueError(f"residues: unknown source {residues!r}; choose from {', '.join(RESIDUE_SOURCES)}")
+    if attacks and residues != "ekf":
+        raise ValueError("injection needs --residues ekf: the autopilot's logged innovations cannot see a "
+                         "spoof added afterwards")
+    flights, notes = [], []
+    for seg in range(len(log.segments)):
+        try:
+            if residues == "ekf":
+                f = ekf_rows(log, seg, config, attack=(attacks or {}).get(seg))
+            else:
+                f = LogFlight(seg, autopilot_rows(log, seg), "autopilot")
+        except LogError as e:
+            if len(log.segments) == 1:
+                raise
+            notes.append(f"segment {seg} skipped: {e}")
+            continue
+        flights.append(f)
+        notes += [f"segment {seg}: {n}" for n in f.notes]
+    if not flights:
+        raise LogError(f"{log.path}: no segment could be replayed: " + "; ".join(notes))
+    return flights, notes
+
+
+def detect_log(log: FlightLog | str | Path, detector, residues: str = "ekf",
+               config: ReplayConfig = ReplayConfig(), format: str | None = None) -> LogDetection:
+    """Scores, alarms and alerts of a calibrated ``detector`` on every segment of ``log``."""
+    from quadformer.detectors import alerts_from_scores
+
+    if not isinstance(log, FlightLog):
+        log = read_log(log, format=format)
+    if getattr(detector, "threshold_", None) is None:
+        raise ValueError(f"{detector.name}: no alarm threshold; use a model written by `quadformer fit`")
+    flights, notes = log_rows(log, residues, config)
+    rows = pd.concat([f.rows for f in flights], ignore_index=True)
+    lacking = missing_features(detector.features_, rows.columns)
+    if lacking:
+        have = sorted({c.rsplit("_", 1)[0] if not c.endswith("nis") else c for c in rows.columns
+                       if c.startswith("res_")})
+        raise DetectorInputError(
+            f"{log.path}: detector {detector.name} reads {', '.join(lacking)}, which the {residues!r} residues "
+            f"of this log do not provide (they hold {', '.join(have) or 'nothing'}); "
+            + ("use --residues ekf, or " if residues == "autopilot" else "")
+            + "fit a detector on data of the same sensor configuration (quadformer simulate --sensors "
+              f"{flights[0].sensors if residues == 'ekf' else 'gps+imu+mag+baro'})")
+    scores = detector.decision_function(rows)
+    alarms = scores > detector.threshold_
+    alerts = alerts_from_scores(rows, scores, detector)
+    return LogDetection(log, residues, rows, scores, alarms, alerts, flights[0].sensors, detector, notes)
+
+
+def logs_dataset(paths: list[Path], residues: str = "ekf", config: ReplayConfig = ReplayConfig(),
+                 attack=None, seed: int = 0, format: str | None = None, repeat: int = 1,
+                 progress=None):
+    """A dataset of the segments of ``paths`` (each replayed ``repeat`` times): one flight
+    per segment and repetition. ``attack``: an ``AttackConfig`` injected on its ``fraction``
+    of the flights (which flights, and each attack's parameters, drawn from ``seed`` as in
+    the simulator); onsets are drawn within each flight (``onset`` clipped to its first
+    half). Returns (dataset, per-log notes)."""
+    from quadformer.attacks import sample_attacks
+    from quadformer.dataset import Dataset, summarize
+    from quadformer.io import package_versions
+    from quadformer.rng import Stream, attacked_flights, flight_generator
+
+    if repeat < 1:
+        raise ValueError(f"repeat must be >= 1, got {repeat}")
+    logs = []
+    for p in paths:
+        logs.append(read_log(p, format=format))
+        if progress is not None:
+            progress(1)
+    # one flight per (log, segment, repetition); attacks drawn per flight index
+    units = [(li, seg) for li, log in enumerate(logs) for seg in range(len(log.segments))]
+    units = [u for u in units for _ in range(repeat)]
+    kind = attack.kind if attack is not None else "none"
+    attacked = attacked_flights(seed, len(units), attack.fraction if attack is not None else 0.0)
+    frames, scen, notes = [], [], {str(p): [] for p in paths}
+    fid = 0
+    for k, (li, seg) in enumerate(units):
+        log = logs[li]
+        a0, a1 = log.segments[seg]
+        batch = None
+        if attack is not None and attacked[k]:
+            dur = a1 - a0
+            onset = (min(attack.onset[0], 0.5 * dur), min(attack.onset[1], 0.5 * dur))
+            cfg = dataclasses.replace(attack, onset=onset)
+            batch = sample_attacks([flight_generator(seed, k, Stream.SCENARIO)], cfg, np.ones(1, bool), dur)
+        try:
+            flights, skipped = log_rows(log, residues, config, attacks={seg: batch} if batch is not None else None)
+        except LogError as e:
+            notes[str(paths[li])].append(f"segment {seg}: {e}")
+            continue
+        notes[str(paths[li])] += skipped
+        f = next((f for f in flights if f.segment == seg), None)
+        if f is None:
+            continue
+        rows = f.rows.assign(flight_id=np.int32(fid))
+        frames.append(rows)
+        row = {"flight_id": fid, "attacked": bool(batch is not None and rows.label.any()),
+               "attack_type": kind if batch is not None else "none", "log": str(paths[li]), "segment": seg,
+               "repeat": k % repeat, "duration": float(rows.t.iloc[-1] - rows.t.iloc[0]), "sensors": f.sensors}
+        if batch is not None:
+            row.update(onset=float(batch.onset[0]), end=float(batch.end[0]), magnitude=float(batch.magnitude[0]),
+                       rate=float(batch.rate[0]), attack_axes=str(batch.axes[0]))
+        scen.append(row)
+        fid += 1
+    if not frames:
+        raise LogError("no flight could be made from these logs: " + "; ".join(
+            f"{p}: {', '.join(n)}" for p, n in notes.items() if n))
+    flights = pd.concat(frames, ignore_index=True)
+    flights["attack_type"] = flights["attack_type"].astype("string")
+    scenarios = pd.DataFrame(scen)
+    meta = {"format_version": 2, "source": "logs", "logs": [str(p) for p in paths], "residues": residues,
+            "replay": dataclasses.asdict(config), "gps_rate_hz": config.gps_rate_hz, "seed": seed,
+            "repeat": repeat, "attack": None if attack is None else dataclasses.asdict(attack),
+            "notes": notes, "versions": package_versions(), "summary": summarize(flights, scenarios)}
+    return Dataset(flights, scenarios, meta)

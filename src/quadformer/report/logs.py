@@ -1,0 +1,119 @@
+"""The report of detection on one flight log: what the log holds, the track, the
+innovations, the score against the threshold with the alarms, and the receiver's indicators."""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from quadformer.detectors import alerts_frame
+from quadformer.io import atomic_write_text
+from quadformer.report.html import img, page, png, table
+
+
+def _figures(det) -> dict[str, str]:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows, alarms = det.rows, np.asarray(det.alarms, bool)
+    thr = det.detector.threshold_ if hasattr(det, "detector") else None
+    figs: dict[str, str] = {}
+
+    # top-down track: the fixes, the replayed estimate, the autopilot's own estimate
+    fig, ax = plt.subplots(figsize=(6.5, 6))
+    ax.plot(rows.gps_pos_x, rows.gps_pos_y, ".", ms=2, color="0.55", label="GPS fixes")
+    if "est_pos_x" in rows:
+        ax.plot(rows.est_pos_x, rows.est_pos_y, "-", lw=1, color="C0", label="estimate (replayed filter)")
+    if "ap_pos_x" in rows:
+        ax.plot(rows.ap_pos_x, rows.ap_pos_y, "--", lw=1, color="C2", label="autopilot's estimate")
+    if "true_pos_x" in rows:
+        ax.plot(rows.true_pos_x, rows.true_pos_y, ":", lw=1, color="k", label="simulator truth")
+    if alarms.any():
+        ax.plot(rows.gps_pos_x[alarms], rows.gps_pos_y[alarms], "x", ms=5, color="C3", label="fix under alarm")
+    ax.set_xlabel("east (m)")
+    ax.set_ylabel("north (m)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend(fontsize=7)
+    ax.set_title("track (local ENU about the log's origin)", fontsize=9)
+    figs["track"] = _save(fig, plt)
+
+    # innovations, NIS, score
+    t = rows.t.to_numpy()
+    has_nis = "res_gps_nis" in rows
+    fig, axes = plt.subplots(3 if has_nis else 2, 1, figsize=(9, 6.5 if has_nis else 4.5), sharex=True)
+    for a, c in zip("xyz", ("C0", "C1", "C2")):
+        axes[0].plot(t, rows[f"res_gps_r_p{a}"], lw=0.8, color=c, label=f"position innovation {a}")
+    axes[0].set_ylabel("m")
+    axes[0].legend(fontsize=7, loc="upper left")
+    k = 1
+    if has_nis:
+        axes[1].semilogy(t, np.maximum(rows.res_gps_nis, 1e-3), lw=0.8, color="k")
+        axes[1].set_ylabel("GPS NIS")
+        k = 2
+    axes[k].plot(t, det.scores, lw=0.8, color="k", label="score")
+    if thr is not None:
+        axes[k].axhline(thr, color="C3", ls="--", lw=0.8, label="threshold")
+    for s, e in _spans(t, alarms):
+        for ax in axes:
+            ax.axvspan(s, e, color="C3", alpha=0.15)
+    if "label" in rows and rows.label.any():
+        for s, e in _spans(t, rows.label.to_numpy() == 1):
+            axes[k].axvspan(s, e, color="orange", alpha=0.2)
+    axes[k].set_ylabel("score")
+    axes[k].set_yscale("symlog")
+    axes[k].legend(fontsize=7, loc="upper left")
+    axes[-1].set_xlabel("t (s from the log start); red: alarms")
+    figs["innovations_and_score"] = _save(fig, plt)
+
+    # the receiver's own indicators
+    cols = [c for c in ("gps_satellites", "gps_eph", "gps_epv", "gps_fix_type", "gps_jamming", "gps_spoofing")
+            if c in rows and np.isfinite(rows[c].to_numpy(float)).any()]
+    if cols:
+        fig, axes = plt.subplots(len(cols), 1, figsize=(9, 1.3 * len(cols) + 0.5), sharex=True)
+        for ax, c in zip(np.atleast_1d(axes), cols):
+            ax.step(t, rows[c], where="post", lw=0.9)
+            ax.set_ylabel(c.replace("gps_", ""), fontsize=8)
+        np.atleast_1d(axes)[-1].set_xlabel("t (s)")
+        figs["receiver"] = _save(fig, plt)
+    return figs
+
+
+def _save(fig, plt) -> str:
+    b64 = png(fig)
+    plt.close(fig)
+    return b64
+
+
+def _spans(t: np.ndarray, mask: np.ndarray) -> list[tuple[float, float]]:
+    from quadformer.detectors import runs
+    return [(float(t[s]), float(t[e - 1])) for s, e in runs(mask)]
+
+
+def write_log_report(det, out: Path, model: str) -> Path:
+    """report.html of one log's detection (``logs.detect.LogDetection``) into ``out``."""
+    out = Path(out)
+    log = det.log
+    info: dict[str, Any] = {
+        "log": str(log.path), "format": log.source, "vehicle": ", ".join(f"{k} {v}" for k, v in log.vehicle.items()),
+        "duration (s)": f"{log.duration:.1f}", "segments": len(log.segments),
+        "streams": ", ".join(log.streams), "origin": f"{log.origin} ({log.origin_source})",
+        "residues": det.residues, "sensors fused": det.sensors, "detector": f"{det.detector.name} ({model})",
+        "threshold": f"{det.detector.threshold_:.4g}", "GPS steps scored": len(det.rows),
+        "steps under alarm": int(np.sum(det.alarms)), "alerts": len(det.alerts),
+    }
+    parts = [f"<h1>quadformer detect: {html.escape(log.path.name)}</h1>",
+             table(pd.DataFrame({"": list(info), "value": [str(v) for v in info.values()]}), index=False)]
+    parts.append("<h2>Alerts</h2>" + (table(alerts_frame(det.alerts), ".3g", index=False) if det.alerts
+                                      else "<p>none</p>"))
+    for key, b64 in _figures(det).items():
+        parts.append(f"<h2>{html.escape(key.replace('_', ' '))}</h2>{img(b64)}")
+    notes = [*log.notes, *det.notes]
+    parts.append("<h2>What the reader and the replay did</h2><ul>"
+                 + "".join(f"<li>{html.escape(n)}</li>" for n in notes) + "</ul>")
+    atomic_write_text(out / "report.html", page(f"quadformer detect {log.path.name}", parts, width_px=1000))
+    return out / "report.html"
