@@ -224,7 +224,10 @@ def fit(
         _fail(str(e))
     sp = split_flights(ds.scenarios, seed, label_fraction=label_fraction)
     parts = sp.frames(ds.flights)
-    tuned = tune(method, parts.train, parts.y_train, parts.val, gps_rate_hz=ds.gps_rate_hz)
+    try:
+        tuned = tune(method, parts.train, parts.y_train, parts.val, gps_rate_hz=ds.gps_rate_hz)
+    except ValueError as e:
+        _fail(f"{method}: {e}")
     det = tuned.detector
     det.calibrate(det.threshold_, det.budget_threshold_, data=str(data), split_seed=seed,
                   label_fraction=label_fraction, test_flights=sp.test.tolist())

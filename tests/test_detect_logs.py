@@ -1,0 +1,138 @@
+"""Detection on real flight logs through the CLI, as a user runs it: both residue sources,
+a report per log, datasets from logs with injected spoofs, bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pandas as pd
+import pytest
+from logs_support import FIX
+from typer.testing import CliRunner
+
+from quadformer.cli import app
+from quadformer.dataset import load_dataset, write_dataset
+from quadformer.detectors import load
+from quadformer.logs import read_log
+from quadformer.logs.replay import autopilot_rows
+
+runner = CliRunner()
+EVENTS = FIX / "sample_px4_events.ulg"
+COPTER = FIX / "copter-sitl-4.3.bin"
+
+
+@pytest.fixture(scope="module")
+def models(bias_dataset, tmp_path_factory):
+    """chi2 (reads the NIS only) and a CNN (reads every residue group) fit on simulated flights."""
+    d = tmp_path_factory.mktemp("models")
+    data = write_dataset(bias_dataset, d / "ds")
+    out = {}
+    for method in ("chi2", "cnn"):
+        res = runner.invoke(app, ["fit", "--method", method, "--data", str(data), "--label-fraction", "1",
+                                  "--out", str(d / f"{method}.json")])
+        assert res.exit_code == 0, res.output
+        out[method] = d / f"{method}.json"
+    return out
+
+
+def test_autopilot_residues_are_the_logged_innovations_flipped_and_whitened():
+    log = read_log(EVENTS)
+    rows = autopilot_rows(log)
+    inn = log.innovations.set_index("t").loc[rows.t]
+    # measured minus predicted: PX4 logs predicted minus measured (ENU after the reader)
+    np.testing.assert_allclose(rows.res_gps_r_px, -inn.pos_x.to_numpy())
+    np.testing.assert_allclose(rows.res_gps_r_vy, -inn.vel_y.to_numpy())
+    fused = inn.var_pos_x.to_numpy() > 0
+    np.testing.assert_allclose(rows.res_gps_w_px[fused], -inn.pos_x[fused] / np.sqrt(inn.var_pos_x[fused]))
+    w = rows[[f"res_gps_w_{a}" for a in ("px", "py", "pz", "vx", "vy", "vz")]].to_numpy()
+    np.testing.assert_allclose(rows.res_gps_nis, (w * w).sum(1))
+    # the samples before the autopilot fused any fix (innovations against an unset fix) are left out
+    assert rows.t.iloc[0] >= log.gps.t.iloc[0] and np.abs(rows.res_gps_r_px).max() < 1.0
+    assert np.isfinite(rows.filter(like="res_").to_numpy()).all()
+    # ArduPilot's XKF3 has no variances: raw innovations only
+    cols = autopilot_rows(read_log(COPTER)).columns
+    assert "res_gps_r_px" in cols and "res_gps_nis" not in cols and "res_gps_w_px" not in cols
+
+
+def test_detect_with_autopilot_residues_writes_scores_alerts_and_a_report(models, tmp_path):
+    out = tmp_path / "det"
+    res = runner.invoke(app, ["detect", str(EVENTS), "--model", str(models["chi2"]), "--residues", "autopilot",
+                              "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "alert(s)" in res.output and "autopilot residues" in res.output
+    folder = out / EVENTS.name
+    scores = pd.read_csv(folder / "scores.csv")
+    det = load(models["chi2"])
+    rows = autopilot_rows(read_log(EVENTS))
+    np.testing.assert_allclose(scores.score, det.decision_function(rows))
+    assert np.array_equal(scores.alarm, (scores.score > det.threshold_).astype(int))
+    summary = json.loads((folder / "summary.json").read_text())
+    assert summary["steps"] == len(rows) and summary["residues"] == "autopilot"
+    html = (folder / "report.html").read_text()
+    assert html.count("data:image/png;base64,") >= 3 and "sample_px4_events.ulg" in html
+    assert set(pd.read_csv(out / "alerts.csv").columns) >= {"log", "flight_id", "start_s", "attack_type"}
+
+
+def test_detect_refuses_a_detector_whose_residues_the_source_cannot_provide(models, tmp_path):
+    res = runner.invoke(app, ["detect", str(EVENTS), "--model", str(models["cnn"]), "--residues", "autopilot",
+                              "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2
+    assert "reads res_gps_corr" in res.output and "do not provide" in res.output and "--residues ekf" in res.output
+    assert not (tmp_path / "o" / EVENTS.name).exists()
+    res = runner.invoke(app, ["detect", str(COPTER), "--model", str(models["chi2"]), "--residues", "autopilot",
+                              "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and "reads res_gps_nis" in res.output
+
+
+def test_detect_over_a_directory_keeps_going_past_a_bad_log(models, tmp_path):
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    shutil.copy(EVENTS, logs / "good.ulg")
+    (logs / "bad.ulg").write_bytes(EVENTS.read_bytes()[:2000])      # truncated inside the header
+    (logs / "notes.txt").write_text("not a log")
+    out = tmp_path / "det"
+    res = runner.invoke(app, ["detect", str(logs), "--model", str(models["chi2"]), "--residues", "autopilot",
+                              "--out", str(out), "--quiet"])
+    assert res.exit_code == 1, res.output                          # one of two logs failed
+    assert "bad.ulg" in res.output and "1 of 2 log(s) could not be processed" in res.output
+    assert (out / "good.ulg" / "report.html").exists() and not (out / "bad.ulg").exists()
+    assert not list(out.glob(".*"))                                # no temporary leftovers
+    assert pd.read_csv(out / "summary.csv").log.tolist() == [str(logs / "good.ulg")]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["detect", str(EVENTS), "--model", "/nonexistent.json"], "no such model file"),
+    (["detect", "/nonexistent.ulg", "--model", "M"], "no such file or directory"),
+    (["detect", str(EVENTS), "--model", "M", "--residues", "magic"], "unknown source 'magic'"),
+    (["detect", str(EVENTS), "--model", "M", "--format", "dji"], "unknown format 'dji'"),
+    (["detect", str(EVENTS), "--model", "M", "--gps-rate", "0"], "gps_rate_hz must be a positive number"),
+    (["logs", "import", str(EVENTS), "--out", "D", "--inject", "jamming"], "unknown attack 'jamming'"),
+    (["logs", "info", str(FIX / "make_rosbags.py")], "unknown log format"),
+])
+def test_bad_input_is_named(args, message, models, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    args = [str(models["chi2"]) if a == "M" else a for a in args]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 2, res.output
+    assert message in res.output
+
+
+def test_benchmark_on_given_datasets(bias_dataset, tmp_path):
+    a = write_dataset(bias_dataset, tmp_path / "fleet-a")
+    b = write_dataset(bias_dataset, tmp_path / "fleet-b")
+    out = tmp_path / "bench"
+    res = runner.invoke(app, ["benchmark", "--data", str(a), "--data", str(b), "--methods", "chi2,cusum",
+                              "--out", str(out), "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert "fleet-a-F1" in res.output
+    r = json.loads((out / "results.json").read_text())
+    assert r["profile"] is None and [c["name"] for c in r["configs"]] == ["fleet-a", "fleet-b"]
+    # the same data and protocol give the same figures
+    assert r["configs"][0]["methods"]["cusum"]["f1"] == r["configs"][1]["methods"]["cusum"]["f1"]
+    table = pd.read_csv(out / "table_datasets.csv", index_col=0)
+    assert list(table.index) == ["chi2", "cusum"] and table.shape[1] == 6
+    assert "data:image/png;base64," in (out / "report.html").read_text()
+    res = runner.invoke(app, ["benchmark", "--data", str(tmp_path / "nope"), "--out", str(out)])
+    assert res.exit_code == 2 and "no such dataset directory" in res.output
