@@ -136,3 +136,33 @@ def test_benchmark_on_given_datasets(bias_dataset, tmp_path):
     assert "data:image/png;base64," in (out / "report.html").read_text()
     res = runner.invoke(app, ["benchmark", "--data", str(tmp_path / "nope"), "--out", str(out)])
     assert res.exit_code == 2 and "no such dataset directory" in res.output
+
+
+def test_detect_on_damaged_logs_ends_in_a_result_or_a_named_error(models, tmp_path):
+    """Seeded truncations and byte flips of a real log through `detect`: each run ends with
+    exit 0 and a complete output folder, or exit 2, a named error and no folder at all."""
+    rng = np.random.default_rng(7)
+    data = EVENTS.read_bytes()
+    outcomes = {0: 0, 2: 0}
+    for case in range(20):
+        buf = bytearray(data)
+        if case % 2:
+            buf = buf[: int(rng.integers(100, len(buf)))]
+        else:
+            for i in rng.integers(len(buf) // 50, len(buf), size=20):
+                buf[i] ^= 0xFF
+        path = tmp_path / f"case{case}.ulg"
+        path.write_bytes(bytes(buf))
+        out = tmp_path / f"out{case}"
+        res = runner.invoke(app, ["detect", str(path), "--model", str(models["chi2"]), "--residues", "autopilot",
+                                  "--out", str(out), "--quiet"])
+        assert res.exit_code in (0, 2), (case, res.output, res.exception)
+        assert "Traceback" not in res.output
+        outcomes[res.exit_code] += 1
+        folder = out / path.name
+        if res.exit_code == 0:
+            assert {p.name for p in folder.iterdir()} == {"report.html", "scores.csv", "alerts.csv", "summary.json"}
+        else:
+            assert "case" in res.output and not folder.exists()
+        assert not out.exists() or not list(out.glob(".*"))       # no temporary leftovers
+    assert outcomes[0] > 0 and outcomes[2] > 0
