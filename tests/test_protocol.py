@@ -87,3 +87,16 @@ def test_tuning_reads_validation_only(bias_dataset):
                  for f, g in pd.Series(s).groupby(val.flight_id.to_numpy()) if clean[f])
     assert clean.any() and alarms <= int(hours)
     assert tuned.val_f1 == max(g["val_f1"] for g in tuned.grid)
+
+
+def test_split_keeps_groups_together():
+    """Flights replayed from one recording (a group) never straddle train and test."""
+    sc = pd.DataFrame({"flight_id": np.arange(40), "group": np.repeat(np.arange(10), 4),
+                       "attacked": np.tile([True, False, True, False], 10)})
+    sp = split_flights(sc, seed=3)
+    part = {f: k for k in ("train", "val", "test") for f in getattr(sp, k)}
+    assert sorted(part) == list(range(40))
+    for g in range(10):
+        assert len({part[f] for f in range(4 * g, 4 * g + 4)}) == 1
+    assert len(sp.test) == 8 and len(sp.val) == 8 and set(sp.labelled) <= set(sp.train)
+    assert np.array_equal(split_flights(sc, seed=3).test, sp.test)

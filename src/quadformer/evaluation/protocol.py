@@ -48,12 +48,23 @@ class SplitFrames:
 
 def split_flights(scenarios: pd.DataFrame, seed: int, fractions=(0.6, 0.2, 0.2),
                   label_fraction: float = 0.2) -> Split:
-    """Split flights (not windows) by seed, stratified by attacked / clean."""
+    """Split flights (not windows) by seed, stratified by attacked / clean.
+
+    When ``scenarios`` has a ``group`` column (flights replayed from one log segment, say),
+    whole groups go to one part, stratified by whether a group holds an attacked flight: no
+    recording is seen in training and again in test."""
     if not np.isclose(sum(fractions), 1.0) or min(fractions) <= 0:
         raise ValueError(f"split fractions must be positive and sum to 1, got {fractions}")
     if not 0.0 <= label_fraction <= 1.0:
         raise ValueError(f"label_fraction must be in [0, 1], got {label_fraction}")
     rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0x5917,)))
+    if "group" in scenarios.columns:
+        keys = scenarios.groupby("group", sort=True)["attacked"].any()
+        members = scenarios.groupby("group", sort=True)["flight_id"].apply(lambda v: np.sort(v.to_numpy()))
+        units = pd.DataFrame({"flight_id": np.arange(len(keys)), "attacked": keys.to_numpy()})
+        sp = split_flights(units, seed, fractions, label_fraction)
+        expand = lambda idx: np.sort(np.concatenate([members.iloc[i] for i in idx] or [np.zeros(0, int)]))  # noqa: E731
+        return Split(*(expand(getattr(sp, k)).astype(int) for k in ("train", "val", "test", "labelled")))
     parts: dict[str, list] = {"train": [], "val": [], "test": [], "labelled": []}
     for attacked in (True, False):
         ids = np.sort(scenarios.loc[scenarios["attacked"] == attacked, "flight_id"].to_numpy())

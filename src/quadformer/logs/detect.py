@@ -100,7 +100,8 @@ def logs_dataset(paths: list[Path], residues: str = "ekf", config: ReplayConfig 
                  attack=None, seed: int = 0, format: str | None = None, repeat: int = 1,
                  progress=None):
     """A dataset of the segments of ``paths`` (each replayed ``repeat`` times): one flight
-    per segment and repetition. ``attack``: an ``AttackConfig`` injected on its ``fraction``
+    per segment and repetition, the repetitions of a segment in one ``group`` (the split keeps
+    a group together). ``attack``: an ``AttackConfig`` injected on its ``fraction``
     of the flights (which flights, and each attack's parameters, drawn from ``seed`` as in
     the simulator); onsets are drawn within each flight (``onset`` clipped to its first
     half). Returns (dataset, per-log notes)."""
@@ -143,7 +144,8 @@ def logs_dataset(paths: list[Path], residues: str = "ekf", config: ReplayConfig 
             continue
         rows = f.rows.assign(flight_id=np.int32(fid))
         frames.append(rows)
-        row = {"flight_id": fid, "attacked": bool(batch is not None and rows.label.any()),
+        row = {"flight_id": fid, "group": f"{paths[li]}#{seg}",
+               "attacked": bool(batch is not None and rows.label.any()),
                "attack_type": kind if batch is not None else "none", "log": str(paths[li]), "segment": seg,
                "repeat": k % repeat, "duration": float(rows.t.iloc[-1] - rows.t.iloc[0]), "sensors": f.sensors}
         if batch is not None:
