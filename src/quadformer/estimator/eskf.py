@@ -196,26 +196,33 @@ def baro_update(s: EKFState, height: torch.Tensor, nm: NoiseModel, mask=None):
     return update(s, height - s.p[:, 2:3], BARO_IDX, nm.baro_std, mask)
 
 
-def mag_update(s: EKFState, mag: torch.Tensor, nm: NoiseModel, mask=None):
-    """Heading update from the body-frame magnetic field ``mag`` (B,3), gauss.
+def mag_heading(s: EKFState, mag: torch.Tensor, field: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Heading innovation (B,1) of the body-frame magnetic field ``mag`` (B,3) against the
+    Earth field ``field`` (3,) (world, ENU), and its H (B,1,15).
 
     The field rotated to the world frame with the estimated attitude, m = R mag, is compared
-    with the Earth field f in the horizontal plane: the innovation is the angle from m_h to
-    f_h, wrapped to [-pi, pi), which is the measured heading (the field tilt-compensated with
-    the estimated roll and pitch) minus the estimated heading. To first order it is H dtheta
-    with H = R[2,:] - f_z / |f_h|^2 (f_x R[0,:] + f_y R[1,:]): the third row of R (the
-    heading error), plus the heading error a roll or pitch error puts into the tilt
-    compensation through the vertical field.
+    with f = ``field`` in the horizontal plane: the innovation is the angle from m_h to f_h,
+    wrapped to [-pi, pi), which is the measured heading (the field tilt-compensated with the
+    estimated roll and pitch) minus the estimated heading. To first order it is H dtheta with
+    H = R[2,:] - f_z / |f_h|^2 (f_x R[0,:] + f_y R[1,:]): the third row of R (the heading
+    error), plus the heading error that a roll or pitch error puts into the tilt compensation
+    through the vertical field.
     """
     R = roma.unitquat_to_rotmat(s.q)
     m = matvec(R, mag)
-    f = nm.mag_field.to(torch.float64)
-    fx, fy, fz = (float(v) for v in f)
+    fx, fy, fz = (float(v) for v in field)
     cross = m[:, 0] * fy - m[:, 1] * fx
     dot = m[:, 0] * fx + m[:, 1] * fy
-    r = wrap_angle(atan2(cross, dot)).unsqueeze(-1)                 # (B,1)
+    r = wrap_angle(atan2(cross, dot)).unsqueeze(-1)
     H = torch.zeros(len(r), 1, 15, dtype=torch.float64)
     H[:, 0, 6:9] = R[:, 2, :] - fz / (fx * fx + fy * fy) * (fx * R[:, 0, :] + fy * R[:, 1, :])
+    return r, H
+
+
+def mag_update(s: EKFState, mag: torch.Tensor, nm: NoiseModel, mask=None):
+    """Magnetometer heading update from the body-frame field ``mag`` (B,3), gauss, against
+    ``nm.mag_field`` (see ``mag_heading``)."""
+    r, H = mag_heading(s, mag, nm.mag_field)
     return update(s, r, H, nm.mag_std, mask)
 
 
