@@ -134,7 +134,8 @@ def test_cli_simulate_without_camera(tmp_path):
     assert [c for c in cols if c.startswith(("res_mag", "res_baro"))] == \
         ["res_mag_r_yaw", "res_mag_nis", "res_baro_r_z", "res_baro_nis"]
     assert not [c for c in cols if "vio" in c]
-    assert cols == ["flight_id", "t", "label", "attack_type"] + columns(*(g.name for g in groups_for("gps+imu+mag+baro")))
+    expected = columns(*(g.name for g in groups_for("gps+imu+mag+baro")))
+    assert cols == ["flight_id", "t", "label", "attack_type"] + expected
     assert not ds.flights.isna().any().any()
     # heading innovations of a few degrees, height innovations of about a metre, after the first second
     late = ds.flights[ds.flights.t > 1.0]
