@@ -1,36 +1,101 @@
-"""The EKF on its own over recorded sensor streams reproduces the closed loop's residues."""
+"""The EKF on its own over recorded sensor streams reproduces the closed loop's residues,
+for every sensor configuration."""
 
 import numpy as np
 import pytest
+import torch
 
-from quadformer.config import AttackConfig, SimConfig
+from quadformer.config import SENSOR_CONFIGS, AttackConfig, SimConfig
 from quadformer.estimator.replay import StreamError, run_ekf
+from quadformer.estimator.schema import RESIDUES
 from quadformer.simulation.closed_loop import simulate_batch
 
 CFG = SimConfig(model="II", noise="exponential", flights=2, duration=8.0, seed=9,
                 attack=AttackConfig(kind="ramp", onset=(3.0, 4.0), fraction=1.0))
+# the other configurations, shorter
+CONFIGS = {s: CFG if s == CFG.sensors else CFG.replace(sensors=s, duration=5.0) for s in SENSOR_CONFIGS}
+GROUPS = {
+    "gps+imu+vio": ["res_gps_r", "res_gps_w", "res_gps_s", "res_gps_nis", "res_gps_corr", "res_vio_r",
+                    "res_vio_nis", "res_vio_nis_mean"],
+    "gps+imu+mag+baro": ["res_gps_r", "res_gps_w", "res_gps_s", "res_gps_nis", "res_gps_corr", "res_mag_r",
+                         "res_mag_nis", "res_baro_r", "res_baro_nis"],
+    "gps+imu+vio+mag+baro": ["res_gps_r", "res_gps_w", "res_gps_s", "res_gps_nis", "res_gps_corr", "res_vio_r",
+                             "res_vio_nis", "res_vio_nis_mean", "res_mag_r", "res_mag_nis", "res_baro_r",
+                             "res_baro_nis"],
+}
 
 
-@pytest.fixture(scope="module")
-def run():
-    return simulate_batch(CFG, np.arange(2), np.array([True, False]), record_sensors=True)
+@pytest.fixture(scope="module", params=SENSOR_CONFIGS)
+def run(request):
+    cfg = CONFIGS[request.param]
+    return cfg, simulate_batch(cfg, np.arange(2), np.array([True, False]), record_sensors=True)
 
 
 def _replay(s, **over):
-    args = dict(ekf0=s["ekf0"], nm=s["noise"], dt=s["dt"], imu_t=s["imu_t"], imu=s["imu"], vio_t=s["vio_t"],
-                vio=s["vio"], gps_t=s["gps_t"], gps=s["gps"])
+    args = dict(ekf0=s["ekf0"], nm=s["noise"], dt=s["dt"], imu_t=s["imu_t"], imu=s["imu"], gps_t=s["gps_t"],
+                gps=s["gps"])
+    for a in ("vio", "mag", "baro"):
+        if a in s:
+            args.update({f"{a}_t": s[f"{a}_t"], a: s[a]})
     return run_ekf(**{**args, **over})
 
 
 def test_replay_reproduces_closed_loop_residues_bit_for_bit(run):
-    out = _replay(run["sensors"])
-    for name in ("res_gps_r", "res_gps_w", "res_gps_s", "res_gps_nis", "res_gps_corr", "res_vio_r",
-                 "res_vio_nis", "res_vio_nis_mean", "est_pos", "est_vel"):
-        assert np.array_equal(out[name], run[name]), name
+    cfg, r = run
+    out = _replay(r["sensors"])
+    assert sorted(out) == sorted(GROUPS[cfg.sensors] + ["est_pos", "est_vel"])
+    assert sorted(g.name for g in RESIDUES if g.name in r) == sorted(GROUPS[cfg.sensors])
+    assert ("vio_pos" in r) == cfg.has("vio")
+    for name in out:
+        assert np.array_equal(out[name], r[name]), name
+    # the recorded streams are the configured sensors', at their rates
+    s = r["sensors"]
+    for a, rate in (("vio", cfg.vio.rate_hz), ("mag", cfg.mag.rate_hz), ("baro", cfg.baro.rate_hz)):
+        assert (a in s) == cfg.has(a)
+        if a in s:
+            assert s[a].shape[1] == len(s[f"{a}_t"]) == round(cfg.duration * rate)
+
+
+@pytest.mark.parametrize("run", ["gps+imu+vio+mag+baro"], indirect=True)
+def test_a_flight_alone_equals_the_same_flight_in_a_batch(run):
+    """The heading innovation's angle is batch invariant too (the default configuration:
+    tests/test_datasets.py)."""
+    cfg, r = run
+    alone = simulate_batch(cfg, np.array([1]), np.array([False]))
+    for name in GROUPS[cfg.sensors] + ["est_pos", "true_pos"]:
+        assert np.array_equal(alone[name][0], r[name][1]), name
+
+
+def _first(s, seconds):
+    """The streams of the first ``seconds``: the residues of a causal filter are a prefix."""
+    out = dict(s)
+    for a in ("imu", "gps", "vio", "mag", "baro"):
+        if a in s:
+            keep = np.asarray(s[f"{a}_t"]) <= seconds + 1e-9
+            out[f"{a}_t"], out[a] = s[f"{a}_t"][keep], s[a][:, keep]
+    return out
+
+
+@pytest.mark.parametrize("run", ["gps+imu+mag+baro"], indirect=True)
+def test_receiver_std_replaces_the_noise_model(run):
+    cfg, r = run
+    s = _first(r["sensors"], 2.0)
+    K = s["gps"].shape[1]
+    std = s["noise"].gps_std.expand(2, K, 6).clone()
+    std[1, 10:] *= 3.0
+    out = _replay(s, gps_std=std)
+    # the noise model's std given per fix changes nothing; another one changes the filter from there
+    for name in out:
+        assert np.array_equal(out[name][0], r[name][0, :K]), name
+        assert np.array_equal(out[name][1, :10], r[name][1, :10]), name
+    assert not np.array_equal(out["est_pos"][1, 10:], r["est_pos"][1, 10:K])
+    expect = np.sqrt(r["res_gps_s"][1, 10] ** 2 + 8 * s["noise"].gps_std.numpy() ** 2)
+    np.testing.assert_allclose(out["res_gps_s"][1, 10], expect, rtol=1e-12)
 
 
 def test_bad_streams_are_named(run):
-    s = run["sensors"]
+    cfg, r = run
+    s = r["sensors"]
     imu = s["imu"].clone()
     imu[1, 40, 2] = float("nan")
     with pytest.raises(StreamError, match="imu: non-finite sample at index 40"):
@@ -43,5 +108,15 @@ def test_bad_streams_are_named(run):
     g[5] = g[4]
     with pytest.raises(StreamError, match="gps: timestamps must increase"):
         _replay(s, gps_t=g)
-    with pytest.raises(StreamError, match="vio: 3 timestamps"):
-        _replay(s, vio_t=s["vio_t"][:3])
+    with pytest.raises(StreamError, match="gps_std: non-positive or non-finite std at index 3"):
+        bad = s["noise"].gps_std.expand(2, s["gps"].shape[1], 6).clone()
+        bad[0, 3, 1] = 0.0
+        _replay(s, gps_std=bad)
+    if cfg.has("vio"):
+        with pytest.raises(StreamError, match="vio: 3 timestamps"):
+            _replay(s, vio_t=s["vio_t"][:3])
+    if cfg.has("mag"):
+        with pytest.raises(StreamError, match=r"mag: samples shaped \(2, \d+, 4\), expected \(2, \d+, 3\)"):
+            _replay(s, mag=torch.cat([s["mag"], s["mag"][..., :1]], -1))
+        with pytest.raises(StreamError, match="baro: timestamps and samples go together"):
+            _replay(s, baro_t=None)

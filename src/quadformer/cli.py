@@ -9,7 +9,7 @@ from typing import Any, Optional
 
 import typer
 
-from quadformer.config import ATTACK_KINDS, MODELS, NOISE_SHAPES, ConfigError, SimConfig, merge
+from quadformer.config import ATTACK_KINDS, MODELS, NOISE_SHAPES, SENSOR_CONFIGS, ConfigError, SimConfig, merge
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="GPS spoofing detection and resilient estimation for quadrotors.")
@@ -92,6 +92,8 @@ def simulate(
     out: Path = typer.Option(..., "--out", help="Dataset directory to create."),
     model: Optional[str] = typer.Option(None, help=f"UAV model: {', '.join(MODELS)} (default I)."),
     noise: Optional[str] = typer.Option(None, help=f"Noise shape: {', '.join(NOISE_SHAPES)} (default gaussian)."),
+    sensors: Optional[str] = typer.Option(None, help=f"Sensor configuration: {', '.join(SENSOR_CONFIGS)} "
+                                          "(default gps+imu+vio; names in any order)."),
     attack: Optional[str] = typer.Option(None, help=f"Attack: {', '.join(ATTACK_KINDS)} (default none)."),
     flights: Optional[int] = typer.Option(None, help="Number of flights (default 8)."),
     duration: Optional[float] = typer.Option(None, help="Seconds per flight (default 60)."),
@@ -117,8 +119,9 @@ def simulate(
            "duration": _pair("--attack-duration", attack_duration), "magnitude": _pair("--magnitude", magnitude),
            "rate": _pair("--rate", rate), "axes": axes}
     try:
-        cfg = build_config(config, {"model": model, "noise": noise, "flights": flights, "duration": duration,
-                                    "seed": seed, "batch_size": batch_size, "attack": atk}, set_)
+        cfg = build_config(config, {"model": model, "noise": noise, "sensors": sensors, "flights": flights,
+                                    "duration": duration, "seed": seed, "batch_size": batch_size, "attack": atk},
+                           set_)
     except (ConfigError, TypeError) as e:
         _fail(str(e))
     if out.exists() and not overwrite:

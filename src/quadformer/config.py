@@ -16,6 +16,10 @@ MODELS = ("I", "II")
 NOISE_SHAPES = ("gaussian", "exponential", "laplace")
 ATTACK_KINDS = ("none", "bias", "ramp", "sinusoid", "intermittent", "replay", "freeze")
 MISSION_KINDS = ("hover", "circle", "lissajous", "minsnap")
+#: sensors a configuration may name, in the canonical order of ``SimConfig.sensors``
+SENSOR_NAMES = ("gps", "imu", "vio", "mag", "baro")
+#: supported sensor configurations (canonical form)
+SENSOR_CONFIGS = ("gps+imu+vio", "gps+imu+mag+baro", "gps+imu+vio+mag+baro")
 
 
 class ConfigError(ValueError):
@@ -35,6 +39,22 @@ def _positive(name: str, value: float) -> None:
 def _non_negative(name: str, value: float) -> None:
     _require(isinstance(value, (int, float)) and math.isfinite(value) and value >= 0,
              name, f"must be a non-negative finite number, got {value!r}")
+
+
+def parse_sensors(text: Any, name: str = "sensors") -> str:
+    """The canonical form of a sensor configuration such as ``"imu+gps+mag+baro"``: names
+    joined by ``+`` in the order of ``SENSOR_NAMES``; ``ConfigError`` unless supported."""
+    choices = ", ".join(SENSOR_CONFIGS)
+    _require(isinstance(text, str), name, f"must be a string such as 'gps+imu+vio', got {text!r}; "
+             f"choose from {choices}")
+    parts = [p.strip().lower() for p in text.split("+")]
+    unknown = [p for p in parts if p not in SENSOR_NAMES]
+    _require(not unknown, name, f"unknown sensor {', '.join(map(repr, unknown))} in {text!r}; "
+             f"choose from {choices}")
+    _require(len(set(parts)) == len(parts), name, f"a sensor is named twice in {text!r}; choose from {choices}")
+    canonical = "+".join(n for n in SENSOR_NAMES if n in parts)
+    _require(canonical in SENSOR_CONFIGS, name, f"unsupported sensor configuration {text!r}; choose from {choices}")
+    return canonical
 
 
 def _range(name: str, value: Any, lo: float = -math.inf) -> tuple[float, float]:
@@ -77,6 +97,53 @@ class VIOConfig:
         _positive("vio.vel_std", self.vel_std)
         _positive("vio.att_std_deg", self.att_std_deg)
         _non_negative("vio.drift_fraction", self.drift_fraction)
+
+
+@dataclass(frozen=True)
+class MagConfig:
+    """Three-axis magnetometer: body-frame (FLU) Earth field, hard-iron bias and noise.
+
+    The Earth field in the world frame (ENU) is ``field_h`` pointing to magnetic north
+    (``declination_deg`` east of true north) and ``field_v`` pointing down."""
+    rate_hz: float = 50.0          # Hz, sample rate
+    noise_std: float = 0.005       # gauss, white noise std, each axis
+    bias_std: float = 0.01         # gauss, constant hard-iron bias std per flight, each axis
+    bias_walk: float = 0.0         # gauss/sqrt(s), bias random walk (0 disables it)
+    field_h: float = 0.22          # gauss, horizontal Earth field (towards magnetic north)
+    field_v: float = 0.42          # gauss, vertical Earth field (positive down)
+    declination_deg: float = 0.0   # deg, magnetic north east of true north
+
+    def __post_init__(self) -> None:
+        _positive("mag.rate_hz", self.rate_hz)
+        _positive("mag.noise_std", self.noise_std)
+        _non_negative("mag.bias_std", self.bias_std)
+        _non_negative("mag.bias_walk", self.bias_walk)
+        _positive("mag.field_h", self.field_h)
+        _require(isinstance(self.field_v, (int, float)) and math.isfinite(self.field_v), "mag.field_v",
+                 f"must be a finite number, got {self.field_v!r}")
+        _require(isinstance(self.declination_deg, (int, float)) and -180.0 <= self.declination_deg <= 180.0,
+                 "mag.declination_deg", f"must be in [-180, 180], got {self.declination_deg!r}")
+
+    @property
+    def field_enu(self) -> tuple[float, float, float]:
+        """The Earth field in the world frame (east, north, up), gauss."""
+        d = math.radians(self.declination_deg)
+        return (self.field_h * math.sin(d), self.field_h * math.cos(d), -self.field_v)
+
+
+@dataclass(frozen=True)
+class BaroConfig:
+    """Barometric height: the world-frame height (ENU z) plus a Gauss-Markov bias and noise."""
+    rate_hz: float = 25.0          # Hz, sample rate
+    noise_std: float = 0.4         # m, white noise std
+    gm_std: float = 0.5            # m, Gauss-Markov bias std (0 disables it)
+    gm_tau: float = 60.0           # s, Gauss-Markov time constant
+
+    def __post_init__(self) -> None:
+        _positive("baro.rate_hz", self.rate_hz)
+        _positive("baro.noise_std", self.noise_std)
+        _non_negative("baro.gm_std", self.gm_std)
+        _positive("baro.gm_tau", self.gm_tau)
 
 
 @dataclass(frozen=True)
@@ -173,6 +240,8 @@ class EKFConfig:
     gps_vel_std: float | None = None      # m/s
     vio_vel_std: float | None = None      # m/s
     vio_att_std_deg: float | None = None  # deg
+    mag_heading_std_deg: float | None = None  # deg; default hypot(noise, bias) / field_h
+    baro_std: float | None = None         # m; default sqrt(white^2 + gauss_markov^2)
     # Initial estimation error (the filter has converged on the ground before the mission).
     init_pos_std: float = 0.3             # m
     init_vel_std: float = 0.05            # m/s
@@ -188,7 +257,8 @@ class EKFConfig:
 @dataclass(frozen=True)
 class SimConfig:
     model: str = "I"                 # "I": hummingbird in calm air; "II": PX4 SIH quad in Dryden wind
-    noise: str = "gaussian"          # GPS and VIO noise shape
+    noise: str = "gaussian"          # GPS, VIO, magnetometer and barometer noise shape
+    sensors: str = "gps+imu+vio"     # one of SENSOR_CONFIGS (any order of the names)
     attack: AttackConfig = field(default_factory=AttackConfig)
     flights: int = 8
     duration: float = 60.0           # s per flight
@@ -200,9 +270,12 @@ class SimConfig:
     imu: IMUConfig = field(default_factory=IMUConfig)
     mission: MissionConfig = field(default_factory=MissionConfig)
     ekf: EKFConfig = field(default_factory=EKFConfig)
+    mag: MagConfig = field(default_factory=MagConfig)
+    baro: BaroConfig = field(default_factory=BaroConfig)
 
     def __post_init__(self) -> None:
         _require(self.model in MODELS, "model", f"unknown model {self.model!r}; choose from I, II")
+        object.__setattr__(self, "sensors", parse_sensors(self.sensors))
         _require(self.noise in NOISE_SHAPES, "noise",
                  f"unknown noise shape {self.noise!r}; choose from {', '.join(NOISE_SHAPES)}")
         _require(isinstance(self.flights, int) and not isinstance(self.flights, bool) and self.flights >= 1,
@@ -212,7 +285,8 @@ class SimConfig:
         _require(isinstance(self.seed, int) and self.seed >= 0, "seed", f"must be a non-negative integer, got {self.seed!r}")
         _require(isinstance(self.batch_size, int) and self.batch_size >= 1, "batch_size",
                  f"must be an integer >= 1, got {self.batch_size!r}")
-        for name, rate in (("gps.rate_hz", self.gps.rate_hz), ("vio.rate_hz", self.vio.rate_hz)):
+        for name, rate in (("gps.rate_hz", self.gps.rate_hz), ("vio.rate_hz", self.vio.rate_hz),
+                           ("mag.rate_hz", self.mag.rate_hz), ("baro.rate_hz", self.baro.rate_hz)):
             ratio = 1.0 / (rate * self.dt)
             _require(abs(ratio - round(ratio)) < 1e-9 and round(ratio) >= 1, name,
                      f"the sensor period must be a whole number of simulation steps (dt={self.dt} s)")
@@ -222,6 +296,11 @@ class SimConfig:
             _require(self.attack.onset[1] < self.duration, "attack.onset",
                      f"the latest onset ({self.attack.onset[1]} s) must be before the end of the flight "
                      f"(duration {self.duration} s)")
+
+    def has(self, sensor: str) -> bool:
+        """Whether the configuration includes ``sensor`` (one of ``SENSOR_NAMES``)."""
+        _require(sensor in SENSOR_NAMES, "sensor", f"unknown sensor {sensor!r}; choose from {', '.join(SENSOR_NAMES)}")
+        return sensor in self.sensors.split("+")
 
     # Derived step counts.
     @property
@@ -235,6 +314,14 @@ class SimConfig:
     @property
     def steps_per_vio(self) -> int:
         return int(round(1.0 / (self.vio.rate_hz * self.dt)))
+
+    @property
+    def steps_per_mag(self) -> int:
+        return int(round(1.0 / (self.mag.rate_hz * self.dt)))
+
+    @property
+    def steps_per_baro(self) -> int:
+        return int(round(1.0 / (self.baro.rate_hz * self.dt)))
 
     @property
     def n_gps(self) -> int:
@@ -276,6 +363,8 @@ _NESTED: dict[tuple[str, str], type] = {
     ("SimConfig", "imu"): IMUConfig,
     ("SimConfig", "mission"): MissionConfig,
     ("SimConfig", "ekf"): EKFConfig,
+    ("SimConfig", "mag"): MagConfig,
+    ("SimConfig", "baro"): BaroConfig,
 }
 
 

@@ -2,7 +2,7 @@
 
 A dataset directory holds
 - ``flights.parquet``: one row per GPS step, the columns of ``estimator.schema`` (keys and
-  labels, states, residues);
+  labels, states, residues) of the flights' sensor configuration;
 - ``scenarios.parquet``: one row per flight (for simulated flights: mission, wind, attack
   parameters; at least ``flight_id`` and ``attacked``);
 - ``meta.json``: the resolved config, seed, package versions and a summary.
@@ -24,7 +24,8 @@ from quadformer.estimator.schema import RESIDUES, STATES
 from quadformer.io import atomic_dir, to_json
 
 FORMAT_VERSION = 2   # 2: res_gps_corr_* added
-# Column groups of flights.parquet after the keys (flight_id, t, label, attack_type).
+# Column groups of flights.parquet after the keys (flight_id, t, label, attack_type), in
+# order; a dataset holds those of its sensor configuration (``schema.groups_for``).
 COLUMN_ORDER = tuple(g.name for g in STATES + RESIDUES)
 
 

@@ -21,6 +21,8 @@ class Stream(IntEnum):
     VIO = 4
     WIND = 5
     ATTACK = 6
+    MAG = 7        # appended: the streams above, and so the default data, are unchanged
+    BARO = 8
 
 
 def flight_generator(seed: int, flight: int, stream: Stream) -> np.random.Generator:

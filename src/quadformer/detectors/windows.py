@@ -88,9 +88,10 @@ class Windows:
 class AxisSymmetry:
     """Training augmentation: a spoof's direction is random, so a detector should not care
     which way an innovation points. Each training window gets a random sign per axis (applied
-    to the GPS position/velocity innovations, raw and whitened, and the VIO velocity
-    innovation of that axis) and a random swap of the two horizontal axes. Normalised
-    features are centred (median 0) and asinh is odd, so a sign flip there is one in the data.
+    to the GPS position/velocity innovations, raw and whitened, the VIO velocity innovation
+    of that axis and, for z, the barometric height innovation) and a random swap of the two
+    horizontal axes. Normalised features are centred (median 0) and asinh is odd, so a sign
+    flip there is one in the data.
     """
 
     def __init__(self, features: list[str]):

@@ -4,9 +4,10 @@ Nominal state: position p, velocity v (world, ENU, m and m/s), attitude q (unit
 quaternion, xyzw, body to world), accelerometer bias ba and gyro bias bg. Error state
 (15): dp, dv, dtheta (local angle error, q_true = q * Exp(dtheta)), dba, dbg.
 
-Pure functions: ``predict`` and ``update`` return new states. Every measurement used here
-observes a subset of the error state directly (H is a selection), which ``update``
-exploits; S is factorised by Cholesky and never inverted.
+Pure functions: ``predict`` and ``update`` return new states. GPS (position, velocity),
+VIO (velocity, attitude) and the barometer (height) observe a subset of the error state
+directly (H is a selection), which ``update`` exploits; the magnetometer heading has a
+general H. S is factorised by Cholesky and never inverted.
 """
 
 from __future__ import annotations
@@ -17,13 +18,15 @@ import numpy as np
 import roma
 import torch
 
-from quadformer.geometry import bmm, exp_quat, exp_rotmat, log_quat, matvec
+from quadformer.config import BaroConfig, MagConfig
+from quadformer.geometry import atan2, bmm, exp_quat, exp_rotmat, log_quat, matvec, wrap_angle
 
 ERROR_STATES = ("px", "py", "pz", "vx", "vy", "vz", "thx", "thy", "thz",
                 "bax", "bay", "baz", "bgx", "bgy", "bgz")
 GRAVITY = torch.tensor([0.0, 0.0, -9.81], dtype=torch.float64)
 GPS_IDX = torch.arange(0, 6)
 VIO_IDX = torch.arange(3, 9)
+BARO_IDX = torch.arange(2, 3)
 
 
 @dataclass(frozen=True)
@@ -38,13 +41,17 @@ class EKFState:
 
 @dataclass(frozen=True)
 class NoiseModel:
-    """Per-step process noise and measurement noise standard deviations."""
+    """Per-step process noise and measurement noise standard deviations, and the Earth
+    magnetic field the magnetometer heading is measured against."""
     accel_std: float      # m/s^2 per IMU sample
     gyro_std: float       # rad/s per IMU sample
     accel_walk: float     # m/s^2 per IMU sample (bias random walk)
     gyro_walk: float      # rad/s per IMU sample
     gps_std: torch.Tensor  # (6,) position m, velocity m/s
     vio_std: torch.Tensor  # (6,) velocity m/s, attitude rad
+    mag_std: torch.Tensor | None = None    # (1,) heading, rad
+    baro_std: torch.Tensor | None = None   # (1,) height, m
+    mag_field: torch.Tensor | None = None  # (3,) Earth field, world frame (ENU), gauss
 
 
 @dataclass(frozen=True)
@@ -97,19 +104,27 @@ def predict(s: EKFState, accel: torch.Tensor, gyro: torch.Tensor, dt: float, nm:
     return EKFState(p, v, q, s.ba, s.bg, P)
 
 
-def update(s: EKFState, r: torch.Tensor, idx: torch.Tensor, std: torch.Tensor,
+def update(s: EKFState, r: torch.Tensor, h: torch.Tensor, std: torch.Tensor,
            mask: torch.Tensor | None = None) -> tuple[EKFState, Innovation]:
-    """Kalman update with a measurement observing error states ``idx`` directly.
+    """Kalman update with innovation ``r`` (B,m) = H dx + noise.
 
-    r: (B,m) innovation; std: (m,) measurement noise std, or (B,m) per flight (an inflated
-    noise while a sensor is re-admitted). ``mask`` (B,) selects the flights whose state is
-    corrected; the innovation statistics are computed for all flights.
+    h: an integer index tensor (m,) of the error states the measurement observes directly
+    (H a selection, the cheaper path), or H itself, floating point (B,m,15) or (m,15).
+    std: (m,) measurement noise std, or (B,m) per flight (an inflated noise while a sensor is
+    re-admitted). ``mask`` (B,) selects the flights whose state is corrected; the innovation
+    statistics are computed for all flights.
     """
     B, m = r.shape
     std = std.to(torch.float64)
     Rm = torch.diag_embed(std**2) if std.dim() == 2 else torch.diag(std**2)
-    PHt = s.P[:, :, idx]                                   # (B,15,m)
-    S = PHt[:, idx, :] + Rm                                # (B,m,m)
+    general = h.is_floating_point()
+    if general:
+        H = h.to(torch.float64).expand(B, m, 15)
+        PHt = bmm(s.P, H.transpose(1, 2))                  # (B,15,m)
+        S = bmm(H, PHt) + Rm                               # (B,m,m)
+    else:
+        PHt = s.P[:, :, h]                                 # (B,15,m)
+        S = PHt[:, h, :] + Rm                              # (B,m,m)
     S = 0.5 * (S + S.transpose(1, 2))
     L = torch.linalg.cholesky(S)
     wht = torch.linalg.solve_triangular(L, r.unsqueeze(-1), upper=False).squeeze(-1)
@@ -119,7 +134,10 @@ def update(s: EKFState, r: torch.Tensor, idx: torch.Tensor, std: torch.Tensor,
     K = Kt.transpose(1, 2)                                 # (B,15,m)
     dx = matvec(K, r)                                      # (B,15)
     A = torch.eye(15, dtype=torch.float64).repeat(B, 1, 1)
-    A[:, :, idx] -= K
+    if general:
+        A = A - bmm(K, H)
+    else:
+        A[:, :, h] -= K
     var = (std**2).unsqueeze(1) if std.dim() == 2 else std**2
     P = bmm(bmm(A, s.P), A.transpose(1, 2)) + bmm(K * var, Kt)   # Joseph form
     P = 0.5 * (P + P.transpose(1, 2))
@@ -144,11 +162,13 @@ def _select(mask: torch.Tensor, a: EKFState, b: EKFState) -> EKFState:
 
 
 def gps_update(s: EKFState, pos: torch.Tensor, vel: torch.Tensor, nm: NoiseModel, mask=None,
-               std_scale: torch.Tensor | None = None):
-    """GPS position and velocity update; ``std_scale`` (B,) multiplies the measurement noise
-    std per flight."""
+               std_scale: torch.Tensor | None = None, std: torch.Tensor | None = None):
+    """GPS position and velocity update. ``std`` (B,6): the receiver's own accuracy per flight
+    (position m, velocity m/s) in place of ``nm.gps_std``; ``std_scale`` (B,) multiplies the
+    measurement noise std per flight."""
     r = torch.cat([pos - s.p, vel - s.v], dim=-1)
-    std = nm.gps_std if std_scale is None else std_scale.to(torch.float64)[:, None] * nm.gps_std
+    base = nm.gps_std if std is None else std.to(torch.float64)
+    std = base if std_scale is None else std_scale.to(torch.float64)[:, None] * base
     return update(s, r, GPS_IDX, std, mask)
 
 
@@ -171,6 +191,41 @@ def vio_update(s: EKFState, vel: torch.Tensor, q_meas: torch.Tensor, nm: NoiseMo
     return update(s, r, VIO_IDX, nm.vio_std, mask)
 
 
+def baro_update(s: EKFState, height: torch.Tensor, nm: NoiseModel, mask=None):
+    """Barometric height update: ``height`` (B,1), m, in the world frame (ENU z)."""
+    return update(s, height - s.p[:, 2:3], BARO_IDX, nm.baro_std, mask)
+
+
+def mag_heading(s: EKFState, mag: torch.Tensor, field: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Heading innovation (B,1) of the body-frame magnetic field ``mag`` (B,3) against the
+    Earth field ``field`` (3,) (world, ENU), and its H (B,1,15).
+
+    The field rotated to the world frame with the estimated attitude, m = R mag, is compared
+    with f = ``field`` in the horizontal plane: the innovation is the angle from m_h to f_h,
+    wrapped to [-pi, pi), which is the measured heading (the field tilt-compensated with the
+    estimated roll and pitch) minus the estimated heading. To first order it is H dtheta with
+    H = R[2,:] - f_z / |f_h|^2 (f_x R[0,:] + f_y R[1,:]): the third row of R (the heading
+    error), plus the heading error that a roll or pitch error puts into the tilt compensation
+    through the vertical field.
+    """
+    R = roma.unitquat_to_rotmat(s.q)
+    m = matvec(R, mag)
+    fx, fy, fz = (float(v) for v in field)
+    cross = m[:, 0] * fy - m[:, 1] * fx
+    dot = m[:, 0] * fx + m[:, 1] * fy
+    r = wrap_angle(atan2(cross, dot)).unsqueeze(-1)
+    H = torch.zeros(len(r), 1, 15, dtype=torch.float64)
+    H[:, 0, 6:9] = R[:, 2, :] - fz / (fx * fx + fy * fy) * (fx * R[:, 0, :] + fy * R[:, 1, :])
+    return r, H
+
+
+def mag_update(s: EKFState, mag: torch.Tensor, nm: NoiseModel, mask=None):
+    """Magnetometer heading update from the body-frame field ``mag`` (B,3), gauss, against
+    ``nm.mag_field`` (see ``mag_heading``)."""
+    r, H = mag_heading(s, mag, nm.mag_field)
+    return update(s, r, H, nm.mag_std, mask)
+
+
 def state_error(s: EKFState, p, v, q) -> torch.Tensor:
     """True minus estimated (dp, dv, dtheta): (B,9), for NEES."""
     dth = log_quat(roma.quat_product(roma.quat_conjugation(s.q), q))
@@ -185,14 +240,22 @@ def nees(s: EKFState, p, v, q) -> torch.Tensor:
     return (z * z).sum(-1)
 
 
-def noise_model(imu_cfg, gps_cfg, vio_cfg, ekf_cfg, imu_rate_hz: float) -> NoiseModel:
-    """Filter noise matched to the sensor configuration unless ``ekf_cfg`` overrides it."""
+def noise_model(imu_cfg, gps_cfg, vio_cfg, ekf_cfg, imu_rate_hz: float, mag_cfg=None, baro_cfg=None
+                ) -> NoiseModel:
+    """Filter noise matched to the sensor configuration unless ``ekf_cfg`` overrides it
+    (``mag_cfg`` and ``baro_cfg``: default ``MagConfig()`` and ``BaroConfig()``)."""
+    mag_cfg = MagConfig() if mag_cfg is None else mag_cfg
+    baro_cfg = BaroConfig() if baro_cfg is None else baro_cfg
     scale = float(np.sqrt(imu_rate_hz / 2.0))
     h = ekf_cfg.gps_pos_std_h or float(np.hypot(gps_cfg.pos_std_h, gps_cfg.gm_std))
     vv = ekf_cfg.gps_pos_std_v or float(np.hypot(gps_cfg.pos_std_v, gps_cfg.gm_std))
     gv = ekf_cfg.gps_vel_std or gps_cfg.vel_std
     vvel = ekf_cfg.vio_vel_std or vio_cfg.vel_std
     vatt = np.deg2rad(ekf_cfg.vio_att_std_deg or vio_cfg.att_std_deg)
+    # heading: the horizontal field's noise and bias across it, over its length
+    heading = (np.deg2rad(ekf_cfg.mag_heading_std_deg) if ekf_cfg.mag_heading_std_deg
+               else float(np.hypot(mag_cfg.noise_std, mag_cfg.bias_std)) / mag_cfg.field_h)
+    height = ekf_cfg.baro_std or float(np.hypot(baro_cfg.noise_std, baro_cfg.gm_std))
     return NoiseModel(
         accel_std=imu_cfg.accel_noise_density * scale,
         gyro_std=imu_cfg.gyro_noise_density * scale,
@@ -200,5 +263,8 @@ def noise_model(imu_cfg, gps_cfg, vio_cfg, ekf_cfg, imu_rate_hz: float) -> Noise
         gyro_walk=imu_cfg.gyro_bias_walk / scale,
         gps_std=torch.tensor([h, h, vv, gv, gv, gv], dtype=torch.float64),
         vio_std=torch.tensor([vvel] * 3 + [vatt] * 3, dtype=torch.float64),
+        mag_std=torch.tensor([heading], dtype=torch.float64),
+        baro_std=torch.tensor([height], dtype=torch.float64),
+        mag_field=torch.tensor(mag_cfg.field_enu, dtype=torch.float64),
     )
 

@@ -7,7 +7,11 @@ so both produce the same ``res_*`` features from the same innovations:
 - the leaky integral (time constant ``corr_tau``) of the position corrections GPS updates
   applied: how far GPS has recently pulled the estimate; a spoof the filter absorbs keeps it
   displaced until the spoof ends;
-- VIO: the latest innovation and NIS, and the mean NIS since the previous GPS step.
+- VIO: the latest innovation and NIS, and the mean NIS since the previous GPS step;
+- magnetometer: the latest heading innovation and its NIS;
+- barometer: the latest height innovation and its NIS.
+
+The groups of an aiding sensor are produced only when it is among ``aiding``.
 """
 
 from __future__ import annotations
@@ -18,20 +22,34 @@ import torch
 from quadformer.estimator.eskf import Innovation
 
 CORR_TAU = 20.0   # s
+AIDING = ("vio", "mag", "baro")
 
 
 class ResidueTracker:
-    def __init__(self, n: int, gps_rate_hz: float, corr_tau: float = CORR_TAU):
+    def __init__(self, n: int, gps_rate_hz: float, corr_tau: float = CORR_TAU,
+                 aiding: tuple[str, ...] = ("vio",)):
+        unknown = [a for a in aiding if a not in AIDING]
+        if unknown:
+            raise ValueError(f"aiding: unknown sensor {unknown[0]!r}; choose from {', '.join(AIDING)}")
         z = lambda *s: torch.zeros(*s, dtype=torch.float64)  # noqa: E731
+        self.aiding = tuple(a for a in AIDING if a in aiding)
         self.corr = z(n, 3)
         self.decay = float(np.exp(-1.0 / (gps_rate_hz * corr_tau)))
         self.vio_r, self.vio_nis = z(n, 6), z(n)
         self._sum, self._count = z(n), 0
+        self.mag_r, self.mag_nis = z(n, 1), z(n)
+        self.baro_r, self.baro_nis = z(n, 1), z(n)
 
     def on_vio(self, inn: Innovation) -> None:
         self.vio_r, self.vio_nis = inn.r, inn.nis
         self._sum = self._sum + inn.nis
         self._count += 1
+
+    def on_mag(self, inn: Innovation) -> None:
+        self.mag_r, self.mag_nis = inn.r, inn.nis
+
+    def on_baro(self, inn: Innovation) -> None:
+        self.baro_r, self.baro_nis = inn.r, inn.nis
 
     def on_gps(self, inn: Innovation) -> dict[str, torch.Tensor]:
         """Residues of this GPS step (each (n, k)); resets the VIO mean.
@@ -40,11 +58,15 @@ class ResidueTracker:
         a filter that always fuses GPS applies it; see ``applied`` for one that does not."""
         proposed = self.decay * self.corr + inn.dx[:, 0:3]
         self.corr = proposed
-        out = {
-            "res_gps_r": inn.r, "res_gps_w": inn.w, "res_gps_s": inn.s_std, "res_gps_nis": inn.nis[:, None],
-            "res_gps_corr": proposed, "res_vio_r": self.vio_r, "res_vio_nis": self.vio_nis[:, None],
-            "res_vio_nis_mean": (self._sum / max(self._count, 1))[:, None],
-        }
+        out = {"res_gps_r": inn.r, "res_gps_w": inn.w, "res_gps_s": inn.s_std, "res_gps_nis": inn.nis[:, None],
+               "res_gps_corr": proposed}
+        if "vio" in self.aiding:
+            out.update(res_vio_r=self.vio_r, res_vio_nis=self.vio_nis[:, None],
+                       res_vio_nis_mean=(self._sum / max(self._count, 1))[:, None])
+        if "mag" in self.aiding:
+            out.update(res_mag_r=self.mag_r, res_mag_nis=self.mag_nis[:, None])
+        if "baro" in self.aiding:
+            out.update(res_baro_r=self.baro_r, res_baro_nis=self.baro_nis[:, None])
         self._sum = torch.zeros_like(self._sum)
         self._count = 0
         return out

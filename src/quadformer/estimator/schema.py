@@ -4,13 +4,16 @@ Every source of flights (the simulator, a flight log, a live link) produces rows
 table, one per GPS step; every detector reads its ``res_*`` residue columns. A group of
 columns shares a prefix and a unit; its columns are ``{group}_{axis}`` (or the group name
 alone for a scalar). Frames: world ENU, body FLU, SI units.
+
+The columns follow the sensor configuration: the groups of an aiding sensor (VIO,
+magnetometer, barometer) are present only when it is configured (``groups_for``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from quadformer.config import ATTACK_KINDS
+from quadformer.config import ATTACK_KINDS, parse_sensors
 
 XYZ = ("x", "y", "z")
 GPS_AXES = ("px", "py", "pz", "vx", "vy", "vz")      # GPS innovation: position then velocity
@@ -64,9 +67,29 @@ RESIDUES = (
     Group("res_vio_r", VIO_AXES, "m/s, rad", "latest VIO innovation"),
     Group("res_vio_nis", (), "1", "latest VIO NIS"),
     Group("res_vio_nis_mean", (), "1", "mean VIO NIS since the previous GPS step"),
+    Group("res_mag_r", ("yaw",), "rad",
+          "latest magnetometer heading innovation: measured minus estimated heading, in [-pi, pi)"),
+    Group("res_mag_nis", (), "1", "latest magnetometer heading NIS (chi-square, 1 dof, nominal)"),
+    Group("res_baro_r", ("z",), "m", "latest barometric height innovation"),
+    Group("res_baro_nis", (), "1", "latest barometric height NIS (chi-square, 1 dof, nominal)"),
 )
 
+#: the groups of each aiding sensor: absent when the configuration leaves the sensor out
+SENSOR_GROUPS = {
+    "vio": ("vio_pos", "res_vio_r", "res_vio_nis", "res_vio_nis_mean"),
+    "mag": ("res_mag_r", "res_mag_nis"),
+    "baro": ("res_baro_r", "res_baro_nis"),
+}
+
 GROUPS = {g.name: g for g in STATES + RESIDUES}
+
+
+def groups_for(sensors: str) -> tuple[Group, ...]:
+    """The state and residue groups, in table order, of the flights of a sensor configuration
+    such as ``"gps+imu+mag+baro"`` (``config.SENSOR_CONFIGS``)."""
+    present = parse_sensors(sensors).split("+")
+    absent = {g for sensor, groups in SENSOR_GROUPS.items() if sensor not in present for g in groups}
+    return tuple(g for g in STATES + RESIDUES if g.name not in absent)
 
 
 def columns(*groups: str) -> list[str]:
@@ -86,16 +109,20 @@ WHITENED = columns("res_gps_w")
 
 #: default inputs of the learned detectors: every residue except the predicted innovation std
 #: (``res_gps_s_*``), which varies slowly with the flight's conditions and lets a network
-#: recognise flights instead of attacks
+#: recognise flights instead of attacks. A detector reads those present in its data; the
+#: magnetometer and barometer come last, so the order of the others never changes.
 DETECTOR_FEATURES = columns("res_gps_r", "res_gps_w", "res_gps_nis", "res_gps_corr", "res_vio_r",
-                            "res_vio_nis", "res_vio_nis_mean")
+                            "res_vio_nis", "res_vio_nis_mean", "res_mag_r", "res_mag_nis", "res_baro_r",
+                            "res_baro_nis")
 
 
 def axis_columns(axis: str) -> list[str]:
     """Residue columns that point along world axis ``axis`` ('x', 'y' or 'z'), in the same
-    order for every axis: the columns that flip sign when the axis does."""
-    return [f"res_gps_r_p{axis}", f"res_gps_r_v{axis}", f"res_gps_w_p{axis}", f"res_gps_w_v{axis}",
+    order for every axis, and for 'z' the barometric height innovation after them: the
+    columns that flip sign when the axis does."""
+    cols = [f"res_gps_r_p{axis}", f"res_gps_r_v{axis}", f"res_gps_w_p{axis}", f"res_gps_w_v{axis}",
             f"res_gps_corr_p{axis}", f"res_vio_r_v{axis}"]
+    return cols + ["res_baro_r_z"] if axis == "z" else cols
 
 
 def as_columns(groups: dict[str, object]) -> dict[str, object]:

@@ -30,9 +30,22 @@ from quadformer.experiments.pool import run_jobs
 from quadformer.io import write_json
 
 
+# settings that change nothing unless the sensor is configured (SimConfig field, EKFConfig fields)
+_SENSOR_SETTINGS = {"mag": ("mag", ("mag_heading_std_deg",)), "baro": ("baro", ("baro_std",))}
+
+
 def dataset_key(cfg: SimConfig) -> str:
     d = cfg.to_dict()
     d.pop("batch_size", None)   # does not change the data
+    # neither do the settings of sensors the configuration leaves out; so the default
+    # configuration keeps the key it had before sensor configurations existed
+    for sensor, (name, ekf_fields) in _SENSOR_SETTINGS.items():
+        if not cfg.has(sensor):
+            d.pop(name)
+            for f in ekf_fields:
+                d["ekf"].pop(f)
+    if cfg.sensors == SimConfig.sensors:
+        d.pop("sensors")
     d["format_version"] = FORMAT_VERSION   # what the simulator writes
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 

@@ -92,7 +92,8 @@ def run_config(ds: Dataset, detector: str, seed: int = 0, label_fraction: float 
     alerts = pd.DataFrame()
     if "resilient" in policies:
         sel = np.nonzero(pol == "resilient")[0]
-        cols = {c: r[g.name][sel][..., i].reshape(-1) for g in RESIDUES for i, c in enumerate(g.columns)}
+        cols = {c: r[g.name][sel][..., i].reshape(-1) for g in RESIDUES if g.name in r
+                for i, c in enumerate(g.columns)}
         X = pd.DataFrame({"flight_id": np.repeat(flights[sel], n), "t": np.tile(t, len(sel)), **cols})
         alerts = alerts_frame(alerts_from_scores(X, r["admission"]["score"][sel].reshape(-1), det))
         results["alerts"] = int(len(alerts))

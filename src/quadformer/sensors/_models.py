@@ -7,6 +7,10 @@ GPS: local ENU position and velocity, white noise of the chosen shape plus a fir
 Gauss-Markov position error.
 VIO: world-frame velocity, attitude, and position in its own odometry frame whose drift
 grows with the distance travelled.
+Magnetometer: the Earth field in the body frame (FLU), ``R^T m_world``, plus a hard-iron bias
+(constant per flight, optionally walking) and white noise of the chosen shape.
+Barometer: the world-frame height ``p_z`` plus a first-order Gauss-Markov bias and white
+noise of the chosen shape.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ import numpy as np
 import roma
 import torch
 
-from quadformer.config import GPSConfig, IMUConfig, VIOConfig
+from quadformer.config import BaroConfig, GPSConfig, IMUConfig, MagConfig, VIOConfig
 from quadformer.geometry import exp_quat, matvec
 from quadformer.sensors.noise import batch_noise
 
@@ -116,3 +120,37 @@ class VIO:
         vel_m = vel + self.cfg.vel_std * n[:, 0:3]
         q_m = roma.quat_product(q, exp_quat(self.att_std * n[:, 3:6]))
         return vel_m, q_m, pos - self.origin + self.drift
+
+
+class Magnetometer:
+    def __init__(self, cfg: MagConfig, shape: str, gens: list[np.random.Generator]):
+        self.cfg = cfg
+        self.field = torch.tensor(cfg.field_enu, dtype=torch.float64)
+        self.bias = torch.from_numpy(np.stack([g.standard_normal(3) for g in gens]) * cfg.bias_std)
+        self.walk_std = cfg.bias_walk * float(np.sqrt(1.0 / cfg.rate_hz))   # gauss per sample
+        self.white = ChunkedNoise(gens, shape, 3, block=50)
+        self.drive = ChunkedNoise(gens, "gaussian", 3, block=50)
+
+    def measure(self, rot: torch.Tensor) -> torch.Tensor:
+        """Body-frame field (B,3), gauss, for body-to-world rotations ``rot`` (B,3,3)."""
+        self.bias = self.bias + self.walk_std * self.drive.next()
+        field = matvec(rot.transpose(-1, -2), self.field.expand(rot.shape[0], 3))
+        return field + self.bias + self.cfg.noise_std * self.white.next()
+
+
+class Barometer:
+    def __init__(self, cfg: BaroConfig, shape: str, gens: list[np.random.Generator]):
+        self.cfg = cfg
+        self.phi = float(np.exp(-1.0 / (cfg.rate_hz * cfg.gm_tau)))
+        self.white = ChunkedNoise(gens, shape, 1, block=50)
+        self.drive = ChunkedNoise(gens, "gaussian", 1, block=50)
+        self.gm = None
+
+    def measure(self, pos: torch.Tensor) -> torch.Tensor:
+        """Height (B,1), m, in the world frame, for positions ``pos`` (B,3)."""
+        n = self.drive.next()
+        if self.gm is None:
+            self.gm = self.cfg.gm_std * n
+        else:
+            self.gm = self.phi * self.gm + self.cfg.gm_std * np.sqrt(1.0 - self.phi**2) * n
+        return pos[:, 2:3] + self.gm + self.cfg.noise_std * self.white.next()

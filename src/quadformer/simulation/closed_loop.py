@@ -1,9 +1,11 @@
 """The closed loop for one batch of flights.
 
 At every 100 Hz step: the SE(3) controller flies on the EKF estimate, rotorpy integrates
-the vehicle in its wind, the IMU samples the motion and the EKF propagates. VIO updates the
-EKF at 20 Hz; at 10 Hz the GPS fix (honest, then attacked) updates it and the innovation
-statistics are recorded as residues. A spoofed fix therefore moves the real vehicle.
+the vehicle in its wind, the IMU samples the motion and the EKF propagates. The configured
+aiding sensors update the EKF at their rates, in the order VIO (20 Hz), magnetometer heading
+(50 Hz), barometric height (25 Hz); at 10 Hz the GPS fix (honest, then attacked) updates it
+and the innovation statistics are recorded as residues. A spoofed fix therefore moves the
+real vehicle. A sensor the configuration leaves out draws nothing and records nothing.
 
 With an ``Admission`` (resilience), each GPS step first computes the innovation for every
 flight, lets an online detector score the residues, and fuses the fix only where the
@@ -21,21 +23,34 @@ import torch
 
 from quadformer.attacks import sample_attacks
 from quadformer.config import SimConfig
-from quadformer.estimator.eskf import gps_update, init_state, nees, noise_model, predict, reset_to_gps, vio_update
-from quadformer.estimator.residues import ResidueTracker
-from quadformer.estimator.schema import RESIDUES, STATES, as_columns
+from quadformer.estimator.eskf import (
+    baro_update,
+    gps_update,
+    init_state,
+    mag_update,
+    nees,
+    noise_model,
+    predict,
+    reset_to_gps,
+    vio_update,
+)
+from quadformer.estimator.residues import AIDING, ResidueTracker
+from quadformer.estimator.schema import as_columns, groups_for
 from quadformer.geometry import exp_quat
 from quadformer.missions import sample_missions
 from quadformer.plant import DrydenWind, Plant, sample_wind
 from quadformer.rng import Stream, batch_generators
-from quadformer.sensors import GPS, IMU, VIO, ChunkedNoise
+from quadformer.sensors import GPS, IMU, VIO, Barometer, ChunkedNoise, Magnetometer
 
-# Recorded per GPS step: the schema's groups (the reference is evaluated after the flight).
-RECORDS = {g.name: g.width for g in STATES + RESIDUES if g.name != "ref_pos"}
+
+def records(cfg: SimConfig) -> dict[str, int]:
+    """Recorded per GPS step: the widths of the schema's groups of the configuration's
+    sensors (the reference is evaluated after the flight)."""
+    return {g.name: g.width for g in groups_for(cfg.sensors) if g.name != "ref_pos"}
 
 
 class BatchResult(dict):
-    """Arrays of one batch: RECORDS entries (B, n_gps, k) plus labels and scenario info."""
+    """Arrays of one batch: ``records(cfg)`` entries (B, n_gps, k) plus labels and scenario info."""
 
 
 def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
@@ -44,8 +59,8 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     """Simulate flights ``flights`` (indices into the dataset) of ``cfg`` together.
 
     record_nees: also the filter's NEES per GPS step (consistency checks); record_sensors:
-    also the raw IMU, VIO and (attacked) GPS streams and the initial filter state, which
-    ``estimator.replay.run_ekf`` can process on their own.
+    also the raw IMU, (attacked) GPS and configured VIO, magnetometer and barometer streams
+    and the initial filter state, which ``estimator.replay.run_ekf`` can process on their own.
 
     admission: a ``resilience.Admission`` over the batch's flights (GPS fused per policy);
     stream: a detector's online stream over the batch (``detector.stream(len(flights))``)
@@ -68,8 +83,12 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     wind_draws = ChunkedNoise(batch_generators(cfg.seed, flights, Stream.WIND), "uniform", 3)
     imu = IMU(cfg.imu, 1.0 / dt, batch_generators(cfg.seed, flights, Stream.IMU), ba0, bg0)
     gps = GPS(cfg.gps, cfg.noise, batch_generators(cfg.seed, flights, Stream.GPS))
-    vio = VIO(cfg.vio, cfg.noise, batch_generators(cfg.seed, flights, Stream.VIO), p0)
-    nm = noise_model(cfg.imu, cfg.gps, cfg.vio, cfg.ekf, 1.0 / dt)
+    vio = VIO(cfg.vio, cfg.noise, batch_generators(cfg.seed, flights, Stream.VIO), p0) if cfg.has("vio") else None
+    mag = Magnetometer(cfg.mag, cfg.noise, batch_generators(cfg.seed, flights, Stream.MAG)) if cfg.has("mag") else None
+    baro = Barometer(cfg.baro, cfg.noise, batch_generators(cfg.seed, flights, Stream.BARO)) if cfg.has("baro") else None
+    spm, spb = cfg.steps_per_mag, cfg.steps_per_baro
+    nm = noise_model(cfg.imu, cfg.gps, cfg.vio, cfg.ekf, 1.0 / dt, cfg.mag, cfg.baro)
+    aiding = tuple(a for a in AIDING if cfg.has(a))
 
     e = cfg.ekf
     std0 = np.array([e.init_pos_std] * 3 + [e.init_vel_std] * 3 + [np.deg2rad(e.init_att_std_deg)] * 3
@@ -81,15 +100,15 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
                      torch.zeros(B, 3), torch.zeros(B, 3),
                      torch.diag(torch.from_numpy(std0**2)).repeat(B, 1, 1))
 
-    rec = {k: np.zeros((B, n_gps, n), dtype=np.float64) for k, n in RECORDS.items()}
+    rec = {k: np.zeros((B, n_gps, n), dtype=np.float64) for k, n in records(cfg).items()}
     label = np.zeros((B, n_gps), dtype=bool)
     nees_rec = np.zeros((B, n_gps)) if record_nees else None
     history = torch.zeros(B, n_gps, 6, dtype=torch.float64)
     zeros_b = torch.zeros(B, dtype=torch.float64)
     rates_est = torch.zeros(B, 3, dtype=torch.float64)
     vio_pos = torch.zeros(B, 3, dtype=torch.float64)
-    residues = ResidueTracker(B, cfg.gps.rate_hz)
-    sensors = {"ekf0": ekf, "imu": [], "vio": [], "gps": []} if record_sensors else None
+    residues = ResidueTracker(B, cfg.gps.rate_hz, aiding=aiding)
+    sensors = {"ekf0": ekf, "imu": [], "gps": [], **{a: [] for a in aiding}} if record_sensors else None
     block = 100
     ref_block = None
     adm_rec = {k: np.zeros((B, n_gps, *shape), dtype=dt_) for k, dt_, shape in
@@ -118,12 +137,26 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
         ekf = predict(ekf, accel, gyro, dt, nm)
         rates_est = gyro - ekf.bg
 
-        if (k + 1) % spv == 0:
+        if vio is not None and (k + 1) % spv == 0:
             v_m, q_m, vio_pos = vio.measure(state["x"], state["v"], state["q"])
             if sensors is not None:
                 sensors["vio"].append(torch.cat([v_m, q_m], -1))
             ekf, inn = vio_update(ekf, v_m, q_m, nm)
             residues.on_vio(inn)
+
+        if mag is not None and (k + 1) % spm == 0:
+            field = mag.measure(roma.unitquat_to_rotmat(state["q"]))
+            if sensors is not None:
+                sensors["mag"].append(field)
+            ekf, inn = mag_update(ekf, field, nm)
+            residues.on_mag(inn)
+
+        if baro is not None and (k + 1) % spb == 0:
+            height = baro.measure(state["x"])
+            if sensors is not None:
+                sensors["baro"].append(height)
+            ekf, inn = baro_update(ekf, height, nm)
+            residues.on_baro(inn)
 
         if (k + 1) % spg == 0:
             j = (k + 1) // spg - 1
@@ -143,8 +176,8 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
             label[:, j] = active
             for name, val in (
                 ("true_pos", state["x"]), ("true_vel", state["v"]), ("est_pos", ekf.p), ("est_vel", ekf.v),
-                ("gps_pos", pos_g), ("gps_vel", vel_g), ("vio_pos", vio_pos), ("wind", w_vec),
-                *res.items(),
+                ("gps_pos", pos_g), ("gps_vel", vel_g), *((("vio_pos", vio_pos),) if vio is not None else ()),
+                ("wind", w_vec), *res.items(),
             ):
                 rec[name][:, j] = val.numpy()
             rec["atk_d"][:, j] = d_pos
@@ -162,9 +195,12 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
         out["sensors"] = {
             "ekf0": sensors["ekf0"], "noise": nm, "dt": dt,
             "imu_t": (np.arange(n_steps) + 1) * dt, "imu": torch.stack(sensors["imu"], 1),
-            "vio_t": (np.arange(len(sensors["vio"])) + 1) * spv * dt, "vio": torch.stack(sensors["vio"], 1),
             "gps_t": t_gps, "gps": torch.stack(sensors["gps"], 1),
         }
+        for a, steps in (("vio", spv), ("mag", spm), ("baro", spb)):
+            if a in aiding:
+                out["sensors"][f"{a}_t"] = (np.arange(len(sensors[a])) + 1) * steps * dt
+                out["sensors"][a] = torch.stack(sensors[a], 1)
     return out
 
 

@@ -1,6 +1,7 @@
 """Simulated datasets: many flights of one configuration, in batches.
 
 Flight i's data depends only on (config, seed, i): the batch size changes speed, not data.
+The columns follow the sensor configuration (``estimator.schema.groups_for``).
 """
 
 from __future__ import annotations
@@ -11,8 +12,8 @@ import numpy as np
 import pandas as pd
 
 from quadformer.config import SimConfig
-from quadformer.dataset import COLUMN_ORDER, FORMAT_VERSION, Dataset, summarize
-from quadformer.estimator.schema import GROUPS
+from quadformer.dataset import FORMAT_VERSION, Dataset, summarize
+from quadformer.estimator.schema import groups_for
 from quadformer.io import package_versions
 from quadformer.rng import attacked_flights
 from quadformer.simulation.closed_loop import BatchResult, simulate_batch
@@ -27,9 +28,9 @@ def _batch_frames(cfg: SimConfig, r: BatchResult) -> tuple[pd.DataFrame, pd.Data
         "label": r["label"].reshape(-1).astype(np.int8),
     }
     cols["attack_type"] = np.where(cols["label"] == 1, kind, "none")
-    for name in COLUMN_ORDER:
-        for i, c in enumerate(GROUPS[name].columns):
-            cols[c] = r[name][..., i].reshape(-1)
+    for g in groups_for(cfg.sensors):      # the columns follow the sensor configuration
+        for i, c in enumerate(g.columns):
+            cols[c] = r[g.name][..., i].reshape(-1)
     flights = pd.DataFrame(cols)
     flights["attack_type"] = flights["attack_type"].astype("string")
 
