@@ -166,3 +166,82 @@ def test_detect_on_damaged_logs_ends_in_a_result_or_a_named_error(models, tmp_pa
             assert "case" in res.output and not folder.exists()
         assert not out.exists() or not list(out.glob(".*"))       # no temporary leftovers
     assert outcomes[0] > 0 and outcomes[2] > 0
+
+
+def test_replaying_a_simulated_flight_from_a_ros_bag_recovers_the_simulators_residues():
+    """The ROS bag fixture holds a simulated flight's sensors (IMU, GPS, odometry). Replayed
+    with the simulation's own filter tuning, the GPS innovations follow the ones the
+    simulator's filter produced in the loop (the replay starts at the first fix instead of the
+    simulator's initial state, so they agree once both have converged)."""
+    from quadformer.config import SimConfig
+    from quadformer.logs.replay import ReplayConfig, ekf_rows
+    from quadformer.simulation import simulate_batch
+
+    cfg = SimConfig(flights=1, duration=12.0, seed=5)          # the flight the fixture was written from
+    sim = simulate_batch(cfg, np.arange(1), np.zeros(1, bool))
+    flight = ekf_rows(read_log(FIX / "sim_flight_ros1.bag"), config=ReplayConfig.matching(cfg.to_dict()))
+    assert flight.sensors == "gps+imu+vio"
+    rows = flight.rows
+    late = sim["t"] > 4.0
+    nis = np.interp(sim["t"], rows.t + 0.012, rows.res_gps_nis)   # bag times start at its first message
+    assert np.corrcoef(nis[late], sim["res_gps_nis"][0, late, 0])[0, 1] > 0.95
+    assert abs(nis[late].mean() / sim["res_gps_nis"][0, late, 0].mean() - 1) < 0.1
+    r_px = np.interp(sim["t"], rows.t + 0.012, rows.res_gps_r_px)
+    assert np.abs(r_px - sim["res_gps_r"][0, :, 0])[late].max() < 0.3          # m, of an innovation rms 0.45 m
+
+
+def test_detect_with_the_replayed_filter_on_px4_and_ardupilot_logs(models, tmp_path):
+    out = tmp_path / "det"
+    res = runner.invoke(app, ["detect", str(EVENTS), str(COPTER), "--model", str(models["chi2"]),
+                              "--out", str(out), "--quiet"])
+    assert res.exit_code == 0, res.output
+    for log in (EVENTS, COPTER):
+        s = json.loads((out / log.name / "summary.json").read_text())
+        assert s["residues"] == "ekf" and s["sensors"] == "gps+imu+mag+baro"
+        rows = pd.read_csv(out / log.name / "scores.csv")
+        assert {"res_gps_nis", "res_mag_r_yaw", "res_baro_r_z", "est_pos_x", "ap_pos_x"} <= set(rows.columns)
+        assert not any(c.startswith("res_vio") for c in rows.columns)
+        # the replayed estimate follows the autopilot's own (both fuse the same fixes)
+        gap = np.hypot(rows.est_pos_x - rows.ap_pos_x, rows.est_pos_y - rows.ap_pos_y)
+        assert np.median(gap) < 1.0
+        html = (out / log.name / "report.html").read_text()
+        assert "autopilot's estimate" in html or "autopilot" in html
+    # a detector fit with VIO residues refuses a log without a camera, and says what would help
+    res = runner.invoke(app, ["detect", str(COPTER), "--model", str(models["cnn"]), "--out", str(tmp_path / "x")])
+    assert res.exit_code == 2 and "res_vio_r" in res.output and "--sensors gps+imu+mag+baro" in res.output
+
+
+def test_logs_import_injects_labelled_spoofs_the_residues_see(models, tmp_path):
+    ds_dir = tmp_path / "fleet"
+    res = runner.invoke(app, ["logs", "import", str(EVENTS), str(COPTER), "--out", str(ds_dir), "--inject", "bias",
+                              "--magnitude", "4,6", "--onset", "5,8", "--attack-duration", "8,10",
+                              "--attack-fraction", "0.5", "--repeat", "4", "--seed", "3"])
+    assert res.exit_code == 0, res.output
+    ds = load_dataset(ds_dir)
+    sc = ds.scenarios
+    assert len(sc) == 8 and sc.attacked.sum() == 4 and sc.group.nunique() == 2
+    assert ds.gps_rate_hz == 10.0 and ds.meta["source"] == "logs"
+    f = ds.flights
+    for _, s in sc.iterrows():
+        g = f[f.flight_id == s.flight_id]
+        lab = g.label.to_numpy() == 1
+        assert lab.any() == s.attacked
+        if s.attacked:
+            t0 = g.t.iloc[0] - 0.1                  # the first fix initialises the filter
+            assert s.onset == pytest.approx(g.t[lab].iloc[0] - t0, abs=0.25)
+            d = np.linalg.norm(g[["atk_d_x", "atk_d_y", "atk_d_z"]].to_numpy()[lab], axis=1)
+            assert np.allclose(d, s.magnitude)
+            # the spoofed fixes are the logged ones plus the offset; the filter's innovations jump
+            assert g.res_gps_nis[lab].iloc[0] > 20 * np.median(g.res_gps_nis[~lab])
+    # the clean repetitions of one segment are identical (same recording, no injection)
+    clean = sc[~sc.attacked]
+    for _, group in clean.groupby("group"):
+        ids = group.flight_id.to_numpy()
+        if len(ids) > 1:
+            a, b = (f[f.flight_id == i].res_gps_nis.to_numpy() for i in ids[:2])
+            assert np.array_equal(a, b)
+    out = tmp_path / "eval"
+    res = runner.invoke(app, ["evaluate", "--model", str(models["chi2"]), "--data", str(ds_dir), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    r = json.loads((out / "results.json").read_text())
+    assert r["metrics"]["event_recall"] > 0.5

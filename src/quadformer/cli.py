@@ -233,7 +233,8 @@ def fit(
         _fail(f"{method}: {e}")
     det = tuned.detector
     det.calibrate(det.threshold_, det.budget_threshold_, data=str(data), split_seed=seed,
-                  label_fraction=label_fraction, test_flights=sp.test.tolist())
+                  label_fraction=label_fraction, test_flights=sp.test.tolist(),
+                  sim_config=ds.meta.get("config"))      # the filter tuning its residues came from
     det.save(out)
     typer.echo(f"{method}: params {tuned.params}, threshold {det.threshold_:.4g}, "
                f"validation F1 {tuned.val_f1:.3f}; saved {out}")
@@ -360,11 +361,31 @@ def resilience(
     typer.echo(f"report:  {(out / 'report.html').resolve()}")
 
 
-def _replay_config(sensors: Optional[str], imu_rate: float, gps_rate: float, min_segment: float):
+def _replay_config(sensors: Optional[str], imu_rate: Optional[float], gps_rate: Optional[float],
+                   min_segment: float, filter: str, det=None):
+    """The replay's filter tuning: EKF2's defaults, the simulation a model was fit on, or a
+    simulated dataset's; explicit rates override it."""
+    from quadformer.dataset import DatasetError, load_dataset
     from quadformer.logs.replay import ReplayConfig
 
+    over = {k: v for k, v in (("sensors", sensors), ("imu_rate_hz", imu_rate), ("gps_rate_hz", gps_rate),
+                              ("min_segment_s", min_segment)) if v is not None}
     try:
-        return ReplayConfig(sensors=sensors, imu_rate_hz=imu_rate, gps_rate_hz=gps_rate, min_segment_s=min_segment)
+        if filter == "ekf2":
+            return ReplayConfig(**over)
+        if filter == "model":
+            sim = getattr(det, "calibration_", {}).get("sim_config") if det is not None else None
+            if sim is None:
+                typer.echo("filter: the model does not name the simulation it was fit on; using EKF2's defaults")
+                return ReplayConfig(**over)
+            return ReplayConfig.matching(sim, **over)
+        try:
+            ds = load_dataset(filter)
+        except DatasetError as e:
+            _fail(f"filter: expected ekf2, model or a simulated dataset directory: {e}")
+        if "config" not in ds.meta:
+            _fail(f"filter: {filter} is not a simulated dataset")
+        return ReplayConfig.matching(ds.meta["config"], **over)
     except ValueError as e:
         _fail(str(e))
 
@@ -390,6 +411,9 @@ def _log_paths(paths: list[Path], format: Optional[str]) -> list[Path]:
     return out
 
 
+_FILTER_HELP = ("The replayed filter's tuning: ekf2 (PX4 EKF2's default noise, the receiver's own accuracy), or "
+                "a simulated dataset directory (its filter's tuning, so that the residues have the scale of that "
+                "data's).")
 _RESIDUES_HELP = ("ekf: replay the project's filter over the log's sensors; autopilot: the autopilot's own "
                   "logged GPS innovations, whitened by its logged variances.")
 
@@ -404,8 +428,12 @@ def detect(
     format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot or ros (default: detected)."),
     sensors: Optional[str] = typer.Option(None, help="Sensors the replayed filter fuses, e.g. gps+imu+mag+baro "
                                           "(default: every sensor the log has)."),
-    imu_rate: float = typer.Option(100.0, help="IMU averaged down to at most this rate (Hz)."),
-    gps_rate: float = typer.Option(10.0, help="At most this many fixes per second are fused (Hz)."),
+    filter: str = typer.Option("model", help=_FILTER_HELP + " model: the simulation the detector was fit on "
+                               "(EKF2's defaults when the model does not say)."),
+    imu_rate: Optional[float] = typer.Option(None, help="IMU averaged down to at most this rate (Hz; default "
+                                             "100, or the matched simulation's)."),
+    gps_rate: Optional[float] = typer.Option(None, help="At most this many fixes per second are fused (Hz; "
+                                             "default 10, or the matched simulation's)."),
     min_segment: float = typer.Option(3.0, help="Seconds of GPS a segment needs to be replayed."),
     quiet: bool = typer.Option(False, help="No progress bar."),
 ) -> None:
@@ -427,7 +455,7 @@ def detect(
         _fail(f"{model}: the detector has no alarm threshold; write it with `quadformer fit`")
     if residues not in ("ekf", "autopilot"):
         _fail(f"residues: unknown source {residues!r}; choose from ekf, autopilot")
-    config = _replay_config(sensors, imu_rate, gps_rate, min_segment)
+    config = _replay_config(sensors, imu_rate, gps_rate, min_segment, filter, det)
     paths = _log_paths(logs, format)
     set_threads(1)
     bar = None
@@ -535,8 +563,10 @@ def logs_import(
     repeat: int = typer.Option(1, help="Replay each log segment this many times (each with its own injection)."),
     format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot or ros."),
     sensors: Optional[str] = typer.Option(None, help="Sensors the replayed filter fuses (default: all the log has)."),
-    imu_rate: float = typer.Option(100.0, help="IMU averaged down to at most this rate (Hz)."),
-    gps_rate: float = typer.Option(10.0, help="At most this many fixes per second are fused (Hz)."),
+    filter: str = typer.Option("ekf2", help=_FILTER_HELP),
+    imu_rate: Optional[float] = typer.Option(None, help="IMU averaged down to at most this rate (Hz; default 100)."),
+    gps_rate: Optional[float] = typer.Option(None, help="At most this many fixes per second are fused (Hz; "
+                                             "default 10)."),
     min_segment: float = typer.Option(3.0, help="Seconds of GPS a segment needs to be replayed."),
     overwrite: bool = typer.Option(False, help="Replace DIR if it exists."),
 ) -> None:
@@ -563,7 +593,7 @@ def logs_import(
                                      if v is not None})
         except (ConfigError, TypeError) as e:
             _fail(str(e))
-    config = _replay_config(sensors, imu_rate, gps_rate, min_segment)
+    config = _replay_config(sensors, imu_rate, gps_rate, min_segment, filter)
     paths = _log_paths(logs, format)
     set_threads(1)
     try:

@@ -53,7 +53,9 @@ RECEIVER = {"fix_type": "gps_fix_type", "satellites": "gps_satellites", "eph": "
 class ReplayConfig:
     """How a log is replayed through the filter. Noise defaults are PX4 EKF2's parameter
     defaults (EKF2_ACC_NOISE, EKF2_GYR_NOISE, EKF2_ACC_B_NOISE, EKF2_GYR_B_NOISE,
-    EKF2_GPS_P_NOISE, EKF2_GPS_V_NOISE, EKF2_BARO_NOISE, EKF2_HEAD_NOISE)."""
+    EKF2_GPS_P_NOISE, EKF2_GPS_V_NOISE, EKF2_BARO_NOISE, EKF2_HEAD_NOISE); ``matching`` takes
+    a simulation's instead. IMU noise is per filter step at ``imu_rate_hz`` and is scaled to
+    keep its density when a log's IMU is slower."""
     sensors: str | None = None      # e.g. "gps+imu+mag+baro"; None: every sensor the log has
     imu_rate_hz: float = 100.0      # Hz, IMU averaged down to at most this rate
     gps_rate_hz: float = 10.0       # Hz, at most this many fixes fused per second
@@ -73,8 +75,34 @@ class ReplayConfig:
     init_yaw_std_deg: float = 60.0  # deg, initial yaw uncertainty without the autopilot's attitude
     accel_bias_std: float = 0.2     # m/s^2, initial accelerometer bias uncertainty
     gyro_bias_std: float = 0.01     # rad/s, initial gyro bias uncertainty
+    receiver_accuracy: bool = True  # use the receiver's eph/epv/speed accuracy when above the floors
     max_gap_s: float = 0.5          # s, the longest IMU gap the filter propagates across
     min_segment_s: float = 3.0      # s of GPS a segment needs to be replayed
+
+    @classmethod
+    def matching(cls, sim: dict[str, Any], **overrides: Any) -> "ReplayConfig":
+        """The filter tuning of simulated data (a dataset's resolved ``SimConfig`` as a dict):
+        the residues of a replayed log then have the scale of the residues a detector was
+        fit on. The receiver's own accuracies are not used (the simulated filter has none)."""
+        from quadformer.config import SimConfig
+        from quadformer.estimator.eskf import noise_model
+
+        cfg = SimConfig.from_dict(sim)
+        nm = noise_model(cfg.imu, cfg.gps, cfg.vio, cfg.ekf, 1.0 / cfg.dt, cfg.mag, cfg.baro)
+        g = nm.gps_std.tolist()
+        v = nm.vio_std.tolist()
+        values = dict(
+            sensors=None, imu_rate_hz=1.0 / cfg.dt, gps_rate_hz=cfg.gps.rate_hz,
+            accel_noise=nm.accel_std, gyro_noise=nm.gyro_std,
+            accel_bias_walk=nm.accel_walk / cfg.dt, gyro_bias_walk=nm.gyro_walk / cfg.dt,
+            gps_pos_noise=g[0], gps_alt_noise=g[2], gps_vel_noise=g[3],
+            baro_noise=float(nm.baro_std[0]), heading_noise=float(nm.mag_std[0]),
+            vio_vel_noise=v[0], vio_att_noise_deg=float(np.rad2deg(v[3])),
+            init_vel_std=cfg.ekf.init_vel_std, init_att_std_deg=cfg.ekf.init_att_std_deg,
+            accel_bias_std=cfg.imu.accel_bias_std, gyro_bias_std=cfg.imu.gyro_bias_std,
+            receiver_accuracy=False)
+        values.update(overrides)
+        return cls(**values)
 
     def __post_init__(self) -> None:
         for name in ("imu_rate_hz", "gps_rate_hz", "accel_noise", "gyro_noise", "gps_pos_noise",
@@ -258,7 +286,7 @@ def ekf_rows(log: FlightLog, seg: int = 0, config: ReplayConfig = ReplayConfig()
     ``attacks.AttackBatch`` of one flight whose times count from the segment's first fix."""
     import torch
 
-    from quadformer.estimator.eskf import init_state, noise_model_from
+    from quadformer.estimator.eskf import init_state
     from quadformer.estimator.replay import StreamError, run_ekf
 
     part = log.segment(seg) if len(log.segments) > 1 else log
@@ -284,10 +312,12 @@ def ekf_rows(log: FlightLog, seg: int = 0, config: ReplayConfig = ReplayConfig()
         bad = ~np.isfinite(vel).all(axis=1)
         vel[bad] = np.gradient(pos, gt, axis=0)[bad]
         notes.append(f"gps: {int(bad.sum())} fixes without velocity; velocity from the derivative of position")
+    acc = (lambda c: np.nan_to_num(gps[c].to_numpy(), nan=0.0)) if config.receiver_accuracy \
+        else (lambda c: np.zeros(len(gps)))
     std = np.column_stack([
-        np.fmax(np.nan_to_num(gps["eph"].to_numpy(), nan=0.0), config.gps_pos_noise).repeat(2).reshape(-1, 2),
-        np.fmax(np.nan_to_num(gps["epv"].to_numpy(), nan=0.0), config.gps_alt_noise),
-        np.fmax(np.nan_to_num(gps["speed_acc"].to_numpy(), nan=0.0), config.gps_vel_noise).repeat(3).reshape(-1, 3),
+        np.fmax(acc("eph"), config.gps_pos_noise).repeat(2).reshape(-1, 2),
+        np.fmax(acc("epv"), config.gps_alt_noise),
+        np.fmax(acc("speed_acc"), config.gps_vel_noise).repeat(3).reshape(-1, 3),
     ])
     t0 = float(gt[0])
     label = np.zeros(len(gt), dtype=bool)
@@ -315,7 +345,8 @@ def ekf_rows(log: FlightLog, seg: int = 0, config: ReplayConfig = ReplayConfig()
     T = lambda x: torch.as_tensor(np.asarray(x, dtype=float))[None]   # noqa: E731  one flight
     ekf0 = init_state(T(pos[0]), T(vel[0]), T(q0), torch.zeros(1, 3), torch.zeros(1, 3),
                       torch.diag(torch.as_tensor(std0 ** 2))[None])
-    nm = noise_model_from(config, imu_rate_hz=1.0 / max(np.median(np.diff(it)), 1e-3))
+    dt = float(np.median(np.diff(it)))
+    mag_field = None
     kw: dict[str, Any] = {}
     if "vio" in sensors:
         o = part.odometry
@@ -325,8 +356,13 @@ def ekf_rows(log: FlightLog, seg: int = 0, config: ReplayConfig = ReplayConfig()
     if "mag" in sensors:
         m = part.mag
         mt = m["t"].to_numpy()
+        mv = m[["mx", "my", "mz"]].to_numpy()
         sel = mt > t0
-        kw.update(mag_t=mt[sel], mag=T(m[["mx", "my", "mz"]].to_numpy()[sel]))
+        # the local field in the world frame, from the first second of samples and the initial
+        # attitude: headings are measured against it (declination and inclination included)
+        first = (mt >= t0 - 0.5) & (mt <= t0 + 0.5)
+        mag_field = _rotate(q0, (mv[first] if first.any() else mv[sel][:1]).mean(axis=0))
+        kw.update(mag_t=mt[sel], mag=T(mv[sel]))
     if "baro" in sensors:
         b = part.baro
         bt = b["t"].to_numpy()
@@ -334,8 +370,9 @@ def ekf_rows(log: FlightLog, seg: int = 0, config: ReplayConfig = ReplayConfig()
         ref = np.interp(t0, bt, alt)                                   # baro height relative to the first fix
         sel = bt > t0
         kw.update(baro_t=bt[sel], baro=T((alt[sel] - ref + pos[0, 2])[:, None]))
+    nm = _noise_model(config, dt, mag_field)
     try:
-        out = run_ekf(ekf0, nm, float(np.median(np.diff(it))), it[after], T(iv[after]), gt[1:], T(np.c_[pos, vel][1:]),
+        out = run_ekf(ekf0, nm, dt, it[after], T(iv[after]), gt[1:], T(np.c_[pos, vel][1:]),
                       gps_std=T(std[1:]), t0=t0, gps_rate_hz=config.gps_rate_hz, max_gap=config.max_gap_s, **kw)
     except StreamError as e:
         raise LogError(f"{log.path}: segment {seg}: {e}") from None
@@ -351,6 +388,34 @@ def ekf_rows(log: FlightLog, seg: int = 0, config: ReplayConfig = ReplayConfig()
         for i, c in enumerate(GROUPS[name].columns):
             rows[c] = val[0, :, i]
     return LogFlight(seg, pd.DataFrame(rows), sensors, notes)
+
+
+def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """v (body) rotated by unit quaternion q (xyzw, body to world)."""
+    x, y, z, w = q
+    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                  [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                  [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    return R @ v
+
+
+def _noise_model(config: ReplayConfig, dt: float, mag_field: np.ndarray | None):
+    """The filter's noise for a log whose IMU steps are dt seconds: the configured per-step
+    noise at ``imu_rate_hz``, scaled to the same density at dt."""
+    import torch
+
+    from quadformer.estimator.eskf import NoiseModel
+
+    f64 = lambda v: torch.tensor(v, dtype=torch.float64)   # noqa: E731
+    c = config
+    density = math.sqrt(1.0 / (c.imu_rate_hz * dt))      # per-step std ~ 1/sqrt(dt)
+    return NoiseModel(
+        accel_std=c.accel_noise * density, gyro_std=c.gyro_noise * density,
+        accel_walk=c.accel_bias_walk * dt, gyro_walk=c.gyro_bias_walk * dt,
+        gps_std=f64([c.gps_pos_noise, c.gps_pos_noise, c.gps_alt_noise] + [c.gps_vel_noise] * 3),
+        vio_std=f64([c.vio_vel_noise] * 3 + [np.deg2rad(c.vio_att_noise_deg)] * 3),
+        mag_std=f64([c.heading_noise]), baro_std=f64([c.baro_noise]),
+        mag_field=None if mag_field is None else f64(mag_field))
 
 
 def _inject(attack, tau: np.ndarray, pos: np.ndarray, vel: np.ndarray, rate_hz: float):
