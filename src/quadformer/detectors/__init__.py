@@ -1,13 +1,15 @@
 """Attack detectors under one contract, registered by name: classical statistics, learned
-window classifiers and QUADFormer; their online streams and alert events."""
+window classifiers and QUADFormer; their online streams and alert events; the network
+detectors exported as ONNX graphs and scored with onnxruntime."""
 
 from quadformer.detectors import classical, svm  # noqa: F401  (registration)
 from quadformer.detectors import neural  # noqa: F401  (registration)
 from quadformer.detectors.alarms import Alert, alerts_frame, alerts_from_scores, runs, write_alerts
 from quadformer.detectors.base import Detector, NotFittedError, flight_slices
+from quadformer.detectors.export import OnnxDetector, export_onnx, load_model
 from quadformer.detectors.registry import available, defaults, get, load, make, register
 from quadformer.detectors.streams import DetectorStream, StreamStep
 
-__all__ = ["Alert", "Detector", "DetectorStream", "NotFittedError", "StreamStep", "alerts_frame",
-           "alerts_from_scores", "available", "defaults", "flight_slices", "get", "load", "make", "register",
-           "runs", "write_alerts"]
+__all__ = ["Alert", "Detector", "DetectorStream", "NotFittedError", "OnnxDetector", "StreamStep", "alerts_frame",
+           "alerts_from_scores", "available", "defaults", "export_onnx", "flight_slices", "get", "load", "load_model",
+           "make", "register", "runs", "write_alerts"]

@@ -69,9 +69,9 @@ class DetectorStream:
 
 class RingBuffer:
     """The last ``length`` rows of each of ``n`` flights, oldest first, filled with ``fill``
-    before the first push (zero-padded windows, as offline)."""
+    (one value, or one per column) before the first push (padded windows, as offline)."""
 
-    def __init__(self, n: int, length: int, width: int | None = None, fill: float = 0.0,
+    def __init__(self, n: int, length: int, width: int | None = None, fill: float | np.ndarray = 0.0,
                  dtype: type = np.float32):
         shape = (n, length) if width is None else (n, length, width)
         self.data = np.full(shape, fill, dtype=dtype)

@@ -1,9 +1,10 @@
 """Causal windows over residue sequences and per-feature normalisation.
 
-The window of step k of a flight holds that flight's steps k-W+1 .. k (zero-padded before
-the flight starts, zero being the training mean after normalisation), so a score computed
-from it uses data up to k only. Windows are views into one padded array: nothing is copied
-until a batch is gathered.
+The window of step k of a flight holds that flight's steps k-W+1 .. k (padded before the
+flight starts with the inputs' ``pad``: zero for normalised residues, zero being the training
+median after normalisation; the median itself for raw residues fed to a scorer that
+normalises them, such as an exported graph), so a score computed from it uses data up to k
+only. Windows are views into one padded array: nothing is copied until a batch is gathered.
 """
 
 from __future__ import annotations
@@ -30,6 +31,9 @@ class Normalizer:
     them ordered without letting a few steps dominate training. Fitted on training rows only.
     """
 
+    #: a step before the flight starts, in normalised space (the training median)
+    pad = 0.0
+
     def fit(self, values: np.ndarray) -> "Normalizer":
         self.mean_ = np.median(values, axis=0)
         q75, q25 = np.percentile(values, [75, 25], axis=0)
@@ -50,17 +54,36 @@ class Normalizer:
         n.std_ = np.asarray(state["std"], dtype=float)
         return n
 
+    def raw(self) -> "RawInputs":
+        """The inputs of a scorer that applies this normalisation itself."""
+        return RawInputs(self.mean_)
+
+
+class RawInputs:
+    """Raw residues as float32 windows, for a scorer that normalises them itself (an exported
+    graph). Padded with the normaliser's centre, which normalisation maps to exactly zero
+    (the float32 centre minus itself), so windows match the normalised ones, padding included.
+    """
+
+    def __init__(self, centre: np.ndarray):
+        self.pad = np.asarray(centre, dtype=np.float32)
+
+    def transform(self, values: np.ndarray) -> np.ndarray:
+        return np.asarray(values, dtype=np.float32)
+
 
 class Windows:
-    """All causal windows of the rows of X: ``windows[idx]`` -> (len(idx), W, features)."""
+    """All causal windows of the rows of X: ``windows[idx]`` -> (len(idx), W, features).
+    ``normalizer`` maps residues to window values and gives the padding: a ``Normalizer``, or
+    ``RawInputs`` for raw residues."""
 
-    def __init__(self, X: pd.DataFrame, features: list[str], normalizer: Normalizer, width: int):
+    def __init__(self, X: pd.DataFrame, features: list[str], normalizer: Normalizer | RawInputs, width: int):
         values = normalizer.transform(check_residues(X, features))
         d = values.shape[1]
         parts, rows, ends = [], [], np.empty(len(X), dtype=np.int64)
         offset = 0
         for _, idx in flight_slices(X):
-            parts.append(np.zeros((width - 1, d), dtype=np.float32))
+            parts.append(np.full((width - 1, d), normalizer.pad, dtype=np.float32))
             parts.append(values[idx])
             rows += [np.full(width - 1, -1), idx]
             offset += width - 1
@@ -121,14 +144,16 @@ class AxisSymmetry:
 
 class WindowStream(DetectorStream):
     """A window detector online: a ring buffer of the last ``window`` normalised residues
-    per flight (zeros before the first step, as offline), scored by the detector's
+    per flight (padded before the first step, as offline), scored by the detector's
     ``score_windows(windows (n, W, features)) -> (scores (n,), attack types (n,) or None)``,
-    the function its offline ``decision_function`` applies to every window."""
+    the function its offline ``decision_function`` applies to every window. ``inputs``: what
+    the detector's windows hold (default its ``normalizer_``; ``RawInputs`` for raw residues)."""
 
-    def __init__(self, detector, n_flights: int):
+    def __init__(self, detector, n_flights: int, inputs: Normalizer | RawInputs | None = None):
         super().__init__(detector, n_flights)
-        self.buf = RingBuffer(self.n, detector.window, len(self.features))
+        self.inputs = detector.normalizer_ if inputs is None else inputs
+        self.buf = RingBuffer(self.n, detector.window, len(self.features), fill=self.inputs.pad)
 
     def _score(self, x):
-        windows = self.buf.push(self.detector.normalizer_.transform(x))
+        windows = self.buf.push(self.inputs.transform(x))
         return self.detector.score_windows(windows)

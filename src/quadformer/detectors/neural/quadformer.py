@@ -51,7 +51,7 @@ from quadformer.detectors.neural.quadformer_net import QUADFormerNet, discrepanc
 from quadformer.detectors.neural.training import TrainConfig, train
 from quadformer.detectors.registry import register
 from quadformer.detectors.streams import RingBuffer
-from quadformer.detectors.windows import AxisSymmetry, Normalizer, Windows, WindowStream, input_features
+from quadformer.detectors.windows import AxisSymmetry, Normalizer, RawInputs, Windows, WindowStream, input_features
 from quadformer.estimator.schema import ATTACK_TYPES
 
 CLASSES = ("none", *ATTACK_TYPES)   # the classifier's classes; a fitted model keeps its own (classes_)
@@ -195,13 +195,8 @@ class QUADFormer(TorchCheckpoint, Detector):
         """Score ingredients of the last position of normalised windows (n, W, features)."""
         with torch.no_grad():
             xb = torch.from_numpy(np.ascontiguousarray(windows)).to(torch.device(self.device))
-            o = self.model_(xb, last_only=True)
-            d = discrepancy(o["series"], o["priors"])[:, -1] if self._disc else torch.zeros(len(xb))
-            prob = torch.softmax(o["logits"][:, -1], dim=-1)
-            return {"err": ((o["recon"][:, -1] - xb[:, -1]) ** 2).mean(-1).double().cpu().numpy(),
-                    "dis": d.double().cpu().numpy(),
-                    "p_attack": (1 - prob[:, 0]).double().cpu().numpy(),
-                    "type": (prob[:, 1:].argmax(-1) + 1).cpu().numpy()}
+            parts = last_step_parts(self.model_, xb, self._disc)
+            return {k: (v if k == "type" else v.double()).cpu().numpy() for k, v in parts.items()}
 
     def score_windows(self, windows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Raw scores (before the k-of-n rule) and predicted attack types of normalised windows
@@ -259,16 +254,7 @@ class QUADFormer(TorchCheckpoint, Detector):
     def onset_times(self, X: pd.DataFrame, alarms: np.ndarray) -> list[tuple[Any, float, float]]:
         """(flight, alarm time, estimated onset time) for each alarm run."""
         raw, _ = self.raw_scores(X)
-        lower = self._lower()
-        t = X["t"].to_numpy()
-        out = []
-        for fid, idx in flight_slices(X):
-            for s, _ in runs(np.asarray(alarms)[idx]):
-                j = s
-                while j > 0 and raw[idx[j - 1]] > lower:
-                    j -= 1
-                out.append((fid, float(t[idx[s]]), float(t[idx[j]])))
-        return out
+        return onset_times(X, alarms, raw, self._lower())
 
     def _lower(self) -> float:
         """Onset back-tracking level: the 90th percentile of training scores on normal steps
@@ -277,6 +263,33 @@ class QUADFormer(TorchCheckpoint, Detector):
 
     def stream(self, n_flights: int = 1) -> "KofNStream":
         return KofNStream(self, n_flights)
+
+
+def last_step_parts(model: nn.Module, xb: torch.Tensor, disc: bool) -> dict[str, torch.Tensor]:
+    """Score ingredients of the last position of normalised windows xb (n, W, features), as
+    float32 tensors (type: int64): reconstruction error, association discrepancy (zero
+    without it), attack probability and the most likely attack class. Shared by scoring and
+    the exported graph (``detectors.export``)."""
+    o = model(xb, last_only=True)
+    err = ((o["recon"][:, -1] - xb[:, -1]) ** 2).mean(-1)
+    d = discrepancy(o["series"], o["priors"])[:, -1] if disc else torch.zeros_like(err)
+    prob = torch.softmax(o["logits"][:, -1], dim=-1)
+    return {"err": err, "dis": d, "p_attack": 1 - prob[:, 0], "type": prob[:, 1:].argmax(-1) + 1}
+
+
+def onset_times(X: pd.DataFrame, alarms: np.ndarray, raw: np.ndarray, lower: float
+                ) -> list[tuple[Any, float, float]]:
+    """(flight, alarm time, estimated onset time) for each alarm run: back from the alarm to
+    where the raw score last rose above ``lower``."""
+    t = X["t"].to_numpy()
+    out = []
+    for fid, idx in flight_slices(X):
+        for s, _ in runs(np.asarray(alarms)[idx]):
+            j = s
+            while j > 0 and raw[idx[j - 1]] > lower:
+                j -= 1
+            out.append((fid, float(t[idx[s]]), float(t[idx[j]])))
+    return out
 
 
 FLOOR = -1e6   # score before k steps of a flight exist (never alarms)
@@ -296,10 +309,11 @@ def kth_of_last_n(raw: np.ndarray, X: pd.DataFrame, k: int, n: int) -> np.ndarra
 
 class KofNStream(WindowStream):
     """QUADFormer online: the window stream's raw scores and types, then the k-of-n rule over
-    a ring buffer of the last n raw scores per flight (``FLOOR`` before the flight's start)."""
+    a ring buffer of the last n raw scores per flight (``FLOOR`` before the flight's start).
+    Any detector with ``window``, ``k``, ``n`` and ``score_windows`` (raw scores, types)."""
 
-    def __init__(self, detector: QUADFormer, n_flights: int):
-        super().__init__(detector, n_flights)
+    def __init__(self, detector: QUADFormer, n_flights: int, inputs: Normalizer | RawInputs | None = None):
+        super().__init__(detector, n_flights, inputs)
         self.last = RingBuffer(self.n, detector.n, fill=FLOOR, dtype=np.float64)
 
     def _score(self, x):
