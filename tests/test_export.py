@@ -164,3 +164,33 @@ def test_load_model_runtimes(exported, tmp_path):
         load_model(path, "torch")
     with pytest.raises(NotImplementedError, match="cannot be trained"):
         onx.fit(test)
+
+
+def test_export_then_evaluate_with_onnxruntime_through_the_cli(bias_dataset, tmp_path):
+    """fit -> export -> evaluate --runtime onnx gives the scores of evaluate with torch."""
+    import pandas as pd
+    from typer.testing import CliRunner
+
+    from quadformer.cli import app
+    from quadformer.dataset import write_dataset
+
+    runner = CliRunner()
+    data = write_dataset(bias_dataset, tmp_path / "ds")
+    model = tmp_path / "lstm.json"
+    res = runner.invoke(app, ["fit", "--method", "lstm", "--data", str(data), "--label-fraction", "1",
+                              "--out", str(model)])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["export", "--model", str(model), "--out", str(tmp_path / "lstm.onnx")])
+    assert res.exit_code == 0 and (tmp_path / "lstm.onnx.json").exists(), res.output
+    scores = {}
+    for runtime, path in (("torch", model), ("onnx", tmp_path / "lstm.onnx")):
+        res = runner.invoke(app, ["evaluate", "--model", str(path), "--data", str(data), "--runtime", runtime,
+                                  "--out", str(tmp_path / runtime)])
+        assert res.exit_code == 0, res.output
+        scores[runtime] = pd.read_parquet(tmp_path / runtime / "scores.parquet").score.to_numpy()
+    np.testing.assert_allclose(scores["onnx"], scores["torch"], rtol=1e-5, atol=1e-5)
+    res = runner.invoke(app, ["export", "--model", str(tmp_path / "nope.json"), "--out", str(tmp_path / "x.onnx")])
+    assert res.exit_code == 2 and "no such model file" in res.output
+    res = runner.invoke(app, ["evaluate", "--model", str(model), "--data", str(data), "--runtime", "tf",
+                              "--out", str(tmp_path / "e")])
+    assert res.exit_code == 2 and "unknown runtime 'tf'" in res.output

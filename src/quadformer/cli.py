@@ -15,6 +15,14 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="GPS spoofing detection and resilient estimation for quadrotors.")
 
 
+_RUNTIME_HELP = "torch (the saved model) or onnx (a graph written by `quadformer export`, scored with onnxruntime)."
+_FILTER_HELP = ("The replayed filter's tuning: ekf2 (PX4 EKF2's default noise, the receiver's own accuracy), or "
+                "a simulated dataset directory (its filter's tuning, so that the residues have the scale of that "
+                "data's).")
+_RESIDUES_HELP = ("ekf: replay the project's filter over the log's sensors; autopilot: the autopilot's own "
+                  "logged GPS innovations, whitened by its logged variances.")
+
+
 def _pair(name: str, text: Optional[str]) -> Optional[list[float]]:
     if text is None:
         return None
@@ -242,21 +250,23 @@ def fit(
 
 @app.command()
 def evaluate(
-    model: Path = typer.Option(..., help="Model file written by `quadformer fit`."),
+    model: Path = typer.Option(..., help="Model file written by `quadformer fit` (or `quadformer export`'s .onnx "
+                               "with --runtime onnx)."),
     data: Path = typer.Option(..., help="Dataset directory to score."),
     out: Path = typer.Option(..., "--out", help="Output directory."),
     test_only: bool = typer.Option(False, help="Score only the test flights of the split the model was fit with."),
+    runtime: str = typer.Option("torch", help=_RUNTIME_HELP),
 ) -> None:
     """Score a dataset with a fitted detector; metrics when it has labels."""
     import numpy as np
 
     from quadformer.dataset import DatasetError, load_dataset
-    from quadformer.detectors import alerts_from_scores, load, write_alerts
+    from quadformer.detectors import alerts_from_scores, write_alerts
     from quadformer.evaluation.metrics import evaluate as metrics
     from quadformer.io import atomic_path, write_json
 
+    det = _load_model(model, runtime)
     try:
-        det = load(model)
         ds = load_dataset(data)
     except (DatasetError, FileNotFoundError, ValueError, KeyError) as e:
         _fail(str(e.args[0] if e.args else e))
@@ -292,6 +302,34 @@ def evaluate(
                    f"event F1 {m['event_f1']:.3f}")
     _print_alerts(alerts)
     typer.echo(f"wrote {out / 'results.json'}, {out / 'scores.parquet'} and {out / 'alerts.csv'}")
+
+
+def _load_model(path: Path, runtime: str):
+    from quadformer.detectors.export import load_model
+
+    try:
+        return load_model(path, runtime)
+    except (FileNotFoundError, ValueError, KeyError) as e:
+        _fail(str(e.args[0] if e.args else e))
+
+
+@app.command()
+def export(
+    model: Path = typer.Option(..., help="Model file written by `quadformer fit` (a network detector)."),
+    out: Path = typer.Option(..., "--out", help="The .onnx file to write (NAME.onnx.json is written beside it)."),
+) -> None:
+    """Export a network detector (CNN, LSTM, QUADFormer) to ONNX: feature normalisation and score
+    inside the graph; features, padding and the alarm rule in a JSON beside it."""
+    from quadformer.detectors import load
+    from quadformer.detectors.export import export_onnx
+
+    try:
+        det = load(model)
+        path = export_onnx(det, out)
+    except (FileNotFoundError, ValueError, KeyError) as e:
+        _fail(str(e.args[0] if e.args else e))
+    typer.echo(f"wrote {path} and {path.name}.json ({det.name}, {len(det.features_)} features, window "
+               f"{det.window}); score it with --runtime onnx")
 
 
 def _print_alerts(alerts, limit: int = 10) -> None:
@@ -411,18 +449,13 @@ def _log_paths(paths: list[Path], format: Optional[str]) -> list[Path]:
     return out
 
 
-_FILTER_HELP = ("The replayed filter's tuning: ekf2 (PX4 EKF2's default noise, the receiver's own accuracy), or "
-                "a simulated dataset directory (its filter's tuning, so that the residues have the scale of that "
-                "data's).")
-_RESIDUES_HELP = ("ekf: replay the project's filter over the log's sensors; autopilot: the autopilot's own "
-                  "logged GPS innovations, whitened by its logged variances.")
-
-
 @app.command()
 def detect(
     logs: list[Path] = typer.Argument(..., help="Flight logs (PX4 .ulg, ArduPilot .bin, ROS 1/2 bags) or "
                                       "directories holding them."),
-    model: Path = typer.Option(..., help="Model file written by `quadformer fit`."),
+    model: Path = typer.Option(..., help="Model file written by `quadformer fit` (or `quadformer export`'s .onnx "
+                               "with --runtime onnx)."),
+    runtime: str = typer.Option("torch", help=_RUNTIME_HELP),
     residues: str = typer.Option("ekf", help=_RESIDUES_HELP),
     out: Path = typer.Option(Path("runs/detect"), "--out", help="Output directory (one folder per log)."),
     format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot or ros (default: detected)."),
@@ -441,16 +474,13 @@ def detect(
     import numpy as np
     import pandas as pd
 
-    from quadformer.detectors import alerts_frame, load
+    from quadformer.detectors import alerts_frame
     from quadformer.io import atomic_dir, atomic_path, set_threads, write_json
     from quadformer.logs import LogError
     from quadformer.logs.detect import DetectorInputError, detect_log
     from quadformer.report.logs import write_log_report
 
-    try:
-        det = load(model)
-    except (FileNotFoundError, ValueError, KeyError) as e:
-        _fail(str(e.args[0] if e.args else e))
+    det = _load_model(model, runtime)
     if getattr(det, "threshold_", None) is None:
         _fail(f"{model}: the detector has no alarm threshold; write it with `quadformer fit`")
     if residues not in ("ekf", "autopilot"):
