@@ -18,8 +18,8 @@ import pandas as pd
 
 from quadformer.logs import read_log
 from quadformer.logs.flightlog import FlightLog, LogError
-from quadformer.logs.replay import (RESIDUE_SOURCES, LogFlight, ReplayConfig, autopilot_rows, ekf_rows,
-                                    missing_features)
+from quadformer.logs.replay import (RESIDUE_SOURCES, LogFlight, ReplayConfig, autopilot_rows, ekf_flights,
+                                    ekf_rows, missing_features)
 
 MIN_DETECT_S = 1.0   # s, a segment shorter than this is not scored
 
@@ -112,6 +112,9 @@ def logs_dataset(paths: list[Path], residues: str = "ekf", config: ReplayConfig 
 
     if repeat < 1:
         raise ValueError(f"repeat must be >= 1, got {repeat}")
+    if attack is not None and residues != "ekf":
+        raise ValueError("injection needs --residues ekf: the autopilot's logged innovations cannot see a "
+                         "spoof added afterwards")
     logs = []
     for p in paths:
         logs.append(read_log(p, format=format))
@@ -123,36 +126,41 @@ def logs_dataset(paths: list[Path], residues: str = "ekf", config: ReplayConfig 
     kind = attack.kind if attack is not None else "none"
     attacked = attacked_flights(seed, len(units), attack.fraction if attack is not None else 0.0)
     frames, scen, notes = [], [], {str(p): [] for p in paths}
-    fid = 0
+    batches = []
     for k, (li, seg) in enumerate(units):
-        log = logs[li]
-        a0, a1 = log.segments[seg]
         batch = None
         if attack is not None and attacked[k]:
-            dur = a1 - a0
+            dur = logs[li].segments[seg][1] - logs[li].segments[seg][0]
             onset = (min(attack.onset[0], 0.5 * dur), min(attack.onset[1], 0.5 * dur))
-            cfg = dataclasses.replace(attack, onset=onset)
-            batch = sample_attacks([flight_generator(seed, k, Stream.SCENARIO)], cfg, np.ones(1, bool), dur)
+            batch = sample_attacks([flight_generator(seed, k, Stream.SCENARIO)],
+                                   dataclasses.replace(attack, onset=onset), np.ones(1, bool), dur)
+        batches.append(batch)
+    fid = 0
+    for start in range(0, len(units), repeat):       # the repetitions of one segment, replayed together
+        li, seg = units[start]
+        log, ks = logs[li], range(start, start + repeat)
         try:
-            flights, skipped = log_rows(log, residues, config, attacks={seg: batch} if batch is not None else None)
+            if residues == "ekf":
+                flights = ekf_flights(log, seg, config, [batches[k] for k in ks])
+            else:
+                flights = [LogFlight(seg, autopilot_rows(log, seg), "autopilot")] * repeat
         except LogError as e:
-            notes[str(paths[li])].append(f"segment {seg}: {e}")
+            notes[str(paths[li])].append(f"segment {seg} skipped: {e}")
             continue
-        notes[str(paths[li])] += skipped
-        f = next((f for f in flights if f.segment == seg), None)
-        if f is None:
-            continue
-        rows = f.rows.assign(flight_id=np.int32(fid))
-        frames.append(rows)
-        row = {"flight_id": fid, "group": f"{paths[li]}#{seg}",
-               "attacked": bool(batch is not None and rows.label.any()),
-               "attack_type": kind if batch is not None else "none", "log": str(paths[li]), "segment": seg,
-               "repeat": k % repeat, "duration": float(rows.t.iloc[-1] - rows.t.iloc[0]), "sensors": f.sensors}
-        if batch is not None:
-            row.update(onset=float(batch.onset[0]), end=float(batch.end[0]), magnitude=float(batch.magnitude[0]),
-                       rate=float(batch.rate[0]), attack_axes=str(batch.axes[0]))
-        scen.append(row)
-        fid += 1
+        notes[str(paths[li])] += [f"segment {seg}: {n}" for n in flights[0].notes] if start % repeat == 0 else []
+        for k, f in zip(ks, flights):
+            batch = batches[k]
+            rows = f.rows.assign(flight_id=np.int32(fid))
+            frames.append(rows)
+            row = {"flight_id": fid, "group": f"{paths[li]}#{seg}",
+                   "attacked": bool(batch is not None and rows.label.any()),
+                   "attack_type": kind if batch is not None else "none", "log": str(paths[li]), "segment": seg,
+                   "repeat": k - start, "duration": float(rows.t.iloc[-1] - rows.t.iloc[0]), "sensors": f.sensors}
+            if batch is not None:
+                row.update(onset=float(batch.onset[0]), end=float(batch.end[0]), magnitude=float(batch.magnitude[0]),
+                           rate=float(batch.rate[0]), attack_axes=str(batch.axes[0]))
+            scen.append(row)
+            fid += 1
     if not frames:
         raise LogError("no flight could be made from these logs: " + "; ".join(
             f"{p}: {', '.join(n)}" for p, n in notes.items() if n))

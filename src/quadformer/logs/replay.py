@@ -284,6 +284,13 @@ def ekf_rows(log: FlightLog, seg: int = 0, config: ReplayConfig = ReplayConfig()
              attack=None) -> LogFlight:
     """Replay the project's filter over segment ``seg`` of ``log``. ``attack``: an
     ``attacks.AttackBatch`` of one flight whose times count from the segment's first fix."""
+    return ekf_flights(log, seg, config, [attack])[0]
+
+
+def ekf_flights(log: FlightLog, seg: int = 0, config: ReplayConfig = ReplayConfig(),
+                attacks: list = (None,)) -> list[LogFlight]:
+    """``ekf_rows`` for several injections into the same segment (None: none), replayed
+    together as one batch of flights sharing the log's timestamps."""
     import torch
 
     from quadformer.estimator.eskf import init_state
@@ -320,10 +327,13 @@ def ekf_rows(log: FlightLog, seg: int = 0, config: ReplayConfig = ReplayConfig()
         np.fmax(acc("speed_acc"), config.gps_vel_noise).repeat(3).reshape(-1, 3),
     ])
     t0 = float(gt[0])
-    label = np.zeros(len(gt), dtype=bool)
-    d_pos = np.zeros((len(gt), 3))
-    if attack is not None:
-        pos, vel, label, d_pos = _inject(attack, gt - t0, pos, vel, config.gps_rate_hz)
+    fixes = []              # per flight: spoofed positions, velocities, labels, offsets
+    for attack in attacks:
+        if attack is None:
+            fixes.append((pos, vel, np.zeros(len(gt), dtype=bool), np.zeros((len(gt), 3))))
+        else:
+            fixes.append(_inject(attack, gt - t0, pos, vel, config.gps_rate_hz))
+    B = len(fixes)
 
     it = imu["t"].to_numpy()
     iv = imu[["ax", "ay", "az", "gx", "gy", "gz"]].to_numpy()
@@ -342,9 +352,10 @@ def ekf_rows(log: FlightLog, seg: int = 0, config: ReplayConfig = ReplayConfig()
     att = np.deg2rad([config.init_att_std_deg, config.init_att_std_deg, yaw_std])
     std0 = np.r_[std[0, :3], [config.init_vel_std] * 3, att, [config.accel_bias_std] * 3,
                  [config.gyro_bias_std] * 3]
-    T = lambda x: torch.as_tensor(np.asarray(x, dtype=float))[None]   # noqa: E731  one flight
-    ekf0 = init_state(T(pos[0]), T(vel[0]), T(q0), torch.zeros(1, 3), torch.zeros(1, 3),
-                      torch.diag(torch.as_tensor(std0 ** 2))[None])
+    T = lambda x: torch.as_tensor(np.array(x, dtype=float))[None].expand(B, *np.shape(x))   # noqa: E731  shared
+    ekf0 = init_state(torch.as_tensor(np.stack([f[0][0] for f in fixes])),
+                      torch.as_tensor(np.stack([f[1][0] for f in fixes])), T(q0), torch.zeros(B, 3),
+                      torch.zeros(B, 3), torch.diag(torch.as_tensor(std0 ** 2)).expand(B, 15, 15))
     dt = float(np.median(np.diff(it)))
     mag_field = None
     kw: dict[str, Any] = {}
@@ -372,22 +383,26 @@ def ekf_rows(log: FlightLog, seg: int = 0, config: ReplayConfig = ReplayConfig()
         kw.update(baro_t=bt[sel], baro=T((alt[sel] - ref + pos[0, 2])[:, None]))
     nm = _noise_model(config, dt, mag_field)
     try:
-        out = run_ekf(ekf0, nm, dt, it[after], T(iv[after]), gt[1:], T(np.c_[pos, vel][1:]),
+        gps_b = torch.as_tensor(np.stack([np.c_[f[0], f[1]][1:] for f in fixes]))
+        out = run_ekf(ekf0, nm, dt, it[after], T(iv[after]), gt[1:], gps_b,
                       gps_std=T(std[1:]), t0=t0, gps_rate_hz=config.gps_rate_hz, max_gap=config.max_gap_s, **kw)
     except StreamError as e:
         raise LogError(f"{log.path}: segment {seg}: {e}") from None
-    rows = _base_rows(seg, gt[1:], gps.iloc[1:].reset_index(drop=True), part)
-    for a_i, a in enumerate("xyz"):          # the fixes as fused (spoofed when injected)
-        rows[f"gps_pos_{a}"] = pos[1:, a_i]
-        rows[f"gps_vel_{a}"] = vel[1:, a_i]
-        rows[f"atk_d_{a}"] = d_pos[1:, a_i]
-    rows["label"] = label[1:].astype(np.int8)
-    if attack is not None:
-        rows["attack_type"] = np.where(label[1:], attack.kind, "none").astype(object)
-    for name, val in out.items():
-        for i, c in enumerate(GROUPS[name].columns):
-            rows[c] = val[0, :, i]
-    return LogFlight(seg, pd.DataFrame(rows), sensors, notes)
+    base = _base_rows(seg, gt[1:], gps.iloc[1:].reset_index(drop=True), part)
+    flights = []
+    for b, (attack, (p_b, v_b, label, d_pos)) in enumerate(zip(attacks, fixes)):
+        rows = dict(base)
+        for a_i, a in enumerate("xyz"):          # the fixes as fused (spoofed when injected)
+            rows[f"gps_pos_{a}"] = p_b[1:, a_i]
+            rows[f"gps_vel_{a}"] = v_b[1:, a_i]
+            rows[f"atk_d_{a}"] = d_pos[1:, a_i]
+        rows["label"] = label[1:].astype(np.int8)
+        rows["attack_type"] = np.where(label[1:], attack.kind if attack is not None else "none", "none").astype(object)
+        for name, val in out.items():
+            for i, c in enumerate(GROUPS[name].columns):
+                rows[c] = val[b, :, i]
+        flights.append(LogFlight(seg, pd.DataFrame(rows), sensors, list(notes)))
+    return flights
 
 
 def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
