@@ -69,8 +69,10 @@ def _read_config_file(path: Optional[Path]) -> dict[str, Any]:
         raise typer.BadParameter(f"--config: {path} is not valid TOML ({e})") from None
 
 
-def build_config(config_file: Optional[Path], options: dict[str, Any], sets: list[str]) -> SimConfig:
-    data = _read_config_file(config_file)
+def build_config(config_file: Optional[Path], options: dict[str, Any], sets: list[str],
+                 base: Optional[dict[str, Any]] = None) -> SimConfig:
+    """TOML file, then ``base`` (e.g. noise fitted to logs), then named options, then --set."""
+    data = merge(_read_config_file(config_file), base or {})
     data = merge(data, {k: v for k, v in options.items() if v is not None and not isinstance(v, dict)})
     for k, v in options.items():
         if isinstance(v, dict):
@@ -114,6 +116,9 @@ def simulate(
     rate: Optional[str] = typer.Option(None, help="Ramp drift rate range 'low,high' in m/s."),
     axes: Optional[str] = typer.Option(None, help="Fixed attacked axes, e.g. 'x' or 'xy'."),
     config: Optional[Path] = typer.Option(None, "--config", help="TOML file with any SimConfig fields."),
+    noise_from: list[Path] = typer.Option([], "--noise-from", help="Clean flight log(s) whose GPS, IMU, "
+                                          "barometer and magnetometer noise the simulated sensors take "
+                                          "(repeatable; over --config, under the named options and --set)."),
     set_: list[str] = typer.Option([], "--set", help="Override any field: --set gps.gm_std=0 (repeatable)."),
     overwrite: bool = typer.Option(False, help="Replace DIR if it exists."),
     quiet: bool = typer.Option(False, help="No progress bar."),
@@ -126,10 +131,21 @@ def simulate(
     atk = {"kind": attack, "fraction": attack_fraction, "onset": _pair("--onset", onset),
            "duration": _pair("--attack-duration", attack_duration), "magnitude": _pair("--magnitude", magnitude),
            "rate": _pair("--rate", rate), "axes": axes}
+    fitted = None
+    if noise_from:
+        from quadformer.logs import LogError, read_log
+        from quadformer.logs.noise import estimate_noise
+
+        try:
+            fitted = estimate_noise([read_log(p) for p in _log_paths(noise_from, None)])
+        except LogError as e:
+            _fail(f"noise-from: {e}")
+        typer.echo("sensor noise from the logs: " + ", ".join(
+            f"{k} {v:.4g}" for k, v in fitted.to_dict().items() if isinstance(v, float)))
     try:
         cfg = build_config(config, {"model": model, "noise": noise, "sensors": sensors, "flights": flights,
                                     "duration": duration, "seed": seed, "batch_size": batch_size, "attack": atk},
-                           set_)
+                           set_, base=fitted.sim_overrides() if fitted else None)
     except (ConfigError, TypeError) as e:
         _fail(str(e))
     if out.exists() and not overwrite:
