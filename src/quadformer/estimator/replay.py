@@ -1,7 +1,8 @@
 """The error-state EKF on its own, over recorded sensor streams.
 
 The same ``predict``, updates and ``ResidueTracker`` as in the closed loop, driven by
-timestamps: after each IMU sample, the samples stamped at or before it are applied, in the
+timestamps through ``estimator.online.OnlineFilter`` (which a live link drives sample by
+sample): after each IMU sample, the samples stamped at or before it are applied, in the
 order VIO, magnetometer, barometer, then GPS. The aiding sensors are optional: the residue
 groups follow the streams given. Batched over flights that share timestamps (simulated
 flights); a single real log is a batch of one.
@@ -16,25 +17,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from quadformer.estimator.eskf import (
-    EKFState,
-    NoiseModel,
-    baro_update,
-    gps_update,
-    mag_update,
-    predict,
-    vio_update,
-)
-from quadformer.estimator.residues import ResidueTracker
+from quadformer.estimator.eskf import EKFState, NoiseModel
+from quadformer.estimator.online import OnlineFilter, StreamError
 
 # values per sample of each stream, and what they are
 WIDTHS = {"imu": (6, "specific force and body rate"), "gps": (6, "position and velocity"),
           "vio": (7, "velocity and attitude quaternion"), "mag": (3, "body-frame field"), "baro": (1, "height"),
           "gps_std": (6, "position and velocity std")}
-
-
-class StreamError(ValueError):
-    """A recorded sensor stream the filter cannot process; the message names the stream."""
 
 
 def _check(name: str, t: np.ndarray, x: torch.Tensor, flights: int) -> None:
@@ -101,27 +90,20 @@ def run_ekf(ekf0: EKFState, nm: NoiseModel, dt: float, imu_t, imu: torch.Tensor,
         i = int(np.argmax(steps))
         raise StreamError(f"imu: gap of {steps[i]:.3f} s before t = {imu_t[i]:.3f} s (more than {max_gap} s); "
                           f"split the log there")
-    tracker = ResidueTracker(B, gps_rate_hz, aiding=tuple(aiding))
-    fuse = {"vio": lambda s, x: vio_update(s, x[:, 0:3], x[:, 3:7], nm), "mag": lambda s, x: mag_update(s, x, nm),
-            "baro": lambda s, x: baro_update(s, x, nm)}
-    track = {"vio": tracker.on_vio, "mag": tracker.on_mag, "baro": tracker.on_baro}
+    filt = OnlineFilter(ekf0, nm, dt, t0, gps_rate_hz, aiding=tuple(aiding), max_gap=max_gap)
     out: dict[str, np.ndarray] = {}
-    ekf = ekf0
     at = {name: 0 for name in aiding}
-    ig = 0
+    ig = queued = 0
     eps = 1e-9
     for i, t in enumerate(imu_t):
-        h = dt if abs(steps[i] - dt) < eps else float(steps[i])
-        ekf = predict(ekf, imu[:, i, 0:3], imu[:, i, 3:6], h, nm)
-        for name, (ts, xs) in aiding.items():          # VIO, magnetometer, barometer
+        for name, (ts, xs) in aiding.items():          # queued, applied after this IMU step
             while at[name] < len(ts) and ts[at[name]] <= t + eps:
-                ekf, inn = fuse[name](ekf, xs[:, at[name]])
-                track[name](inn)
+                filt.push(name, ts[at[name]], xs[:, at[name]])
                 at[name] += 1
-        while ig < K and gps_t[ig] <= t + eps:
-            std = None if gps_std is None else gps_std[:, ig]
-            ekf, inn = gps_update(ekf, gps[:, ig, 0:3], gps[:, ig, 3:6], nm, std=std)
-            row = {"est_pos": ekf.p, "est_vel": ekf.v, **tracker.on_gps(inn)}
+        while queued < K and gps_t[queued] <= t + eps:
+            filt.push("gps", gps_t[queued], gps[:, queued], None if gps_std is None else gps_std[:, queued])
+            queued += 1
+        for _, row in filt.imu(t, imu[:, i]):
             for k, v in row.items():
                 out.setdefault(k, np.zeros((B, K, v.shape[-1])))[:, ig] = v.numpy()
             ig += 1

@@ -31,11 +31,17 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from quadformer.config import SENSOR_NAMES
+from quadformer.estimator.online import FilterConfig, GapError, ResidueStream, spaced
 from quadformer.estimator.schema import GROUPS, RESIDUES
 from quadformer.logs.flightlog import FlightLog, LogError
 
+#: how a log is replayed: the filter's configuration for real vehicles, plus the shortest
+#: segment worth replaying
+ReplayConfig = FilterConfig
+
 RESIDUE_SOURCES = ("ekf", "autopilot")
-SENSOR_NAMES = ("gps", "imu", "vio", "mag", "baro")
+
 
 #: the autopilot residues: which schema groups each kind of logged innovation provides
 AUTOPILOT_GROUPS = ("res_gps_r", "res_gps_w", "res_gps_s", "res_gps_nis")
@@ -47,81 +53,6 @@ INIT_INNOVATION_M = 1000.0
 RECEIVER = {"fix_type": "gps_fix_type", "satellites": "gps_satellites", "eph": "gps_eph",
             "epv": "gps_epv", "speed_acc": "gps_speed_acc", "jamming": "gps_jamming",
             "spoofing": "gps_spoofing"}
-
-
-@dataclass(frozen=True)
-class ReplayConfig:
-    """How a log is replayed through the filter. Noise defaults are PX4 EKF2's parameter
-    defaults (EKF2_ACC_NOISE, EKF2_GYR_NOISE, EKF2_ACC_B_NOISE, EKF2_GYR_B_NOISE,
-    EKF2_GPS_P_NOISE, EKF2_GPS_V_NOISE, EKF2_BARO_NOISE, EKF2_HEAD_NOISE); ``matching`` takes
-    a simulation's instead. IMU noise is per filter step at ``imu_rate_hz`` and is scaled to
-    keep its density when a log's IMU is slower."""
-    sensors: str | None = None      # e.g. "gps+imu+mag+baro"; None: every sensor the log has
-    imu_rate_hz: float = 100.0      # Hz, IMU averaged down to at most this rate
-    gps_rate_hz: float = 10.0       # Hz, at most this many fixes fused per second
-    accel_noise: float = 0.35       # m/s^2, accelerometer noise per filter step
-    gyro_noise: float = 0.015       # rad/s, gyro noise per filter step
-    accel_bias_walk: float = 3e-3   # m/s^3, accelerometer bias random walk
-    gyro_bias_walk: float = 1e-3    # rad/s^2, gyro bias random walk
-    gps_pos_noise: float = 0.5      # m, floor of the horizontal position std (eph used when larger)
-    gps_alt_noise: float = 0.75     # m, floor of the vertical position std (epv used when larger)
-    gps_vel_noise: float = 0.3      # m/s, floor of the velocity std (speed accuracy used when larger)
-    baro_noise: float = 3.5         # m, barometric height std
-    heading_noise: float = 0.3      # rad, magnetometer heading std
-    vio_vel_noise: float = 0.1      # m/s, visual odometry velocity std
-    vio_att_noise_deg: float = 2.0  # deg, visual odometry attitude std
-    init_vel_std: float = 0.5       # m/s, initial velocity uncertainty
-    init_att_std_deg: float = 5.0   # deg, initial roll/pitch/yaw uncertainty (given an attitude)
-    init_yaw_std_deg: float = 60.0  # deg, initial yaw uncertainty without the autopilot's attitude
-    accel_bias_std: float = 0.2     # m/s^2, initial accelerometer bias uncertainty
-    gyro_bias_std: float = 0.01     # rad/s, initial gyro bias uncertainty
-    receiver_accuracy: bool = True  # use the receiver's eph/epv/speed accuracy when above the floors
-    max_gap_s: float = 0.5          # s, the longest IMU gap the filter propagates across
-    min_segment_s: float = 3.0      # s of GPS a segment needs to be replayed
-
-    @classmethod
-    def matching(cls, sim: dict[str, Any], **overrides: Any) -> "ReplayConfig":
-        """The filter tuning of simulated data (a dataset's resolved ``SimConfig`` as a dict):
-        the residues of a replayed log then have the scale of the residues a detector was
-        fit on. The receiver's own accuracies are not used (the simulated filter has none)."""
-        from quadformer.config import SimConfig
-        from quadformer.estimator.eskf import noise_model
-
-        cfg = SimConfig.from_dict(sim)
-        nm = noise_model(cfg.imu, cfg.gps, cfg.vio, cfg.ekf, 1.0 / cfg.dt, cfg.mag, cfg.baro)
-        g = nm.gps_std.tolist()
-        v = nm.vio_std.tolist()
-        values = dict(
-            sensors=None, imu_rate_hz=1.0 / cfg.dt, gps_rate_hz=cfg.gps.rate_hz,
-            accel_noise=nm.accel_std, gyro_noise=nm.gyro_std,
-            accel_bias_walk=nm.accel_walk / cfg.dt, gyro_bias_walk=nm.gyro_walk / cfg.dt,
-            gps_pos_noise=g[0], gps_alt_noise=g[2], gps_vel_noise=g[3],
-            baro_noise=float(nm.baro_std[0]), heading_noise=float(nm.mag_std[0]),
-            vio_vel_noise=v[0], vio_att_noise_deg=float(np.rad2deg(v[3])),
-            init_vel_std=cfg.ekf.init_vel_std, init_att_std_deg=cfg.ekf.init_att_std_deg,
-            accel_bias_std=cfg.imu.accel_bias_std, gyro_bias_std=cfg.imu.gyro_bias_std,
-            receiver_accuracy=False)
-        values.update(overrides)
-        return cls(**values)
-
-    def __post_init__(self) -> None:
-        for name in ("imu_rate_hz", "gps_rate_hz", "accel_noise", "gyro_noise", "gps_pos_noise",
-                     "gps_alt_noise", "gps_vel_noise", "baro_noise", "heading_noise", "vio_vel_noise",
-                     "vio_att_noise_deg", "init_vel_std", "init_att_std_deg", "init_yaw_std_deg",
-                     "max_gap_s", "min_segment_s", "accel_bias_std", "gyro_bias_std"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"replay.{name} must be a positive number, got {v!r}")
-        for name in ("accel_bias_walk", "gyro_bias_walk"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"replay.{name} must be a non-negative number, got {v!r}")
-        if self.sensors is not None:
-            parts = set(self.sensors.split("+"))
-            unknown = parts - set(SENSOR_NAMES)
-            if unknown or not {"gps", "imu"} <= parts:
-                raise ValueError(f"replay.sensors: {self.sensors!r} must join gps, imu and any of vio, mag, "
-                                 f"baro with '+' (unknown: {', '.join(sorted(unknown)) or 'none'})")
 
 
 @dataclass
@@ -147,23 +78,11 @@ def missing_features(features: list[str], columns) -> list[str]:
 
 
 # --------------------------------------------------------------------------- helpers
-def _resample_imu(t: np.ndarray, v: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
-    """Average consecutive samples into bins of 1/rate s (a sample's time: the last in its bin)."""
-    if len(t) < 2 or np.median(np.diff(t)) >= 1.0 / rate_hz * 0.999:
-        return t, v
-    bins = np.floor((t - t[0]) * rate_hz + 1e-9).astype(np.int64)
-    edges = np.r_[np.flatnonzero(np.diff(bins)) + 1, len(t)]
-    starts = np.r_[0, edges[:-1]]
-    sums = np.add.reduceat(v, starts, axis=0)
-    return t[edges - 1], sums / (edges - starts)[:, None]
-
-
 def _decimate(t: np.ndarray, rate_hz: float) -> np.ndarray:
-    """Indices of fixes at least about 1/rate s apart (the first one kept)."""
+    """Indices of the fixes ``ResidueStream`` fuses (the first one kept, then those spaced)."""
     keep, last = [], -np.inf
-    min_dt = 0.9 / rate_hz
     for i, ti in enumerate(t):
-        if ti - last >= min_dt:
+        if spaced(ti - last, rate_hz):
             keep.append(i)
             last = ti
     return np.asarray(keep, dtype=np.int64)
@@ -174,22 +93,6 @@ def _interp(t_new: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:
     if v.ndim == 1:
         return np.interp(t_new, t, v)
     return np.stack([np.interp(t_new, t, v[:, i]) for i in range(v.shape[1])], axis=1)
-
-
-def _quat_at(t0: float, att: pd.DataFrame | None) -> np.ndarray | None:
-    if att is None or len(att) == 0:
-        return None
-    i = int(np.clip(np.searchsorted(att["t"].to_numpy(), t0), 0, len(att) - 1))
-    q = att[["qx", "qy", "qz", "qw"]].to_numpy()[i]
-    return q / np.linalg.norm(q)
-
-
-def _tilt_quat(acc: np.ndarray) -> np.ndarray:
-    """Roll and pitch from the mean specific force of a (near) static start, yaw 0 (xyzw)."""
-    ax, ay, az = acc
-    roll, pitch = math.atan2(ay, az), math.atan2(-ax, math.hypot(ay, az))
-    cr, sr, cp, sp = math.cos(roll / 2), math.sin(roll / 2), math.cos(pitch / 2), math.sin(pitch / 2)
-    return np.array([sr * cp, cr * sp, -sr * sp, cr * cp])
 
 
 def _sensors_of(log: FlightLog, config: ReplayConfig) -> str:
@@ -290,147 +193,81 @@ def ekf_rows(log: FlightLog, seg: int = 0, config: ReplayConfig = ReplayConfig()
 def ekf_flights(log: FlightLog, seg: int = 0, config: ReplayConfig = ReplayConfig(),
                 attacks: list = (None,)) -> list[LogFlight]:
     """``ekf_rows`` for several injections into the same segment (None: none), replayed
-    together as one batch of flights sharing the log's timestamps."""
-    import torch
-
-    from quadformer.estimator.eskf import init_state
-    from quadformer.estimator.replay import StreamError, run_ekf
-
+    together as one batch of flights sharing the log's timestamps: the segment's samples go,
+    in time order, through the same ``ResidueStream`` a live link feeds."""
     part = log.segment(seg) if len(log.segments) > 1 else log
     sensors = _sensors_of(part, config)
-    notes: list[str] = []
     imu, gps = part.imu, part.gps
     if imu is None or gps is None:
         raise LogError(f"{log.path}: segment {seg} has no {'IMU' if imu is None else 'GPS'} samples; the ekf "
                        "replay needs both (use --residues autopilot for the autopilot's innovations)")
     gps = gps[np.isfinite(gps[["x", "y", "z"]].to_numpy()).all(axis=1)].reset_index(drop=True)
     keep = _decimate(gps["t"].to_numpy(), config.gps_rate_hz)
-    if len(keep) < len(gps):
-        notes.append(f"gps: {len(gps)} fixes decimated to {len(keep)} (at most {config.gps_rate_hz:g} Hz)")
+    notes = [f"gps: {len(gps)} fixes decimated to {len(keep)} (at most {config.gps_rate_hz:g} Hz)"] \
+        if len(keep) < len(gps) else []
     gps = gps.iloc[keep].reset_index(drop=True)
-    span = gps["t"].iloc[-1] - gps["t"].iloc[0] if len(gps) else 0.0
-    if len(gps) < 3 or span < config.min_segment_s:
-        raise LogError(f"{log.path}: segment {seg} holds {span:.1f} s of GPS ({len(gps)} fixes); the replay needs "
-                       f"at least {config.min_segment_s:g} s (--min-segment)")
     gt = gps["t"].to_numpy()
-    pos = gps[["x", "y", "z"]].to_numpy()
-    vel = gps[["vx", "vy", "vz"]].to_numpy()
-    if not np.isfinite(vel).all():
-        bad = ~np.isfinite(vel).all(axis=1)
-        vel[bad] = np.gradient(pos, gt, axis=0)[bad]
-        notes.append(f"gps: {int(bad.sum())} fixes without velocity; velocity from the derivative of position")
-    acc = (lambda c: np.nan_to_num(gps[c].to_numpy(), nan=0.0)) if config.receiver_accuracy \
-        else (lambda c: np.zeros(len(gps)))
-    std = np.column_stack([
-        np.fmax(acc("eph"), config.gps_pos_noise).repeat(2).reshape(-1, 2),
-        np.fmax(acc("epv"), config.gps_alt_noise),
-        np.fmax(acc("speed_acc"), config.gps_vel_noise).repeat(3).reshape(-1, 3),
-    ])
-    t0 = float(gt[0])
-    fixes = []              # per flight: spoofed positions, velocities, labels, offsets
-    for attack in attacks:
-        if attack is None:
-            fixes.append((pos, vel, np.zeros(len(gt), dtype=bool), np.zeros((len(gt), 3))))
-        else:
-            fixes.append(_inject(attack, gt - t0, pos, vel, config.gps_rate_hz))
+    span = gt[-1] - gt[0] if len(gt) else 0.0
+    if len(gt) < 3 or span < config.min_segment_s:
+        raise LogError(f"{log.path}: segment {seg} holds {span:.1f} s of GPS ({len(gt)} fixes); the replay needs "
+                       f"at least {config.min_segment_s:g} s (--min-segment)")
+    pos, vel = gps[["x", "y", "z"]].to_numpy(), gps[["vx", "vy", "vz"]].to_numpy()
+    fixes = [(pos, vel, np.zeros(len(gt), bool), np.zeros((len(gt), 3))) if a is None
+             else _inject(a, gt - gt[0], pos, vel, config.gps_rate_hz) for a in attacks]
     B = len(fixes)
-
-    it = imu["t"].to_numpy()
-    iv = imu[["ax", "ay", "az", "gx", "gy", "gz"]].to_numpy()
-    it, iv = _resample_imu(it, iv, config.imu_rate_hz)
-    after = it > t0
-    if after.sum() < 2:
-        raise LogError(f"{log.path}: segment {seg} has no IMU samples after its first fix")
-    q0 = _quat_at(t0, part.attitude)
-    yaw_std = config.init_att_std_deg
-    if q0 is None:
-        near = (it >= t0 - 0.5) & (it <= t0 + 0.5)
-        q0 = _tilt_quat(iv[near, :3].mean(axis=0) if near.any() else iv[after][0, :3])
-        yaw_std = config.init_yaw_std_deg
-        notes.append("attitude: none logged; initial roll and pitch from the accelerometer, yaw 0 "
-                     f"(std {yaw_std:g} deg)")
-    att = np.deg2rad([config.init_att_std_deg, config.init_att_std_deg, yaw_std])
-    std0 = np.r_[std[0, :3], [config.init_vel_std] * 3, att, [config.accel_bias_std] * 3,
-                 [config.gyro_bias_std] * 3]
-    T = lambda x: torch.as_tensor(np.array(x, dtype=float))[None].expand(B, *np.shape(x))   # noqa: E731  shared
-    ekf0 = init_state(torch.as_tensor(np.stack([f[0][0] for f in fixes])),
-                      torch.as_tensor(np.stack([f[1][0] for f in fixes])), T(q0), torch.zeros(B, 3),
-                      torch.zeros(B, 3), torch.diag(torch.as_tensor(std0 ** 2)).expand(B, 15, 15))
-    dt = float(np.median(np.diff(it)))
-    mag_field = None
-    kw: dict[str, Any] = {}
-    if "vio" in sensors:
-        o = part.odometry
-        ot = o["t"].to_numpy()
-        sel = ot > t0
-        kw.update(vio_t=ot[sel], vio=T(o[["vx", "vy", "vz", "qx", "qy", "qz", "qw"]].to_numpy()[sel]))
+    P = np.stack([f[0] for f in fixes], axis=1)          # (fixes, B, 3)
+    V = np.stack([f[1] for f in fixes], axis=1)
+    stream = ResidueStream(config, sensors, n=B)
+    acc = gps[["eph", "epv", "speed_acc"]].to_numpy()
+    events: list[tuple[float, int, Any]] = []          # (time, order on ties, call)
+    add = events.extend
+    if part.attitude is not None:
+        q = part.attitude[["qx", "qy", "qz", "qw"]].to_numpy()
+        add((t, 0, (stream.attitude, (q[i],))) for i, t in enumerate(part.attitude["t"].to_numpy()))
     if "mag" in sensors:
-        m = part.mag
-        mt = m["t"].to_numpy()
-        mv = m[["mx", "my", "mz"]].to_numpy()
-        sel = mt > t0
-        # the local field in the world frame, from the first second of samples and the initial
-        # attitude: headings are measured against it (declination and inclination included)
-        first = (mt >= t0 - 0.5) & (mt <= t0 + 0.5)
-        mag_field = _rotate(q0, (mv[first] if first.any() else mv[sel][:1]).mean(axis=0))
-        kw.update(mag_t=mt[sel], mag=T(mv[sel]))
+        m = part.mag[["mx", "my", "mz"]].to_numpy()
+        add((t, 1, (stream.mag, (m[i],))) for i, t in enumerate(part.mag["t"].to_numpy()))
     if "baro" in sensors:
-        b = part.baro
-        bt = b["t"].to_numpy()
-        alt = b["alt"].to_numpy()
-        ref = np.interp(t0, bt, alt)                                   # baro height relative to the first fix
-        sel = bt > t0
-        kw.update(baro_t=bt[sel], baro=T((alt[sel] - ref + pos[0, 2])[:, None]))
-    nm = _noise_model(config, dt, mag_field)
+        b = part.baro["alt"].to_numpy()
+        add((t, 2, (stream.baro, (b[i],))) for i, t in enumerate(part.baro["t"].to_numpy()))
+    if "vio" in sensors:
+        o = part.odometry[["vx", "vy", "vz", "qx", "qy", "qz", "qw"]].to_numpy()
+        add((t, 3, (stream.vio, (o[i],))) for i, t in enumerate(part.odometry["t"].to_numpy()))
+    add((t, 4, (stream.gps, (P[i], V[i], *acc[i]))) for i, t in enumerate(gt))
+    x = imu[["ax", "ay", "az", "gx", "gy", "gz"]].to_numpy()
+    add((t, 5, (stream.imu, (x[i],))) for i, t in enumerate(imu["t"].to_numpy()))
+    events.sort(key=lambda e: (e[0], e[1]))
+    out: list[dict[str, Any]] = []
     try:
-        gps_b = torch.as_tensor(np.stack([np.c_[f[0], f[1]][1:] for f in fixes]))
-        out = run_ekf(ekf0, nm, dt, it[after], T(iv[after]), gt[1:], gps_b,
-                      gps_std=T(std[1:]), t0=t0, gps_rate_hz=config.gps_rate_hz, max_gap=config.max_gap_s, **kw)
-    except StreamError as e:
+        for t, _, (call, args) in events:
+            rows = call(t, *args)
+            if rows:
+                out += rows
+        out += stream.flush()
+    except GapError as e:
         raise LogError(f"{log.path}: segment {seg}: {e}") from None
-    base = _base_rows(seg, gt[1:], gps.iloc[1:].reset_index(drop=True), part)
+    if not out:
+        raise LogError(f"{log.path}: segment {seg}: no fix was fused (no IMU samples after the first fix?)")
+    notes += stream.notes
+    t_rows = np.array([r["t"] for r in out])
+    base = _base_rows(seg, t_rows, gps, part)
+    idx = np.searchsorted(gt, t_rows)                   # the fixes fused, in the decimated list
     flights = []
-    for b, (attack, (p_b, v_b, label, d_pos)) in enumerate(zip(attacks, fixes)):
+    for b, (attack, (_, _, label, d_pos)) in enumerate(zip(attacks, fixes)):
         rows = dict(base)
-        for a_i, a in enumerate("xyz"):          # the fixes as fused (spoofed when injected)
-            rows[f"gps_pos_{a}"] = p_b[1:, a_i]
-            rows[f"gps_vel_{a}"] = v_b[1:, a_i]
-            rows[f"atk_d_{a}"] = d_pos[1:, a_i]
-        rows["label"] = label[1:].astype(np.int8)
-        rows["attack_type"] = np.where(label[1:], attack.kind if attack is not None else "none", "none").astype(object)
-        for name, val in out.items():
-            for i, c in enumerate(GROUPS[name].columns):
-                rows[c] = val[b, :, i]
+        for name in out[0]:
+            if name == "t":
+                continue
+            val = np.stack([r[name][b] for r in out])
+            cols = GROUPS[name].columns if name in GROUPS else [f"{name}_{a}" for a in "xyz"]
+            for i, c in enumerate(cols):
+                rows[c] = val[:, i]
+        for i, a in enumerate("xyz"):
+            rows[f"atk_d_{a}"] = d_pos[idx, i]
+        rows["label"] = label[idx].astype(np.int8)
+        rows["attack_type"] = np.where(label[idx], attack.kind if attack is not None else "none", "none").astype(object)
         flights.append(LogFlight(seg, pd.DataFrame(rows), sensors, list(notes)))
     return flights
-
-
-def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """v (body) rotated by unit quaternion q (xyzw, body to world)."""
-    x, y, z, w = q
-    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                  [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                  [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-    return R @ v
-
-
-def _noise_model(config: ReplayConfig, dt: float, mag_field: np.ndarray | None):
-    """The filter's noise for a log whose IMU steps are dt seconds: the configured per-step
-    noise at ``imu_rate_hz``, scaled to the same density at dt."""
-    import torch
-
-    from quadformer.estimator.eskf import NoiseModel
-
-    f64 = lambda v: torch.tensor(v, dtype=torch.float64)   # noqa: E731
-    c = config
-    density = math.sqrt(1.0 / (c.imu_rate_hz * dt))      # per-step std ~ 1/sqrt(dt)
-    return NoiseModel(
-        accel_std=c.accel_noise * density, gyro_std=c.gyro_noise * density,
-        accel_walk=c.accel_bias_walk * dt, gyro_walk=c.gyro_bias_walk * dt,
-        gps_std=f64([c.gps_pos_noise, c.gps_pos_noise, c.gps_alt_noise] + [c.gps_vel_noise] * 3),
-        vio_std=f64([c.vio_vel_noise] * 3 + [np.deg2rad(c.vio_att_noise_deg)] * 3),
-        mag_std=f64([c.heading_noise]), baro_std=f64([c.baro_noise]),
-        mag_field=None if mag_field is None else f64(mag_field))
 
 
 def _inject(attack, tau: np.ndarray, pos: np.ndarray, vel: np.ndarray, rate_hz: float):

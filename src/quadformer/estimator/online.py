@@ -1,0 +1,399 @@
+"""The filter fed one timestamped sample at a time: recorded streams and live links alike.
+
+Two levels:
+
+- ``OnlineFilter``: the filter state and its sample queues (samples already in the filter's
+  frames and units, the filter already initialised).
+- ``ResidueStream``: a real vehicle's raw samples in (any source: a log's streams in time
+  order, a live MAVLink link message by message), rows of the residue table out. It owns what
+  a real vehicle needs around the filter, the same for every source: the IMU averaged down to
+  ``FilterConfig.imu_rate_hz`` (as PX4 EKF2 predicts at 100 Hz), fixes fused at most at
+  ``gps_rate_hz``, each fix's noise from the receiver's own accuracy, a missing GPS velocity
+  from the change of position, and the start: at the first fix, from the latest attitude of
+  the autopilot (or the accelerometer's tilt), the magnetic field of the last second, the
+  barometer's offset. Everything is causal: a row depends on samples up to its fix.
+
+``OnlineFilter`` holds the state of the same error-state EKF as the closed loop (``predict``,
+the aiding updates, ``gps_update``, ``ResidueTracker``) for a batch of flights that share
+timestamps (one flight for a log or a live vehicle). Samples arrive in time order per stream:
+``imu(t, x)`` propagates, then applies the samples queued since with stamps at or before t,
+in the order VIO, magnetometer, barometer, GPS; each GPS fix applied yields one row of
+residues. ``estimator.replay.run_ekf`` drives it over whole arrays; a live monitor drives it
+message by message, so both compute the same thing.
+
+A gap in the IMU longer than ``max_gap`` cannot be propagated across: ``imu`` raises
+``GapError`` (the caller starts a new segment, with a new filter).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from quadformer.config import SENSOR_NAMES
+from quadformer.estimator.eskf import (
+    EKFState,
+    NoiseModel,
+    baro_update,
+    gps_update,
+    init_state,
+    mag_update,
+    predict,
+    vio_update,
+)
+from quadformer.estimator.residues import ResidueTracker
+
+
+AIDING = ("vio", "mag", "baro")     # applied in this order, then GPS
+EPS = 1e-9                           # s, stamps this close count as simultaneous
+
+
+class StreamError(ValueError):
+    """A sensor stream the filter cannot process; the message names the stream."""
+
+
+class GapError(StreamError):
+    """An IMU sample too long after the previous one for the filter to propagate across."""
+
+
+class OnlineFilter:
+    def __init__(self, ekf0: EKFState, nm: NoiseModel, dt: float, t0: float = 0.0, gps_rate_hz: float = 10.0,
+                 aiding: tuple[str, ...] = (), max_gap: float = 0.1):
+        unknown = [a for a in aiding if a not in AIDING]
+        if unknown:
+            raise ValueError(f"aiding: unknown sensor {unknown[0]!r}; choose from {', '.join(AIDING)}")
+        self.ekf, self.nm, self.dt, self.t, self.max_gap = ekf0, nm, float(dt), float(t0), float(max_gap)
+        self.n = ekf0.p.shape[0]
+        self.aiding = tuple(a for a in AIDING if a in aiding)
+        self.tracker = ResidueTracker(self.n, gps_rate_hz, aiding=self.aiding)
+        self.queues: dict[str, deque] = {name: deque() for name in (*self.aiding, "gps")}
+        self._fuse = {"vio": lambda s, x: vio_update(s, x[:, 0:3], x[:, 3:7], self.nm),
+                      "mag": lambda s, x: mag_update(s, x, self.nm), "baro": lambda s, x: baro_update(s, x, self.nm)}
+        self._track = {"vio": self.tracker.on_vio, "mag": self.tracker.on_mag, "baro": self.tracker.on_baro}
+
+    # -- samples ------------------------------------------------------------------------
+    def push(self, stream: str, t: float, x: torch.Tensor, std: torch.Tensor | None = None) -> None:
+        """Queue an aiding or GPS sample (n, k) stamped t, applied at the first IMU step at or
+        after t. ``std``: GPS only, the receiver's own std per flight (n, 6)."""
+        if stream not in self.queues:
+            raise ValueError(f"{stream}: not a stream of this filter (it fuses {', '.join(self.queues)})")
+        self.queues[stream].append((float(t), x, std))
+
+    def imu(self, t: float, x: torch.Tensor) -> list[tuple[float, dict[str, torch.Tensor]]]:
+        """Propagate to t with the IMU sample x (n, 6), then apply the queued samples stamped
+        at or before t. Returns (stamp, residue row) per GPS fix applied; a row holds the
+        residue groups and ``est_pos``, ``est_vel``, each (n, k)."""
+        step = t - self.t
+        if step > self.max_gap:
+            raise GapError(f"imu: gap of {step:.3f} s before t = {t:.3f} s (more than {self.max_gap} s); "
+                           f"split the log there")
+        h = self.dt if abs(step - self.dt) < EPS else float(step)
+        self.ekf = predict(self.ekf, x[:, 0:3], x[:, 3:6], h, self.nm)
+        self.t = t
+        for name in self.aiding:
+            q = self.queues[name]
+            while q and q[0][0] <= t + EPS:
+                self.ekf, inn = self._fuse[name](self.ekf, q.popleft()[1])
+                self._track[name](inn)
+        rows = []
+        q = self.queues["gps"]
+        while q and q[0][0] <= t + EPS:
+            stamp, fix, std = q.popleft()
+            self.ekf, inn = gps_update(self.ekf, fix[:, 0:3], fix[:, 3:6], self.nm, std=std)
+            rows.append((stamp, {"est_pos": self.ekf.p, "est_vel": self.ekf.v, **self.tracker.on_gps(inn)}))
+        return rows
+
+    @property
+    def pending(self) -> int:
+        """Samples queued and not yet applied (they wait for an IMU sample at or after them)."""
+        return sum(len(q) for q in self.queues.values())
+
+
+def as_numpy(row: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
+    return {k: v.numpy() for k, v in row.items()}
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """How a real vehicle's sensors are fused (a log replayed, a live link). Noise defaults are PX4 EKF2's parameter
+    defaults (EKF2_ACC_NOISE, EKF2_GYR_NOISE, EKF2_ACC_B_NOISE, EKF2_GYR_B_NOISE,
+    EKF2_GPS_P_NOISE, EKF2_GPS_V_NOISE, EKF2_BARO_NOISE, EKF2_HEAD_NOISE); ``matching`` takes
+    a simulation's instead. IMU noise is per filter step at ``imu_rate_hz`` and is scaled to
+    keep its density when a log's IMU is slower."""
+    sensors: str | None = None      # e.g. "gps+imu+mag+baro"; None: every sensor the log has
+    imu_rate_hz: float = 100.0      # Hz, IMU averaged down to at most this rate
+    gps_rate_hz: float = 10.0       # Hz, at most this many fixes fused per second
+    accel_noise: float = 0.35       # m/s^2, accelerometer noise per filter step
+    gyro_noise: float = 0.015       # rad/s, gyro noise per filter step
+    accel_bias_walk: float = 3e-3   # m/s^3, accelerometer bias random walk
+    gyro_bias_walk: float = 1e-3    # rad/s^2, gyro bias random walk
+    gps_pos_noise: float = 0.5      # m, floor of the horizontal position std (eph used when larger)
+    gps_alt_noise: float = 0.75     # m, floor of the vertical position std (epv used when larger)
+    gps_vel_noise: float = 0.3      # m/s, floor of the velocity std (speed accuracy used when larger)
+    baro_noise: float = 3.5         # m, barometric height std
+    heading_noise: float = 0.3      # rad, magnetometer heading std
+    vio_vel_noise: float = 0.1      # m/s, visual odometry velocity std
+    vio_att_noise_deg: float = 2.0  # deg, visual odometry attitude std
+    init_vel_std: float = 0.5       # m/s, initial velocity uncertainty
+    init_att_std_deg: float = 5.0   # deg, initial roll/pitch/yaw uncertainty (given an attitude)
+    init_yaw_std_deg: float = 60.0  # deg, initial yaw uncertainty without the autopilot's attitude
+    accel_bias_std: float = 0.2     # m/s^2, initial accelerometer bias uncertainty
+    gyro_bias_std: float = 0.01     # rad/s, initial gyro bias uncertainty
+    receiver_accuracy: bool = True  # use the receiver's eph/epv/speed accuracy when above the floors
+    max_gap_s: float = 0.5          # s, the longest IMU gap the filter propagates across
+    min_segment_s: float = 3.0      # s of GPS a segment needs to be replayed
+
+    @classmethod
+    def matching(cls, sim: dict[str, Any], **overrides: Any) -> "FilterConfig":
+        """The filter tuning of simulated data (a dataset's resolved ``SimConfig`` as a dict):
+        the residues of a replayed log then have the scale of the residues a detector was
+        fit on. The receiver's own accuracies are not used (the simulated filter has none)."""
+        from quadformer.config import SimConfig
+        from quadformer.estimator.eskf import noise_model
+
+        cfg = SimConfig.from_dict(sim)
+        nm = noise_model(cfg.imu, cfg.gps, cfg.vio, cfg.ekf, 1.0 / cfg.dt, cfg.mag, cfg.baro)
+        g = nm.gps_std.tolist()
+        v = nm.vio_std.tolist()
+        values = dict(
+            sensors=None, imu_rate_hz=1.0 / cfg.dt, gps_rate_hz=cfg.gps.rate_hz,
+            accel_noise=nm.accel_std, gyro_noise=nm.gyro_std,
+            accel_bias_walk=nm.accel_walk / cfg.dt, gyro_bias_walk=nm.gyro_walk / cfg.dt,
+            gps_pos_noise=g[0], gps_alt_noise=g[2], gps_vel_noise=g[3],
+            baro_noise=float(nm.baro_std[0]), heading_noise=float(nm.mag_std[0]),
+            vio_vel_noise=v[0], vio_att_noise_deg=float(np.rad2deg(v[3])),
+            init_vel_std=cfg.ekf.init_vel_std, init_att_std_deg=cfg.ekf.init_att_std_deg,
+            accel_bias_std=cfg.imu.accel_bias_std, gyro_bias_std=cfg.imu.gyro_bias_std,
+            receiver_accuracy=False)
+        values.update(overrides)
+        return cls(**values)
+
+    def __post_init__(self) -> None:
+        for name in ("imu_rate_hz", "gps_rate_hz", "accel_noise", "gyro_noise", "gps_pos_noise",
+                     "gps_alt_noise", "gps_vel_noise", "baro_noise", "heading_noise", "vio_vel_noise",
+                     "vio_att_noise_deg", "init_vel_std", "init_att_std_deg", "init_yaw_std_deg",
+                     "max_gap_s", "min_segment_s", "accel_bias_std", "gyro_bias_std"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"filter.{name} must be a positive number, got {v!r}")
+        for name in ("accel_bias_walk", "gyro_bias_walk"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"filter.{name} must be a non-negative number, got {v!r}")
+        if self.sensors is not None:
+            parts = set(self.sensors.split("+"))
+            unknown = parts - set(SENSOR_NAMES)
+            if unknown or not {"gps", "imu"} <= parts:
+                raise ValueError(f"filter.sensors: {self.sensors!r} must join gps, imu and any of vio, mag, "
+                                 f"baro with '+' (unknown: {', '.join(sorted(unknown)) or 'none'})")
+
+
+def spaced(dt: float, rate_hz: float) -> bool:
+    """A fix dt seconds after the previous fused one is fused (at most about rate_hz a second)."""
+    return dt >= 0.9 / rate_hz
+
+
+def noise_model_for(config: FilterConfig, dt: float, mag_field: np.ndarray | None = None) -> NoiseModel:
+    """The filter's noise for IMU steps of dt seconds: the configured per-step noise at
+    ``imu_rate_hz``, scaled to the same density at dt."""
+    f64 = lambda v: torch.tensor(v, dtype=torch.float64)   # noqa: E731
+    c = config
+    density = math.sqrt(1.0 / (c.imu_rate_hz * dt))      # per-step std ~ 1/sqrt(dt)
+    return NoiseModel(
+        accel_std=c.accel_noise * density, gyro_std=c.gyro_noise * density,
+        accel_walk=c.accel_bias_walk * dt, gyro_walk=c.gyro_bias_walk * dt,
+        gps_std=f64([c.gps_pos_noise, c.gps_pos_noise, c.gps_alt_noise] + [c.gps_vel_noise] * 3),
+        vio_std=f64([c.vio_vel_noise] * 3 + [np.deg2rad(c.vio_att_noise_deg)] * 3),
+        mag_std=f64([c.heading_noise]), baro_std=f64([c.baro_noise]),
+        mag_field=None if mag_field is None else f64(mag_field))
+
+
+def rotation(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a unit quaternion (xyzw, body to world)."""
+    x, y, z, w = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def tilt(acc: np.ndarray) -> np.ndarray:
+    """Roll and pitch from a mean specific force (FLU) of a (near) static vehicle, yaw 0 (xyzw)."""
+    ax, ay, az = acc
+    roll, pitch = math.atan2(ay, az), math.atan2(-ax, math.hypot(ay, az))
+    cr, sr, cp, sp = math.cos(roll / 2), math.sin(roll / 2), math.cos(pitch / 2), math.sin(pitch / 2)
+    return np.array([sr * cp, cr * sp, -sr * sp, cr * cp])
+
+
+class ResidueStream:
+    """Raw samples of ``n`` flights that share timestamps in, residue rows out.
+
+    Call the sample methods in time order per stream (streams may interleave freely within a
+    few IMU steps). ``imu`` returns the rows of the fixes it let the filter apply, each a dict
+    with ``t``, the fix as fused (``gps_pos``, ``gps_vel``), ``est_pos``, ``est_vel`` and the
+    residue groups, values (n, k). ``flush`` ends the stream (the last IMU bin)."""
+
+    INIT_WINDOW = 1.0     # s before the first fix from which the start's attitude, tilt and field come
+
+    def __init__(self, config: FilterConfig, sensors: str, n: int = 1):
+        parts = sensors.split("+")
+        if not {"gps", "imu"} <= set(parts) or set(parts) - set(SENSOR_NAMES):
+            raise ValueError(f"sensors: {sensors!r} must join gps, imu and any of vio, mag, baro with '+'")
+        self.config, self.sensors, self.n = config, sensors, n
+        self.aiding = tuple(s for s in AIDING if s in parts)
+        self.filter: OnlineFilter | None = None
+        self.t0: float | None = None
+        self._bin: list[tuple[float, np.ndarray]] = []       # IMU samples of the current bin
+        self._bin_id: int | None = None
+        self._recent: dict[str, deque] = {k: deque() for k in ("imu", "att", "mag", "baro")}
+        self._last_fix: tuple[float, np.ndarray] | None = None
+        self._baro_ref: float | None = None
+        self._z0: np.ndarray | None = None
+        self._dt: float | None = None
+        self.notes: list[str] = []
+
+    # -- raw samples ----------------------------------------------------------------------
+    def attitude(self, t: float, q: np.ndarray) -> None:
+        """The autopilot's attitude estimate (xyzw, FLU body -> ENU world); used at the start."""
+        if self.filter is None:
+            self._keep("att", t, np.asarray(q, dtype=float))
+
+    def imu(self, t: float, x: np.ndarray) -> list[dict[str, Any]]:
+        """Specific force and body rate (n, 6) or (6,), FLU."""
+        x = np.broadcast_to(np.asarray(x, dtype=float), (self.n, 6))
+        if self.filter is None:
+            self._keep("imu", t, x[0])
+        rate = self.config.imu_rate_hz
+        bin_id = math.floor(t * rate + 1e-9)
+        rows: list[dict[str, Any]] = []
+        if self._bin and bin_id != self._bin_id:
+            rows = self._step()
+        self._bin_id = bin_id
+        self._bin.append((t, x))
+        return rows
+
+    def gps(self, t: float, pos: np.ndarray, vel: np.ndarray, eph: float = math.nan, epv: float = math.nan,
+            speed_acc: float = math.nan) -> None:
+        """A fix: ENU position (n, 3) about the local origin and ENU velocity (n, 3; NaN where
+        the receiver gives none), with the receiver's accuracies (m, m, m/s; NaN: none)."""
+        pos = np.broadcast_to(np.asarray(pos, dtype=float), (self.n, 3))
+        vel = np.array(np.broadcast_to(np.asarray(vel, dtype=float), (self.n, 3)))
+        if self._last_fix is not None and not spaced(t - self._last_fix[0], self.config.gps_rate_hz):
+            return                                         # at most gps_rate_hz fixes per second
+        bad = ~np.isfinite(vel)
+        if bad.any():                                      # velocity from the change of position
+            if self._last_fix is None:
+                vel[bad] = 0.0
+            else:
+                vel[bad] = ((pos - self._last_fix[1]) / (t - self._last_fix[0]))[bad]
+        self._last_fix = (t, pos.copy())
+        c = self.config
+        use = c.receiver_accuracy
+        acc = lambda v: v if use and math.isfinite(v) else 0.0   # noqa: E731
+        std = np.array([max(acc(eph), c.gps_pos_noise)] * 2 + [max(acc(epv), c.gps_alt_noise)]
+                       + [max(acc(speed_acc), c.gps_vel_noise)] * 3)
+        fix = np.concatenate([pos, vel], axis=1)
+        if self.filter is None:
+            self._start(t, fix, std)
+        else:
+            self._fused[t] = fix
+            self.filter.push("gps", t, torch.as_tensor(fix), torch.as_tensor(std).expand(self.n, 6))
+
+    def mag(self, t: float, x: np.ndarray) -> None:
+        """Magnetic field (n, 3) or (3,), gauss, FLU."""
+        if "mag" not in self.aiding:
+            return
+        x = np.broadcast_to(np.asarray(x, dtype=float), (self.n, 3))
+        if self.filter is None:
+            self._keep("mag", t, x[0])
+        elif self.filter.nm.mag_field is None:               # no field yet: the first sample sets it
+            self._set_field(x[0])
+        else:
+            self.filter.push("mag", t, torch.as_tensor(np.array(x)))
+
+    def baro(self, t: float, alt: float) -> None:
+        """Barometric altitude (m)."""
+        if "baro" not in self.aiding:
+            return
+        if self.filter is None:
+            self._keep("baro", t, np.array([float(alt)]))
+            return
+        if self._baro_ref is None:
+            self._baro_ref = float(alt)
+        h = float(alt) - self._baro_ref + self._z0              # height in the filter's frame, per flight
+        self.filter.push("baro", t, torch.as_tensor(h.reshape(self.n, 1)))
+
+    def vio(self, t: float, x: np.ndarray) -> None:
+        """Visual odometry: ENU velocity and attitude quaternion (n, 7) or (7,)."""
+        if "vio" in self.aiding and self.filter is not None:
+            self.filter.push("vio", t, torch.as_tensor(np.array(np.broadcast_to(np.asarray(x, float), (self.n, 7)))))
+
+    def flush(self) -> list[dict[str, Any]]:
+        """The rows of the last IMU bin (end of the stream)."""
+        return self._step() if self._bin else []
+
+    # -- internals ----------------------------------------------------------------------
+    def _keep(self, key: str, t: float, v: np.ndarray) -> None:
+        q = self._recent[key]
+        q.append((t, v))
+        while q and q[0][0] < t - self.INIT_WINDOW:
+            q.popleft()
+
+    def _step(self) -> list[dict[str, Any]]:
+        """Hand the completed IMU bin (its mean, stamped at its last sample) to the filter."""
+        t = self._bin[-1][0]
+        x = np.mean([v for _, v in self._bin], axis=0)
+        self._bin = []
+        if self.filter is None or t <= self.filter.t:
+            return []
+        out = []
+        for stamp, row in self.filter.imu(t, torch.as_tensor(np.array(x))):
+            fix = self._fused.pop(stamp)
+            out.append({"t": stamp, "gps_pos": fix[:, :3], "gps_vel": fix[:, 3:], **as_numpy(row)})
+        return out
+
+    def _start(self, t0: float, fix: np.ndarray, std: np.ndarray) -> None:
+        """The filter starts at the first fix: its position and velocity, the latest attitude of
+        the autopilot (or the accelerometer's tilt, yaw unknown)."""
+        c = self.config
+        att = self._recent["att"]
+        yaw_std = c.init_att_std_deg
+        if att:
+            q0 = att[-1][1] / np.linalg.norm(att[-1][1])
+        else:
+            imu = self._recent["imu"]
+            q0 = tilt(np.mean([v[:3] for _, v in imu], axis=0)) if imu else np.array([0.0, 0.0, 0.0, 1.0])
+            yaw_std = c.init_yaw_std_deg
+            self.notes.append(f"attitude: none logged before the first fix; initial roll and pitch from the "
+                              f"accelerometer, yaw 0 (std {yaw_std:g} deg)")
+        std0 = np.r_[std[:3], [c.init_vel_std] * 3, np.deg2rad([c.init_att_std_deg] * 2 + [yaw_std]),
+                     [c.accel_bias_std] * 3, [c.gyro_bias_std] * 3]
+        n = self.n
+        ekf0 = init_state(torch.as_tensor(fix[:, :3]), torch.as_tensor(fix[:, 3:]),
+                          torch.as_tensor(q0).expand(n, 4), torch.zeros(n, 3), torch.zeros(n, 3),
+                          torch.diag(torch.as_tensor(std0 ** 2)).expand(n, 15, 15))
+        imu_t = [s for s, _ in self._recent["imu"]]
+        dt = float(np.median(np.diff(imu_t))) if len(imu_t) > 2 else 1.0 / c.imu_rate_hz
+        dt = max(dt, 1.0 / c.imu_rate_hz)               # the filter's step after averaging
+        self._q0 = q0
+        field = None
+        if "mag" in self.aiding and self._recent["mag"]:
+            field = rotation(q0) @ np.mean([v for _, v in self._recent["mag"]], axis=0)
+        if "baro" in self.aiding and self._recent["baro"]:
+            self._baro_ref = float(self._recent["baro"][-1][1][0])
+        self._z0 = fix[:, 2].copy()
+        nm = noise_model_for(c, dt, field)
+        self.filter = OnlineFilter(ekf0, nm, dt, t0, c.gps_rate_hz, self.aiding, c.max_gap_s)
+        self.t0 = t0
+        self._fused: dict[float, np.ndarray] = {}
+        self._recent = {k: deque() for k in self._recent}
+
+    def _set_field(self, body: np.ndarray) -> None:
+        from dataclasses import replace
+
+        self.filter.nm = replace(self.filter.nm, mag_field=torch.tensor(rotation(self._q0) @ body,
+                                                                        dtype=torch.float64))
