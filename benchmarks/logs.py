@@ -55,7 +55,8 @@ def main() -> None:
     from quadformer.detectors import make
     from quadformer.logs import read_log
     from quadformer.logs.detect import detect_log
-    from quadformer.logs.replay import ReplayConfig, ekf_rows
+    from quadformer.estimator.online import FilterConfig
+    from quadformer.logs.replay import ekf_rows
     from quadformer.simulation import simulate
 
     t0 = time.perf_counter()
@@ -66,7 +67,7 @@ def main() -> None:
     f = sim.flights
     det = make(args.method).fit(f, f.label.to_numpy())
     det.calibrate(float(np.percentile(det.decision_function(f), 99)))
-    config = ReplayConfig.matching(sim.meta["config"])
+    config = FilterConfig.matching(sim.meta["config"])
 
     results = []
     for name, lg in (("log", log), ("repeated", repeated(log, args.hours)[0])):

@@ -50,7 +50,7 @@ def main() -> None:
     from quadformer.logs import read_log
     from quadformer.logs.detect import detect_log, logs_dataset
     from quadformer.logs.noise import estimate_noise
-    from quadformer.logs.replay import ReplayConfig
+    from quadformer.estimator.online import FilterConfig
     from quadformer.simulation import simulate
 
     set_threads()
@@ -68,7 +68,7 @@ def main() -> None:
         parts = split_flights(sim.scenarios, args.seed).frames(sim.flights)
         trained = {m: tune(m, parts.train, parts.y_train, parts.val, gps_rate_hz=sim.gps_rate_hz).detector
                    for m in methods}
-        replay = ReplayConfig.matching(sim.meta["config"])
+        replay = FilterConfig.matching(sim.meta["config"])
         attack = AttackConfig(kind=kind, fraction=0.5, onset=(3.0, 10.0), **ranges)
         real = logs_dataset(args.logs, "ekf", replay, attack=attack, seed=args.seed, repeat=args.repeat)
         f = real.flights

@@ -174,12 +174,13 @@ def test_replaying_a_simulated_flight_from_a_ros_bag_recovers_the_simulators_res
     simulator's filter produced in the loop (the replay starts at the first fix instead of the
     simulator's initial state, so they agree once both have converged)."""
     from quadformer.config import SimConfig
-    from quadformer.logs.replay import ReplayConfig, ekf_rows
+    from quadformer.estimator.online import FilterConfig
+    from quadformer.logs.replay import ekf_rows
     from quadformer.simulation import simulate_batch
 
     cfg = SimConfig(flights=1, duration=12.0, seed=5)          # the flight the fixture was written from
     sim = simulate_batch(cfg, np.arange(1), np.zeros(1, bool))
-    flight = ekf_rows(read_log(FIX / "sim_flight_ros1.bag"), config=ReplayConfig.matching(cfg.to_dict()))
+    flight = ekf_rows(read_log(FIX / "sim_flight_ros1.bag"), config=FilterConfig.matching(cfg.to_dict()))
     assert flight.sensors == "gps+imu+vio"
     rows = flight.rows
     late = sim["t"] > 4.0

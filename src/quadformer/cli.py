@@ -420,26 +420,26 @@ def _replay_config(sensors: Optional[str], imu_rate: Optional[float], gps_rate: 
     """The replay's filter tuning: EKF2's defaults, the simulation a model was fit on, or a
     simulated dataset's; explicit rates override it."""
     from quadformer.dataset import DatasetError, load_dataset
-    from quadformer.logs.replay import ReplayConfig
+    from quadformer.estimator.online import FilterConfig
 
     over = {k: v for k, v in (("sensors", sensors), ("imu_rate_hz", imu_rate), ("gps_rate_hz", gps_rate),
                               ("min_segment_s", min_segment)) if v is not None}
     try:
         if filter == "ekf2":
-            return ReplayConfig(**over)
+            return FilterConfig(**over)
         if filter == "model":
             sim = getattr(det, "calibration_", {}).get("sim_config") if det is not None else None
             if sim is None:
                 typer.echo("filter: the model does not name the simulation it was fit on; using EKF2's defaults")
-                return ReplayConfig(**over)
-            return ReplayConfig.matching(sim, **over)
+                return FilterConfig(**over)
+            return FilterConfig.matching(sim, **over)
         try:
             ds = load_dataset(filter)
         except DatasetError as e:
             _fail(f"filter: expected ekf2, model or a simulated dataset directory: {e}")
         if "config" not in ds.meta:
             _fail(f"filter: {filter} is not a simulated dataset")
-        return ReplayConfig.matching(ds.meta["config"], **over)
+        return FilterConfig.matching(ds.meta["config"], **over)
     except ValueError as e:
         _fail(str(e))
 

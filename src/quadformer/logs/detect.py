@@ -18,8 +18,8 @@ import pandas as pd
 
 from quadformer.logs import read_log
 from quadformer.logs.flightlog import FlightLog, LogError
-from quadformer.logs.replay import (RESIDUE_SOURCES, LogFlight, ReplayConfig, autopilot_rows, ekf_flights,
-                                    ekf_rows, missing_features)
+from quadformer.estimator.online import FilterConfig
+from quadformer.logs.replay import RESIDUE_SOURCES, LogFlight, autopilot_rows, ekf_flights, ekf_rows, missing_features
 
 MIN_DETECT_S = 1.0   # s, a segment shorter than this is not scored
 
@@ -41,7 +41,7 @@ class LogDetection:
     notes: list[str] = field(default_factory=list)   # what the replay did, segments skipped and why
 
 
-def log_rows(log: FlightLog, residues: str = "ekf", config: ReplayConfig = ReplayConfig(),
+def log_rows(log: FlightLog, residues: str = "ekf", config: FilterConfig = FilterConfig(),
              attacks: dict[int, Any] | None = None) -> tuple[list[LogFlight], list[str]]:
     """Every usable segment of ``log`` as rows; (flights, notes on the segments skipped).
     ``attacks``: segment index -> one-flight ``AttackBatch`` to inject (``ekf`` only)."""
@@ -70,7 +70,7 @@ def log_rows(log: FlightLog, residues: str = "ekf", config: ReplayConfig = Repla
 
 
 def detect_log(log: FlightLog | str | Path, detector, residues: str = "ekf",
-               config: ReplayConfig = ReplayConfig(), format: str | None = None) -> LogDetection:
+               config: FilterConfig = FilterConfig(), format: str | None = None) -> LogDetection:
     """Scores, alarms and alerts of a calibrated ``detector`` on every segment of ``log``."""
     from quadformer.detectors import alerts_from_scores
 
@@ -96,7 +96,7 @@ def detect_log(log: FlightLog | str | Path, detector, residues: str = "ekf",
     return LogDetection(log, residues, rows, scores, alarms, alerts, flights[0].sensors, detector, notes)
 
 
-def logs_dataset(paths: list[Path], residues: str = "ekf", config: ReplayConfig = ReplayConfig(),
+def logs_dataset(paths: list[Path], residues: str = "ekf", config: FilterConfig = FilterConfig(),
                  attack=None, seed: int = 0, format: str | None = None, repeat: int = 1,
                  progress=None):
     """A dataset of the segments of ``paths`` (each replayed ``repeat`` times): one flight

@@ -36,10 +36,6 @@ from quadformer.estimator.online import FilterConfig, GapError, ResidueStream, s
 from quadformer.estimator.schema import GROUPS, RESIDUES
 from quadformer.logs.flightlog import FlightLog, LogError
 
-#: how a log is replayed: the filter's configuration for real vehicles, plus the shortest
-#: segment worth replaying
-ReplayConfig = FilterConfig
-
 RESIDUE_SOURCES = ("ekf", "autopilot")
 
 
@@ -95,7 +91,7 @@ def _interp(t_new: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack([np.interp(t_new, t, v[:, i]) for i in range(v.shape[1])], axis=1)
 
 
-def _sensors_of(log: FlightLog, config: ReplayConfig) -> str:
+def _sensors_of(log: FlightLog, config: FilterConfig) -> str:
     have = ["gps", "imu"]
     if log.odometry is not None:
         have.append("vio")
@@ -183,14 +179,14 @@ def autopilot_rows(log: FlightLog, seg: int = 0) -> pd.DataFrame:
 
 
 # --------------------------------------------------------------------------- ekf
-def ekf_rows(log: FlightLog, seg: int = 0, config: ReplayConfig = ReplayConfig(),
+def ekf_rows(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfig(),
              attack=None) -> LogFlight:
     """Replay the project's filter over segment ``seg`` of ``log``. ``attack``: an
     ``attacks.AttackBatch`` of one flight whose times count from the segment's first fix."""
     return ekf_flights(log, seg, config, [attack])[0]
 
 
-def ekf_flights(log: FlightLog, seg: int = 0, config: ReplayConfig = ReplayConfig(),
+def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfig(),
                 attacks: list = (None,)) -> list[LogFlight]:
     """``ekf_rows`` for several injections into the same segment (None: none), replayed
     together as one batch of flights sharing the log's timestamps: the segment's samples go,
