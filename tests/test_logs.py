@@ -20,7 +20,7 @@ from pyulog import ULog
 
 from quadformer.logs import (STREAMS, FlightLog, LogError, RosTopics, detect_format, read_dataflash,
                              read_log, read_rosbag, read_ulog)
-from quadformer.logs import frames
+from quadformer.geometry import frames
 from quadformer.logs._series import interp_linear
 from quadformer.logs.flightlog import assemble, clean_stream, find_segments, make_stream
 

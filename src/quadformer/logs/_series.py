@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from quadformer.logs.frames import quat_normalize
+from quadformer.geometry.frames import quat_normalize
 
 
 def relative_ticks(stamps: np.ndarray, start: int) -> np.ndarray:

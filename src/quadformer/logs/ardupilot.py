@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 from pymavlink import DFReader
 
-from quadformer.logs import frames
+from quadformer.geometry import frames
 from quadformer.logs._series import (first_fix, interp_linear, median_period, nearest_index,
                                      step_lookup, take)
 from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, LogError, assemble, make_stream

@@ -66,7 +66,7 @@ import numpy as np
 import pandas as pd
 from pyulog import ULog
 
-from quadformer.logs import frames
+from quadformer.geometry import frames
 from quadformer.logs._series import (first_fix, interp_linear, median_period, nearest_index,
                                      quat_interp, relative_seconds, relative_ticks, row_max,
                                      step_lookup, take)

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from quadformer.logs import frames
+from quadformer.geometry import frames
 from quadformer.logs._series import first_fix, median_period, nearest_index, take
 from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, LogError, assemble, make_stream
 

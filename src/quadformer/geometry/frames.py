@@ -1,7 +1,7 @@
-"""Frame and unit conversions applied once, at the reader's edge.
+"""Frame and unit conversions applied once, at the edge of every source (logs, live links).
 
 Conventions (ROS REP-103): the world frame is ENU (x east, y north, z up), the body
-frame is FLU (x forward, y left, z up), units are SI. PX4 and ArduPilot log in NED
+frame is FLU (x forward, y left, z up), units are SI. PX4 and ArduPilot log and stream NED
 (x north, y east, z down) and FRD (x forward, y right, z down):
 
     ENU <- NED:  (x, y, z)_enu = (y, x, -z)_ned     (a proper rotation, 180 deg about (1, 1, 0)/sqrt 2)
