@@ -493,8 +493,8 @@ def detect(
     from quadformer.detectors import alerts_frame
     from quadformer.io import atomic_dir, atomic_path, set_threads, write_json
     from quadformer.logs import LogError
-    from quadformer.logs.detect import DetectorInputError, detect_log
-    from quadformer.report.logs import write_log_report
+    from quadformer.logs.detect import DetectorInputError, NothingToScore, detect_log
+    from quadformer.report.logs import write_log_report, write_unscored_report
 
     det = _load_model(model, runtime)
     if getattr(det, "threshold_", None) is None:
@@ -508,7 +508,7 @@ def detect(
     if not quiet and len(paths) > 1:
         from tqdm.auto import tqdm
         bar = tqdm(total=len(paths), unit="log", desc="detect")
-    summary, all_alerts, failed = [], [], []
+    summary, all_alerts, failed, skipped = [], [], [], []
     used: set[str] = set()
     for path in paths:
         name = path.name
@@ -517,6 +517,16 @@ def detect(
         used.add(name)
         try:
             res = detect_log(path, det, residues, config, format=format)
+        except NothingToScore as e:                      # readable, but no GPS or too short: say so
+            with atomic_dir(out / name, overwrite=True) as tmp:
+                write_unscored_report(e.log, str(e), tmp)
+                write_json(tmp / "summary.json", {"log": str(path), "format": e.log.source, "scored": False,
+                                                  "reason": str(e), "notes": e.log.notes})
+            skipped.append(path)
+            typer.echo(f"{path}: nothing scored: {e}")
+            if bar is not None:
+                bar.update(1)
+            continue
         except (LogError, DetectorInputError, ValueError) as e:
             failed.append((path, str(e)))
             typer.secho(f"{path}: {e}", fg=typer.colors.RED, err=True)
@@ -556,6 +566,8 @@ def detect(
             pd.concat(all_alerts, ignore_index=True).to_csv(tmp, index=False)
         typer.echo(f"wrote {out.resolve()}: a folder per log (report.html, scores.csv, alerts.csv, summary.json), "
                    "summary.csv and alerts.csv")
+    if skipped:
+        typer.echo(f"{len(skipped)} of {len(paths)} log(s) had nothing to score (their report says why)")
     if failed:
         typer.secho(f"{len(failed)} of {len(paths)} log(s) could not be processed", fg=typer.colors.RED, err=True)
         raise typer.Exit(2 if len(failed) == len(paths) else 1)
@@ -607,6 +619,9 @@ def logs_import(
     axes: Optional[str] = typer.Option(None, help="Fixed attacked axes, e.g. 'x' or 'xy'."),
     seed: int = typer.Option(0, help="Seed of which flights are attacked and of the attacks' parameters."),
     repeat: int = typer.Option(1, help="Replay each log segment this many times (each with its own injection)."),
+    group: bool = typer.Option(True, help="Keep the replays of one recording together in the benchmark's split "
+                               "(--no-group: split them like independent flights; optimistic, for a fleet of "
+                               "too few logs to split by recording)."),
     format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot or ros."),
     sensors: Optional[str] = typer.Option(None, help="Sensors the replayed filter fuses (default: all the log has)."),
     filter: str = typer.Option("ekf2", help=_FILTER_HELP),
@@ -643,7 +658,8 @@ def logs_import(
     paths = _log_paths(logs, format)
     set_threads(1)
     try:
-        ds = logs_dataset(paths, residues, config, attack=attack, seed=seed, format=format, repeat=repeat)
+        ds = logs_dataset(paths, residues, config, attack=attack, seed=seed, format=format, repeat=repeat,
+                          group=group)
     except (LogError, ValueError) as e:
         _fail(str(e))
     write_dataset(ds, out, overwrite=overwrite)

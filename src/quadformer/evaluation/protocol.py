@@ -63,6 +63,10 @@ def split_flights(scenarios: pd.DataFrame, seed: int, fractions=(0.6, 0.2, 0.2),
         members = scenarios.groupby("group", sort=True)["flight_id"].apply(lambda v: np.sort(v.to_numpy()))
         units = pd.DataFrame({"flight_id": np.arange(len(keys)), "attacked": keys.to_numpy()})
         sp = split_flights(units, seed, fractions, label_fraction)
+        if not (len(sp.train) and len(sp.val) and len(sp.test)):
+            raise ValueError(f"{len(units)} recording(s) ({int(units.attacked.sum())} with an attack) cannot be split "
+                             "into training, validation and test by recording: import more logs, or import with "
+                             "--no-group to split their replays like flights (optimistic)")
         expand = lambda idx: np.sort(np.concatenate([members.iloc[i] for i in idx] or [np.zeros(0, int)]))  # noqa: E731
         return Split(*(expand(getattr(sp, k)).astype(int) for k in ("train", "val", "test", "labelled")))
     parts: dict[str, list] = {"train": [], "val": [], "test": [], "labelled": []}

@@ -28,6 +28,14 @@ class DetectorInputError(ValueError):
     """A detector that needs residue columns a log's residues do not provide."""
 
 
+class NothingToScore(LogError):
+    """A readable log with nothing to score (no GPS, too short a segment): ``log`` holds it."""
+
+    def __init__(self, message: str, log: FlightLog):
+        super().__init__(message)
+        self.log = log
+
+
 @dataclass
 class LogDetection:
     log: FlightLog
@@ -78,7 +86,10 @@ def detect_log(log: FlightLog | str | Path, detector, residues: str = "ekf",
         log = read_log(log, format=format)
     if getattr(detector, "threshold_", None) is None:
         raise ValueError(f"{detector.name}: no alarm threshold; use a model written by `quadformer fit`")
-    flights, notes = log_rows(log, residues, config)
+    try:
+        flights, notes = log_rows(log, residues, config)
+    except LogError as e:
+        raise NothingToScore(str(e), log) from None
     rows = pd.concat([f.rows for f in flights], ignore_index=True)
     lacking = missing_features(detector.features_, rows.columns)
     if lacking:
@@ -98,10 +109,12 @@ def detect_log(log: FlightLog | str | Path, detector, residues: str = "ekf",
 
 def logs_dataset(paths: list[Path], residues: str = "ekf", config: FilterConfig = FilterConfig(),
                  attack=None, seed: int = 0, format: str | None = None, repeat: int = 1,
-                 progress=None):
+                 progress=None, group: bool = True):
     """A dataset of the segments of ``paths`` (each replayed ``repeat`` times): one flight
     per segment and repetition, the repetitions of a segment in one ``group`` (the split keeps
-    a group together). ``attack``: an ``AttackConfig`` injected on its ``fraction``
+    a group together; ``group=False`` leaves the groups out, so the split treats every replay as
+    a flight of its own, which puts replays of one recording in training and test: for small
+    fleets only, and optimistic). ``attack``: an ``AttackConfig`` injected on its ``fraction``
     of the flights (which flights, and each attack's parameters, drawn from ``seed`` as in
     the simulator); onsets are drawn within each flight (``onset`` clipped to its first
     half). Returns (dataset, per-log notes)."""
@@ -152,7 +165,7 @@ def logs_dataset(paths: list[Path], residues: str = "ekf", config: FilterConfig 
             batch = batches[k]
             rows = f.rows.assign(flight_id=np.int32(fid))
             frames.append(rows)
-            row = {"flight_id": fid, "group": f"{paths[li]}#{seg}",
+            row = {"flight_id": fid, **({"group": f"{paths[li]}#{seg}"} if group else {}),
                    "attacked": bool(batch is not None and rows.label.any()),
                    "attack_type": kind if batch is not None else "none", "log": str(paths[li]), "segment": seg,
                    "repeat": k - start, "duration": float(rows.t.iloc[-1] - rows.t.iloc[0]), "sensors": f.sensors}
@@ -169,6 +182,6 @@ def logs_dataset(paths: list[Path], residues: str = "ekf", config: FilterConfig 
     scenarios = pd.DataFrame(scen)
     meta = {"format_version": 2, "source": "logs", "logs": [str(p) for p in paths], "residues": residues,
             "replay": dataclasses.asdict(config), "gps_rate_hz": config.gps_rate_hz, "seed": seed,
-            "repeat": repeat, "attack": None if attack is None else dataclasses.asdict(attack),
+            "repeat": repeat, "grouped": group, "attack": None if attack is None else dataclasses.asdict(attack),
             "notes": notes, "versions": package_versions(), "summary": summarize(flights, scenarios)}
     return Dataset(flights, scenarios, meta)

@@ -94,26 +94,44 @@ def _spans(t: np.ndarray, mask: np.ndarray) -> list[tuple[float, float]]:
     return [(float(t[s]), float(t[e - 1])) for s, e in runs(mask)]
 
 
+def _log_info(log) -> dict[str, Any]:
+    return {"log": str(log.path), "format": log.source,
+            "vehicle": ", ".join(f"{k} {v}" for k, v in log.vehicle.items()),
+            "duration (s)": f"{log.duration:.1f}", "segments": len(log.segments),
+            "streams": ", ".join(log.streams), "origin": f"{log.origin} ({log.origin_source})"}
+
+
+def _info_table(info: dict[str, Any]) -> str:
+    return table(pd.DataFrame({"": list(info), "value": [str(v) for v in info.values()]}), index=False)
+
+
+def _notes(notes: list[str]) -> str:
+    return ("<h2>What the reader and the replay did</h2><ul>"
+            + "".join(f"<li>{html.escape(n)}</li>" for n in notes) + "</ul>")
+
+
+def write_unscored_report(log, reason: str, out: Path) -> Path:
+    """report.html of a readable log with nothing to score, saying why."""
+    parts = [f"<h1>quadformer detect: {html.escape(log.path.name)}</h1>", _info_table(_log_info(log)),
+             f"<h2>Nothing scored</h2><p>{html.escape(reason)}</p>", _notes(log.notes)]
+    atomic_write_text(Path(out) / "report.html", page(f"quadformer detect {log.path.name}", parts, width_px=1000))
+    return Path(out) / "report.html"
+
+
 def write_log_report(det, out: Path, model: str) -> Path:
     """report.html of one log's detection (``logs.detect.LogDetection``) into ``out``."""
     out = Path(out)
     log = det.log
     info: dict[str, Any] = {
-        "log": str(log.path), "format": log.source, "vehicle": ", ".join(f"{k} {v}" for k, v in log.vehicle.items()),
-        "duration (s)": f"{log.duration:.1f}", "segments": len(log.segments),
-        "streams": ", ".join(log.streams), "origin": f"{log.origin} ({log.origin_source})",
-        "residues": det.residues, "sensors fused": det.sensors, "detector": f"{det.detector.name} ({model})",
+        **_log_info(log), "residues": det.residues, "sensors fused": det.sensors, "detector": f"{det.detector.name} ({model})",
         "threshold": f"{det.detector.threshold_:.4g}", "GPS steps scored": len(det.rows),
         "steps under alarm": int(np.sum(det.alarms)), "alerts": len(det.alerts),
     }
-    parts = [f"<h1>quadformer detect: {html.escape(log.path.name)}</h1>",
-             table(pd.DataFrame({"": list(info), "value": [str(v) for v in info.values()]}), index=False)]
+    parts = [f"<h1>quadformer detect: {html.escape(log.path.name)}</h1>", _info_table(info)]
     parts.append("<h2>Alerts</h2>" + (table(alerts_frame(det.alerts), ".3g", index=False) if det.alerts
                                       else "<p>none</p>"))
     for key, b64 in _figures(det).items():
         parts.append(f"<h2>{html.escape(key.replace('_', ' '))}</h2>{img(b64)}")
-    notes = [*log.notes, *det.notes]
-    parts.append("<h2>What the reader and the replay did</h2><ul>"
-                 + "".join(f"<li>{html.escape(n)}</li>" for n in notes) + "</ul>")
+    parts.append(_notes([*log.notes, *det.notes]))
     atomic_write_text(out / "report.html", page(f"quadformer detect {log.path.name}", parts, width_px=1000))
     return out / "report.html"
