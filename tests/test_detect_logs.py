@@ -246,3 +246,13 @@ def test_logs_import_injects_labelled_spoofs_the_residues_see(models, tmp_path):
     assert res.exit_code == 0, res.output
     r = json.loads((out / "results.json").read_text())
     assert r["metrics"]["event_recall"] > 0.5
+
+
+def test_a_log_without_gps_gets_a_report_saying_why(models, tmp_path):
+    out = tmp_path / "det"
+    res = runner.invoke(app, ["detect", str(FIX / "sample.ulg"), "--model", str(models["chi2"]), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "nothing scored" in res.output and "no GPS samples" in res.output
+    s = json.loads((out / "sample.ulg" / "summary.json").read_text())
+    assert s["scored"] is False and "no GPS" in s["reason"]
+    assert "Nothing scored" in (out / "sample.ulg" / "report.html").read_text()
