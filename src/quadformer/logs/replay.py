@@ -277,8 +277,8 @@ def _inject(attack, tau: np.ndarray, pos: np.ndarray, vel: np.ndarray, rate_hz: 
     label = np.zeros(n, dtype=bool)
     d_pos = np.zeros((n, 3))
     for j in range(n):
-        p, v, active, d, _ = attack.apply(float(tau[j]), j, torch.as_tensor(pos[j:j + 1]),
-                                          torch.as_tensor(vel[j:j + 1]), history, rate_hz)
+        p, v, active, d, _ = attack.apply(float(tau[j]), j, torch.tensor(pos[j:j + 1]),
+                                          torch.tensor(vel[j:j + 1]), history, rate_hz)
         out_p[j], out_v[j] = p[0].numpy(), v[0].numpy()
         label[j], d_pos[j] = bool(active[0]), d[0]
     return out_p, out_v, label, d_pos
