@@ -357,7 +357,15 @@ class Monitor:
                     reason = "max-messages"
                     break
                 self._tick(now)
-                msg = self.conn.recv_match(blocking=True, timeout=min(c.recv_timeout_s, max(deadline - now, 1e-3)))
+                try:
+                    msg = self.conn.recv_match(blocking=True,
+                                               timeout=min(c.recv_timeout_s, max(deadline - now, 1e-3)))
+                except (OSError, ValueError) as e:     # a serial device unplugged, a socket error: wait, retry
+                    self.dropped["link_errors"] += 1
+                    if self.dropped["link_errors"] in (1, 10, 100, 1000):
+                        self._note(f"link: {type(e).__name__}: {e}")
+                    time.sleep(c.recv_timeout_s)
+                    continue
                 if msg is not None:
                     self.process(msg)
         except KeyboardInterrupt:
@@ -431,6 +439,8 @@ class Monitor:
                 return
             if self.vehicle is None:
                 self.vehicle = src[0]
+                if self.link is not None:
+                    self.link.target = src
                 self._note(f"vehicle: following system {src[0]} (the first to send sensor data)")
             elif src[0] != self.vehicle:
                 self.dropped["other_system"] += 1
