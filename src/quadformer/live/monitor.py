@@ -268,7 +268,6 @@ class Monitor:
         self.link: VehicleLink | None = None
         self.records: Records | None = None
         self._stop = threading.Event()
-        self._opened = threading.Event()
         # state
         self.segment: _Segment | None = None
         self.n_segments = 0
@@ -316,6 +315,8 @@ class Monitor:
             c = self.config
             self.conn = open_link(c.connect, c.source_system, c.source_component)
             self.link = VehicleLink(self.conn, self.echo, statustext=c.statustext)
+            if c.system is not None:
+                self.link.target = (c.system, 1)          # the autopilot component, until its heartbeat
             self.records = Records(c.out)
             self._started = time.monotonic()
             self.link.heartbeat()
@@ -324,16 +325,12 @@ class Monitor:
             self.echo(f"monitor: listening on {c.connect}" + (f" ({addr[0]}:{addr[1]})" if addr else "")
                       + f"; detector {self.detector.name} (threshold {self.detector.threshold_:.4g}), "
                         f"filter fuses {self.sensors}")
-            self._opened.set()
         return self
 
     @property
     def address(self) -> tuple[str, int] | None:
         """The (host, port) the connection is bound to (an ephemeral port of udpin:HOST:0)."""
         return local_address(self.conn) if self.conn is not None else None
-
-    def wait_open(self, timeout: float = 10.0) -> bool:
-        return self._opened.wait(timeout)
 
     def stop(self) -> None:
         """Ask ``run`` to return (from any thread); it finishes the message in hand first."""
