@@ -9,9 +9,10 @@ Two levels:
   a real vehicle needs around the filter, the same for every source: the IMU averaged down to
   ``FilterConfig.imu_rate_hz`` (as PX4 EKF2 predicts at 100 Hz), fixes fused at most at
   ``gps_rate_hz``, each fix's noise from the receiver's own accuracy, a missing GPS velocity
-  from the change of position, and the start: at the first fix, from the latest attitude of
-  the autopilot (or the accelerometer's tilt), the magnetic field of the last second, the
-  barometer's offset. Everything is causal: a row depends on samples up to its fix.
+  from the change of position (with the std of that difference), and the start: at the first
+  fix, from the latest attitude of the autopilot (or the accelerometer's tilt), the magnetic
+  field of the last second, the barometer's offset. Everything is causal: a row depends on
+  samples up to its fix.
 
 ``OnlineFilter`` holds the state of the same error-state EKF as the closed loop (``predict``,
 the aiding updates, ``gps_update``, ``ResidueTracker``) for a batch of flights that share
@@ -51,6 +52,10 @@ from quadformer.estimator.residues import ResidueTracker
 
 AIDING = ("vio", "mag", "baro")     # applied in this order, then GPS
 EPS = 1e-9                           # s, stamps this close count as simultaneous
+
+#: the order in which a source calls ``ResidueStream`` for samples with equal stamps (the log
+#: replay sorts its events by (stamp, this order); a live link's sender streams in it)
+CALL_ORDER = ("attitude", "mag", "baro", "vio", "gps", "imu")
 
 
 class StreamError(ValueError):
@@ -233,9 +238,10 @@ class ResidueStream:
     """Raw samples of ``n`` flights that share timestamps in, residue rows out.
 
     Call the sample methods in time order per stream (streams may interleave freely within a
-    few IMU steps). ``imu`` returns the rows of the fixes it let the filter apply, each a dict
-    with ``t``, the fix as fused (``gps_pos``, ``gps_vel``), ``est_pos``, ``est_vel`` and the
-    residue groups, values (n, k). ``flush`` ends the stream (the last IMU bin)."""
+    few IMU steps; samples with equal stamps in ``CALL_ORDER``, as the log replay does).
+    ``imu`` returns the rows of the fixes it let the filter apply, each a dict with ``t``, the
+    fix as fused (``gps_pos``, ``gps_vel``), ``est_pos``, ``est_vel`` and the residue groups,
+    values (n, k). ``flush`` ends the stream (the last IMU bin)."""
 
     INIT_WINDOW = 1.0     # s before the first fix from which the start's attitude, tilt and field come
 
@@ -279,29 +285,40 @@ class ResidueStream:
     def gps(self, t: float, pos: np.ndarray, vel: np.ndarray, eph: float = math.nan, epv: float = math.nan,
             speed_acc: float = math.nan) -> None:
         """A fix: ENU position (n, 3) about the local origin and ENU velocity (n, 3; NaN where
-        the receiver gives none), with the receiver's accuracies (m, m, m/s; NaN: none)."""
+        the receiver gives none), with the receiver's accuracies (m, m, m/s; NaN: none). A
+        missing velocity component is the change of position since the previous fused fix, with
+        the std of that difference (both fixes' position std over the interval) when larger
+        than the velocity floor; at the first fix it is 0 (the start's velocity uncertainty)."""
         pos = np.broadcast_to(np.asarray(pos, dtype=float), (self.n, 3))
         vel = np.array(np.broadcast_to(np.asarray(vel, dtype=float), (self.n, 3)))
         if self._last_fix is not None and not spaced(t - self._last_fix[0], self.config.gps_rate_hz):
             return                                         # at most gps_rate_hz fixes per second
-        bad = ~np.isfinite(vel)
-        if bad.any():                                      # velocity from the change of position
-            if self._last_fix is None:
-                vel[bad] = 0.0
-            else:
-                vel[bad] = ((pos - self._last_fix[1]) / (t - self._last_fix[0]))[bad]
-        self._last_fix = (t, pos.copy())
         c = self.config
         use = c.receiver_accuracy
         acc = lambda v: v if use and math.isfinite(v) else 0.0   # noqa: E731
         std = np.array([max(acc(eph), c.gps_pos_noise)] * 2 + [max(acc(epv), c.gps_alt_noise)]
                        + [max(acc(speed_acc), c.gps_vel_noise)] * 3)
+        bad = ~np.isfinite(vel)
+        std_n = None
+        if bad.any():                                      # velocity from the change of position
+            if self._last_fix is None:
+                vel[bad] = 0.0
+            else:
+                t1, pos1, std1 = self._last_fix
+                vel[bad] = ((pos - pos1) / (t - t1))[bad]
+                # the difference of two fixes carries both fixes' position noise: its std, not the
+                # velocity floor (a receiver without vertical velocity, e.g. MAVLink GPS_RAW_INT)
+                derived = np.hypot(std1[:3], std[:3]) / (t - t1)
+                std_n = np.array(np.broadcast_to(std, (self.n, 6)))
+                std_n[:, 3:] = np.where(bad, np.maximum(std_n[:, 3:], derived), std_n[:, 3:])
+        self._last_fix = (t, pos.copy(), std)
         fix = np.concatenate([pos, vel], axis=1)
         if self.filter is None:
             self._start(t, fix, std)
         else:
             self._fused[t] = fix
-            self.filter.push("gps", t, torch.as_tensor(fix), torch.as_tensor(std).expand(self.n, 6))
+            self.filter.push("gps", t, torch.as_tensor(fix),
+                             torch.as_tensor(std).expand(self.n, 6) if std_n is None else torch.as_tensor(std_n))
 
     def mag(self, t: float, x: np.ndarray) -> None:
         """Magnetic field (n, 3) or (3,), gauss, FLU."""

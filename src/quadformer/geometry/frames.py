@@ -23,10 +23,10 @@ from __future__ import annotations
 import numpy as np
 import pymap3d
 
-__all__ = ["ENU_FROM_NED", "FLU_FROM_FRD", "Q_ENU_NED", "Q_FRD_FLU", "euler_to_quat", "frd_to_flu",
-           "geodetic_to_enu", "ned_to_enu", "ned_var_to_enu", "quat_multiply",
-           "quat_ned_frd_to_enu_flu", "quat_normalize", "quat_rotate", "quat_to_matrix",
-           "wxyz_to_xyzw"]
+__all__ = ["ENU_FROM_NED", "FLU_FROM_FRD", "Q_ENU_NED", "Q_FRD_FLU", "enu_to_geodetic", "euler_to_quat",
+           "frd_to_flu", "geodetic_to_enu", "ned_to_enu", "ned_var_to_enu", "quat_multiply",
+           "quat_ned_frd_to_enu_flu", "quat_normalize", "quat_rotate", "quat_to_euler", "quat_to_matrix",
+           "wxyz_to_xyzw", "xyzw_to_wxyz"]
 
 ENU_FROM_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 FLU_FROM_FRD = np.diag([1.0, -1.0, -1.0])
@@ -57,6 +57,12 @@ def wxyz_to_xyzw(q: np.ndarray) -> np.ndarray:
     """Reorder quaternions (..., 4) from (w, x, y, z) to (x, y, z, w)."""
     q = np.asarray(q, dtype=float)
     return np.concatenate([q[..., 1:4], q[..., 0:1]], axis=-1)
+
+
+def xyzw_to_wxyz(q: np.ndarray) -> np.ndarray:
+    """Reorder quaternions (..., 4) from (x, y, z, w) to (w, x, y, z) (MAVLink's order)."""
+    q = np.asarray(q, dtype=float)
+    return np.concatenate([q[..., 3:4], q[..., 0:3]], axis=-1)
 
 
 def quat_normalize(q: np.ndarray) -> np.ndarray:
@@ -96,7 +102,8 @@ def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def quat_ned_frd_to_enu_flu(q: np.ndarray) -> np.ndarray:
-    """Attitude (x, y, z, w) body FRD -> world NED  ->  body FLU -> world ENU."""
+    """Attitude (x, y, z, w) body FRD -> world NED  ->  body FLU -> world ENU. Both frame
+    changes are 180 deg rotations, so the same map takes ENU/FLU back to NED/FRD."""
     q = quat_multiply(quat_multiply(Q_ENU_NED, q), Q_FRD_FLU)
     # keep w >= 0 so that equal rotations compare equal
     return quat_normalize(np.where(q[..., 3:4] < 0, -q, q))
@@ -113,6 +120,17 @@ def euler_to_quat(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.nd
                      cr * cp * cy + sr * sp * sy], axis=-1)
 
 
+def quat_to_euler(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Z-Y-X Euler angles (roll, pitch, yaw; rad) of unit (x, y, z, w) quaternions, the inverse
+    of ``euler_to_quat`` (pitch in [-pi/2, pi/2], roll and yaw in [-pi, pi])."""
+    q = np.asarray(q, dtype=float)
+    x, y, z, w = (q[..., i] for i in range(4))
+    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
+    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
 def geodetic_to_enu(lat: np.ndarray, lon: np.ndarray, alt: np.ndarray,
                     origin: tuple[float, float, float]) -> np.ndarray:
     """WGS84 latitude/longitude (deg) and altitude (m) -> ENU (..., 3) metres about origin."""
@@ -120,3 +138,12 @@ def geodetic_to_enu(lat: np.ndarray, lon: np.ndarray, alt: np.ndarray,
     e, n, u = pymap3d.geodetic2enu(lat, lon, alt, float(origin[0]), float(origin[1]),
                                    float(origin[2]), deg=True)
     return np.stack(np.broadcast_arrays(e, n, u), axis=-1).astype(float)
+
+
+def enu_to_geodetic(enu: np.ndarray, origin: tuple[float, float, float]) -> np.ndarray:
+    """ENU (..., 3) metres about origin -> (..., 3) WGS84 latitude, longitude (deg), altitude (m);
+    the inverse of ``geodetic_to_enu``."""
+    enu = np.asarray(enu, dtype=float)
+    lat, lon, alt = pymap3d.enu2geodetic(enu[..., 0], enu[..., 1], enu[..., 2], float(origin[0]),
+                                         float(origin[1]), float(origin[2]), deg=True)
+    return np.stack(np.broadcast_arrays(lat, lon, alt), axis=-1).astype(float)

@@ -32,7 +32,7 @@ import numpy as np
 import pandas as pd
 
 from quadformer.config import SENSOR_NAMES
-from quadformer.estimator.online import FilterConfig, GapError, ResidueStream, spaced
+from quadformer.estimator.online import CALL_ORDER, FilterConfig, GapError, ResidueStream, spaced
 from quadformer.estimator.schema import GROUPS, RESIDUES
 from quadformer.logs.flightlog import FlightLog, LogError
 
@@ -217,21 +217,22 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
     acc = gps[["eph", "epv", "speed_acc"]].to_numpy()
     events: list[tuple[float, int, Any]] = []          # (time, order on ties, call)
     add = events.extend
+    rank = {name: i for i, name in enumerate(CALL_ORDER)}
     if part.attitude is not None:
         q = part.attitude[["qx", "qy", "qz", "qw"]].to_numpy()
-        add((t, 0, (stream.attitude, (q[i],))) for i, t in enumerate(part.attitude["t"].to_numpy()))
+        add((t, rank["attitude"], (stream.attitude, (q[i],))) for i, t in enumerate(part.attitude["t"].to_numpy()))
     if "mag" in sensors:
         m = part.mag[["mx", "my", "mz"]].to_numpy()
-        add((t, 1, (stream.mag, (m[i],))) for i, t in enumerate(part.mag["t"].to_numpy()))
+        add((t, rank["mag"], (stream.mag, (m[i],))) for i, t in enumerate(part.mag["t"].to_numpy()))
     if "baro" in sensors:
         b = part.baro["alt"].to_numpy()
-        add((t, 2, (stream.baro, (b[i],))) for i, t in enumerate(part.baro["t"].to_numpy()))
+        add((t, rank["baro"], (stream.baro, (b[i],))) for i, t in enumerate(part.baro["t"].to_numpy()))
     if "vio" in sensors:
         o = part.odometry[["vx", "vy", "vz", "qx", "qy", "qz", "qw"]].to_numpy()
-        add((t, 3, (stream.vio, (o[i],))) for i, t in enumerate(part.odometry["t"].to_numpy()))
-    add((t, 4, (stream.gps, (P[i], V[i], *acc[i]))) for i, t in enumerate(gt))
+        add((t, rank["vio"], (stream.vio, (o[i],))) for i, t in enumerate(part.odometry["t"].to_numpy()))
+    add((t, rank["gps"], (stream.gps, (P[i], V[i], *acc[i]))) for i, t in enumerate(gt))
     x = imu[["ax", "ay", "az", "gx", "gy", "gz"]].to_numpy()
-    add((t, 5, (stream.imu, (x[i],))) for i, t in enumerate(imu["t"].to_numpy()))
+    add((t, rank["imu"], (stream.imu, (x[i],))) for i, t in enumerate(imu["t"].to_numpy()))
     events.sort(key=lambda e: (e[0], e[1]))
     out: list[dict[str, Any]] = []
     try:

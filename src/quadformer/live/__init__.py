@@ -1,0 +1,8 @@
+"""A source of flights: a live MAVLink link.
+
+MAVLink messages of a vehicle are decoded into timestamped samples (``mavlink``), fed, one
+message at a time, to the very ``estimator.online.ResidueStream`` the log replay drives, and
+each residue row is scored by the detector's online stream, as ``quadformer detect`` does
+offline; alarms drive the resilient GPS admission rule and its actions (``monitor``). A test
+sender streams recorded or simulated sensors as MAVLink over UDP (``sender``).
+"""

@@ -1,0 +1,362 @@
+"""The live MAVLink monitor: decoding, equivalence with offline detection on the same encoded
+data, robustness to a bad link, vehicle actions, and the CLI. Real pymavlink peers on
+127.0.0.1 with ephemeral ports; every loop and wait is bounded; fixed seeds."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+import threading
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from logs_support import FIX, time_limit
+from typer.testing import CliRunner
+
+from quadformer.cli import app
+from quadformer.config import AttackConfig, SimConfig
+from quadformer.evaluation.protocol import tune
+from quadformer.estimator.online import FilterConfig
+from quadformer.geometry.frames import euler_to_quat, geodetic_to_enu, quat_ned_frd_to_enu_flu, quat_to_matrix
+from quadformer.live import mavlink as M
+from quadformer.live.monitor import Monitor, MonitorConfig
+from quadformer.live.sender import SenderConfig, VehicleStreams, send
+from quadformer.logs import read_log
+from quadformer.logs.detect import detect_log
+from quadformer.logs.flightlog import assemble, make_stream
+from quadformer.simulation import simulate_batch
+
+EVENTS = FIX / "sample_px4_events.ulg"
+LOCAL = "127.0.0.1"
+SIM = SimConfig(model="I", sensors="gps+imu+mag+baro", flights=1, duration=30.0, seed=4,
+                attack=AttackConfig(kind="bias", onset=(8.0, 9.0), duration=(5.0, 6.0), magnitude=(5.0, 6.0)))
+
+
+# -- helpers ---------------------------------------------------------------------------------
+def roundtrip(msg):
+    """A message as a receiver gets it: packed by one MAVLink instance, parsed by another."""
+    tx = M.mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    rx = M.mavlink2.MAVLink(None)
+    out = rx.parse_buffer(msg.pack(tx))
+    assert out is not None and len(out) == 1
+    return out[0]
+
+
+def run_monitor(detector, streams, sender=SenderConfig(), seconds=60.0, **config):
+    """Stream ``streams`` from a sender to a monitor on 127.0.0.1 (ephemeral port); returns
+    (the monitor's fixes, its summary, the sender's report, its console lines)."""
+    fixes, lines = [], []
+    mon = Monitor(detector, MonitorConfig(connect=f"udpin:{LOCAL}:0", **config), on_fix=fixes.append,
+                  echo=lines.append)
+    mon.open()
+    out = {}
+    thread = threading.Thread(target=lambda: out.update(summary=mon.run()), daemon=True)
+    thread.start()
+    try:
+        with time_limit(seconds):
+            report = send(streams, f"udpout:{LOCAL}:{mon.address[1]}", sender)
+    finally:
+        mon.stop()
+        thread.join(10)
+    assert not thread.is_alive()
+    return fixes, out["summary"], report, lines
+
+
+def reference_log(record, path="live-record"):
+    """The sender's data as encoded, as a FlightLog (what the monitor received), for the
+    offline pipeline: fixes without a 3D fix are not fixes; ENU about the origin the vehicle
+    sent, else the first fix (the monitor's rules)."""
+    gps = record["gps"]
+    gps = gps[gps.fix_type >= 3].reset_index(drop=True)
+    origin = record["origin"] or tuple(gps[["lat", "lon", "alt"]].iloc[0])
+    enu = geodetic_to_enu(gps.lat.to_numpy(), gps.lon.to_numpy(), gps.alt.to_numpy(), origin)
+    cols = {"imu": ["ax", "ay", "az", "gx", "gy", "gz"], "mag": ["mx", "my", "mz"], "baro": ["alt"],
+            "attitude": ["qx", "qy", "qz", "qw"], "odometry": ["x", "y", "z", "vx", "vy", "vz", "qx", "qy", "qz", "qw"]}
+    streams = {name: make_stream(name, record[name].t.to_numpy(), {c: record[name][c].to_numpy() for c in c_})
+               for name, c_ in cols.items() if record[name] is not None}
+    streams["gps"] = make_stream("gps", gps.t.to_numpy(), {
+        "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
+        **{c: gps[c].to_numpy() for c in ("vx", "vy", "vz", "lat", "lon", "alt", "eph", "epv", "speed_acc",
+                                          "fix_type", "satellites")}})
+    notes: list[str] = []
+    log = assemble("arrays", Path(path), streams, notes, origin=origin, origin_source="live")
+    assert len(log.segments) == 1, notes
+    return log
+
+
+# -- fixtures ----------------------------------------------------------------------------------
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """One torch thread, as the CLI runs the monitor (small tensors; two threads on a shared
+    2-core machine double the time), restored afterwards."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def flight():
+    """Simulated flights without a camera, in one batch: flight 0 (a bias attack, its sensors
+    streamed by the tests) and flights 1 to 4 (the detector's training and validation)."""
+    cfg = dataclasses.replace(SIM, flights=5)
+    return simulate_batch(cfg, np.arange(5), np.array([True, True, False, True, False]), record_sensors=True)
+
+
+@pytest.fixture(scope="module")
+def detector(flight):
+    """BHT on the GPS NIS, tuned on flights 1, 2 (train) and 3, 4 (validation)."""
+    n = len(flight["t"])
+
+    def table(ids):
+        return pd.DataFrame({"flight_id": np.repeat(ids, n), "t": np.tile(flight["t"], len(ids)),
+                             "label": flight["label"][ids].reshape(-1).astype(np.int8),
+                             "res_gps_nis": flight["res_gps_nis"][ids, :, 0].reshape(-1)})
+
+    train = table([1, 2])
+    return tune("bht", train, train.label.to_numpy(), table([3, 4])).detector
+
+
+@pytest.fixture(scope="module")
+def sim_streams(flight):
+    return VehicleStreams.from_simulation(flight["sensors"])
+
+
+FILTER = FilterConfig.matching(SIM.to_dict(), sensors="gps+imu+mag")
+
+
+# -- decoding ----------------------------------------------------------------------------------
+def test_highres_imu_frd_to_flu_with_fields_updated():
+    m = roundtrip(M.encode_highres_imu(12.345678, imu=np.array([0.5, -0.25, 9.75, 0.01, -0.02, 0.03]),
+                                       mag=np.array([0.2, -0.05, -0.4]), pressure_alt=123.5))
+    samples = M.decode(m)
+    assert [type(s).__name__ for s in samples] == ["Mag", "Baro", "Imu"]      # CALL_ORDER at equal stamps
+    mag, baro, imu = samples
+    assert imu.t == 12.345678 and imu.source == "HIGHRES_IMU#0"
+    np.testing.assert_allclose(imu.x, [0.5, -0.25, 9.75, 0.01, -0.02, 0.03], rtol=1e-6)   # float32 on the wire
+    assert m.yacc == pytest.approx(0.25) and m.zacc == pytest.approx(-9.75)          # FRD on the wire
+    np.testing.assert_allclose(mag.field, [0.2, -0.05, -0.4], rtol=1e-6)
+    assert baro.alt == 123.5
+    # only the fields marked updated become samples
+    m.fields_updated = M.HIGHRES_MAG
+    assert [type(s).__name__ for s in M.decode(m)] == ["Mag"]
+
+
+@pytest.mark.parametrize("name, t_field, source", [("SCALED_IMU", "time_boot_ms", "SCALED_IMU#0"),
+                                                   ("SCALED_IMU2", "time_boot_ms", "SCALED_IMU#1"),
+                                                   ("SCALED_IMU3", "time_boot_ms", "SCALED_IMU#2"),
+                                                   ("RAW_IMU", "time_usec", "RAW_IMU#0")])
+def test_scaled_and_raw_imu_units(name, t_field, source):
+    """mG, mrad/s, mgauss in FRD (ArduPilot sends RAW_IMU in the same scaling)."""
+    cls = getattr(M.mavlink2, f"MAVLink_{name.lower()}_message")
+    vals = {"xacc": 10, "yacc": -20, "zacc": -1000, "xgyro": 5, "ygyro": -7, "zgyro": 9, "xmag": 200, "ymag": 50,
+            "zmag": -400, "temperature": 2500}
+    if name == "RAW_IMU":
+        vals["id"] = 0
+    vals[t_field] = 2_500_000 if t_field == "time_usec" else 2500
+    mag, imu = M.decode(roundtrip(cls(**{k: vals[k] for k in cls.fieldnames})))
+    assert imu.t == pytest.approx(2.5) and imu.source == source
+    g = 9.80665e-3
+    np.testing.assert_allclose(imu.x, [10 * g, 20 * g, 1000 * g, 5e-3, 7e-3, -9e-3])
+    np.testing.assert_allclose(mag.field, [0.2, -0.05, 0.4])
+    vals.update(xmag=0, ymag=0, zmag=0)                                      # no compass: zeros
+    assert [type(s).__name__ for s in M.decode(roundtrip(cls(**{k: vals[k] for k in cls.fieldnames})))] == ["Imu"]
+
+
+def test_gps_raw_int_units_velocity_accuracies_and_sentinels():
+    m = roundtrip(M.encode_gps_raw_int(3.0, 47.1234567, 8.5432101, 488.123, np.array([3.0, 4.0, -1.0]),
+                                       eph=0.8, epv=1.2, speed_acc=0.25))
+    (g,) = M.decode(m)
+    assert (m.lat, m.lon, m.alt, m.vel) == (471234567, 85432101, 488123, 500)
+    assert g.t == 3.0 and g.instance == 0 and g.fix_type == 3
+    assert (g.lat, g.lon, g.alt) == (471234567 * 1e-7, 85432101 * 1e-7, 488123 * 1e-3)
+    np.testing.assert_allclose(g.vel[:2], [3.0, 4.0], atol=1e-3)             # course over ground from north
+    assert math.isnan(g.vel[2])                                              # no vertical velocity in GPS_RAW_INT
+    assert (g.eph, g.epv, g.speed_acc) == pytest.approx((0.8, 1.2, 0.25))
+    m.h_acc = 0
+    m.cog = M.UINT16_MAX
+    (g,) = M.decode(m)
+    assert math.isnan(g.eph) and np.isnan(g.vel).all()                       # not sent; course unknown while moving
+    m.vel = M.UINT16_MAX
+    assert np.isnan(M.decode(m)[0].vel).all()
+    m.lat = M.INT32_MAX
+    assert M.decode(m) == []
+    m2 = roundtrip(M.encode_gps_raw_int(1.0, 1.0, 2.0, 3.0, np.array([np.nan, np.nan, np.nan]), fix_type=2,
+                                        instance=1))
+    (g2,) = M.decode(m2)
+    assert m2.get_type() == "GPS2_RAW" and g2.instance == 1 and g2.fix_type == 2 and np.isnan(g2.vel).all()
+    assert math.isnan(g2.eph) and math.isnan(g2.speed_acc)
+
+
+def test_attitude_and_odometry_frames():
+    roll, pitch, yaw = 0.1, -0.2, 1.3
+    (a,) = M.decode(roundtrip(M.mavlink2.MAVLink_attitude_message(1500, roll, pitch, yaw, 0, 0, 0)))
+    assert a.t == 1.5
+    np.testing.assert_allclose(a.q, quat_ned_frd_to_enu_flu(euler_to_quat(roll, pitch, yaw)), atol=1e-7)
+    # yaw 0 in NED (nose north) is 90 deg in ENU (x east): the FLU x axis points north
+    (a0,) = M.decode(roundtrip(M.mavlink2.MAVLink_attitude_message(0, 0.0, 0.0, 0.0, 0, 0, 0)))
+    np.testing.assert_allclose(quat_to_matrix(a0.q) @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+    q = np.array([0.1, -0.2, 0.3, 0.9])
+    q /= np.linalg.norm(q)
+    (o,) = M.decode(roundtrip(M.encode_odometry(2.0, np.array([1.0, 2.0, 3.0]), np.array([0.5, -1.0, 0.2]), q)))
+    np.testing.assert_allclose(o.pos, [1, 2, 3], rtol=1e-6)
+    np.testing.assert_allclose(o.vel, [0.5, -1.0, 0.2], atol=1e-6)          # body FRD on the wire, world ENU out
+    np.testing.assert_allclose(o.q, q, atol=1e-6)
+    # ENU world with the velocity in the world frame; an unsupported world frame gives nothing
+    msg = M.mavlink2.MAVLink_odometry_message(1_000_000, 4, 4, 1.0, 2.0, 3.0, [float(q[3]), *map(float, q[:3])],
+                                              0.5, -1.0, 0.2, 0, 0, 0, [math.nan] * 21, [math.nan] * 21, 0, 3, 100)
+    (o2,) = M.decode(roundtrip(msg))
+    np.testing.assert_allclose(o2.vel, [0.5, -1.0, 0.2], rtol=1e-6)
+    msg.frame_id = 20                                                       # LOCAL_FRD: not north-aligned
+    assert M.decode(roundtrip(msg)) == []
+    msg.frame_id, msg.q = 1, [math.nan, 0, 0, 0]
+    assert M.decode(roundtrip(msg)) == []
+
+
+def test_pressure_origin_estimate_and_time():
+    (b,) = M.decode(roundtrip(M.encode_scaled_pressure(4.0, 500.0)))
+    assert b.t == 4.0 and b.alt == pytest.approx(500.0, abs=1e-3)
+    assert M.pressure_altitude(1013.25) == 0.0 and M.pressure_altitude(899.0) == pytest.approx(1000.0, abs=5.0)
+    (o,) = M.decode(roundtrip(M.encode_origin(47.1, 8.5, 400.25)))
+    assert (o.lat, o.lon, o.alt, o.source) == (471000000 * 1e-7, 85000000 * 1e-7, 400.25, "GPS_GLOBAL_ORIGIN")
+    (e,) = M.decode(roundtrip(M.mavlink2.MAVLink_global_position_int_message(7000, 471000000, 85000000, 401000,
+                                                                             1000, 100, -200, 50, 0)))
+    assert e.t == 7.0 and e.kind == "global"
+    np.testing.assert_allclose(e.vel, [-2.0, 1.0, -0.5])                    # NED cm/s -> ENU m/s
+    (lp,) = M.decode(roundtrip(M.mavlink2.MAVLink_local_position_ned_message(8000, 1.0, 2.0, 3.0, 0.1, 0.2, 0.3)))
+    np.testing.assert_allclose(lp.pos, [2.0, 1.0, -3.0], rtol=1e-6)
+    (st,) = M.decode(roundtrip(M.mavlink2.MAVLink_system_time_message(1_700_000_000_000_000, 5000)))
+    assert st.unix_s == 1.7e9 and st.boot_s == 5.0
+    assert M.decode(roundtrip(M.mavlink2.MAVLink_heartbeat_message(2, 12, 0, 0, 4, 3))) == []
+
+
+# -- equivalence with offline detection ----------------------------------------------------------
+def _same_as_offline(detector, fixes, summary, record, config):
+    res = detect_log(reference_log(record), detector, config=config)
+    assert summary["segments"] == 1 and summary["errors"] == 0
+    t = np.array([f.t for f in fixes])
+    scores = np.array([f.score for f in fixes])
+    assert len(fixes) == len(res.rows) > 100
+    np.testing.assert_array_equal(t, res.rows.t.to_numpy())
+    np.testing.assert_allclose(scores, res.scores, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal([f.alarm for f in fixes], res.alarms)
+    live_alerts = [tuple(a.values()) for a in summary["alert_list"]]
+    offline = [(a.flight_id, a.start_s, a.onset_s, a.attack_type, a.score, a.end_s) for a in res.alerts]
+    assert live_alerts == offline
+    return res
+
+
+def test_a_simulated_spoofed_flight_scores_as_offline_detection(detector, sim_streams, flight):
+    fixes, summary, report, _ = run_monitor(detector, sim_streams, SenderConfig(record=True), filter=FILTER)
+    assert report.lost == report.stalls == 0 and summary["link"]["lost_packets"] == 0
+    res = _same_as_offline(detector, fixes, summary, report.record, FILTER)
+    assert summary["vehicle"]["origin_source"] == "first fix" and summary["vehicle"]["gps_receiver"] == 0
+    assert summary["alerts"] >= 1                       # the bias attack is seen
+    onset = float(flight["attacks"].onset[0]) + 1.0     # vehicle clock: 1 s at the first sample
+    assert any(onset <= a.start_s <= onset + 5.0 for a in res.alerts)
+
+
+def test_b_a_px4_logs_sensors_score_as_offline_detection(detector):
+    log = read_log(EVENTS)
+    config = FilterConfig(sensors="gps+imu+mag+baro")
+    fixes, summary, report, _ = run_monitor(detector, VehicleStreams.from_log(log), SenderConfig(record=True),
+                                            filter=config)
+    assert report.record["origin"] is not None                              # GPS_GLOBAL_ORIGIN was sent ...
+    assert summary["vehicle"]["origin_source"] == "GPS_GLOBAL_ORIGIN"       # ... and used
+    assert summary["link"]["dropped"].get("gps_no_3d_fix", 0) > 0           # the log's 2D fixes are not fixes
+    _same_as_offline(detector, fixes, summary, report.record, config)
+
+
+# -- a bad link ------------------------------------------------------------------------------------
+def test_c_loss_duplicates_reordering_corruption_outages_and_a_restart_are_reported(detector, sim_streams):
+    faults = SenderConfig(loss=0.05, duplicate=0.03, reorder=0.03, corrupt=0.02, seed=3, pause=(4.0, 2.2),
+                          outages=((12.0, 4.0, ("gps",)), (18.0, 1.0, ("imu",))), restart_at=22.0, restart_to=0.5)
+    fixes, s, report, lines = run_monitor(detector, sim_streams, faults, filter=FILTER, status_s=0.05)
+    link = s["link"]
+    assert s["errors"] == 0                                  # nothing was caught: every case is handled
+    assert report.lost > 0 and link["lost_packets"] >= report.lost * 0.8
+    assert 0 < report.corrupted <= link["corrupt_packets"] <= report.corrupted + report.duplicated   # some sent twice
+    assert link["duplicates"] > 0 and link["duplicate_packets"] >= report.duplicated - report.corrupted > 0
+    assert link["late"] > 0 and link["reordered_packets"] > 0
+    reasons = [seg["started"] for seg in s["segment_list"]]
+    assert any(r.startswith("IMU gap of") for r in reasons), reasons
+    assert any("clock went back" in r for r in reasons), reasons
+    assert s["segments"] == 3
+    assert link["stream_gaps"]["gps"]["count"] >= 1 and link["stream_gaps"]["imu"]["count"] >= 1
+    assert any(re.search(r"no GPS for \d+ s", line) for line in lines)
+    assert any(re.search(r"no IMU for \d+ s", line) for line in lines)   # the pause
+    assert len({f.segment for f in fixes}) == 3 and len(fixes) > 150
+
+
+@pytest.mark.parametrize("missing", ["gps", "imu"])
+def test_c_a_missing_stream_is_reported_and_nothing_is_scored(detector, sim_streams, missing):
+    cfg = SenderConfig(skip=(missing,))
+    fixes, s, report, lines = run_monitor(detector, sim_streams, cfg, filter=FILTER, status_s=0.05)
+    assert fixes == [] and s["fixes_scored"] == 0 and s["errors"] == 0
+    word = missing.upper()
+    assert any(re.search(rf"no {word} for \d+ s", line) for line in lines)
+    assert any(("waiting for fix" if missing == "gps" else "waiting for IMU") in line for line in lines)
+    if missing == "imu":
+        assert s["link"]["dropped"]["gps_without_imu"] > 0
+
+
+# -- actions ---------------------------------------------------------------------------------------
+def test_d_act_switches_the_ekf_source_set_and_back_and_alerts_arrive(detector, sim_streams):
+    fixes, s, report, lines = run_monitor(detector, sim_streams, SenderConfig(), filter=FILTER, act=True,
+                                          act_source_set=2, request_rates=True)
+    switches = [p[0] for c, p in report.commands if c == M.mavlink2.MAV_CMD_SET_EKF_SOURCE_SET]
+    assert switches[:2] == [2.0, 1.0], switches              # excluded, then re-admitted
+    states = [f.admission for f in fixes]
+    assert "GPS excluded" in states and states.index("GPS excluded") < states.index("re-admitting GPS")
+    rates = {int(p[0]) for c, p in report.commands if c == M.mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL}
+    assert {M.mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU, M.mavlink2.MAVLINK_MSG_ID_GPS_RAW_INT} <= rates
+    assert s["actions"]["commands_accepted"] == len(report.commands)       # the vehicle acknowledged each
+    alerts = [text for sev, text in report.statustexts if sev == M.mavlink2.MAV_SEVERITY_ALERT]
+    assert alerts and all(len(t) <= 50 for _, t in report.statustexts)
+    assert "GPS SPOOF ALERT" in alerts[0] and "GPS excluded" in alerts[0]
+    assert any("act: EKF source set 2" in line for line in lines)
+
+
+# -- the CLI ---------------------------------------------------------------------------------------
+def test_e_cli_monitor_end_to_end(detector, sim_streams, tmp_path):
+    model = detector.save(tmp_path / "bht.json")
+    conn = M.open_link(f"udpin:{LOCAL}:0", 1, 1)            # the vehicle side listens; the monitor connects out
+    port = M.local_address(conn)[1]
+    out = {}
+    sender = threading.Thread(target=lambda: out.update(r=send(sim_streams, conn, SenderConfig(speed=20.0))),
+                              daemon=True)
+    sender.start()
+    with time_limit(60):
+        res = CliRunner().invoke(app, ["monitor", "--connect", f"udpout:{LOCAL}:{port}", "--model", str(model),
+                                       "--sensors", "gps+imu+mag", "--duration", "6", "--out", str(tmp_path / "o")])
+    sender.join(10)
+    assert res.exit_code == 0, res.output
+    assert "fixes scored" in res.output and "ALERT" in res.output
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["stop_reason"] == "duration" and summary["fixes_scored"] > 0
+    assert summary["config"]["connect"] == f"udpout:{LOCAL}:{port}" and summary["sensors"] == "gps+imu+mag"
+    events = [json.loads(x) for x in (tmp_path / "o" / "alerts.jsonl").read_text().splitlines()]
+    assert events and events[0]["event"] == "alert_start"
+    assert {"vehicle_t", "wall_time", "score", "attack_type", "admission"} <= set(events[0])
+    assert (tmp_path / "o" / "fixes.csv").read_text().count("\n") == summary["fixes_scored"] + 1
+
+
+def test_e_cli_monitor_demo(tmp_path):
+    with time_limit(150):
+        res = CliRunner().invoke(app, ["monitor", "--demo", "--out", str(tmp_path / "demo"), "--duration", "120"])
+    assert res.exit_code == 0, res.output
+    assert "ALERT" in res.output and "attack" in res.output
+    summary = json.loads((tmp_path / "demo" / "summary.json").read_text())
+    assert summary["alerts"] >= 1 and (tmp_path / "demo" / "demo-model.json").exists()
+
+
+def test_cli_monitor_refuses_bad_input(tmp_path):
+    r = CliRunner().invoke(app, ["monitor", "--connect", f"udpin:{LOCAL}:0"])
+    assert r.exit_code == 2 and "--model" in r.output
+    r = CliRunner().invoke(app, ["monitor", "--model", str(tmp_path / "none.json"), "--connect", f"udpin:{LOCAL}:0"])
+    assert r.exit_code == 2 and "no such model file" in r.output
