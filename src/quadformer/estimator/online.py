@@ -244,6 +244,8 @@ class ResidueStream:
     values (n, k). ``flush`` ends the stream (the last IMU bin)."""
 
     INIT_WINDOW = 1.0     # s before the first fix from which the start's attitude, tilt and field come
+    BARO_SETTLE = 5.0     # s after the start over which the barometer's offset to the filter's height is
+                          # averaged before it is fused (one fix's vertical error would bias it for good)
 
     def __init__(self, config: FilterConfig, sensors: str, n: int = 1):
         parts = sensors.split("+")
@@ -257,8 +259,8 @@ class ResidueStream:
         self._bin_id: int | None = None
         self._recent: dict[str, deque] = {k: deque() for k in ("imu", "att", "mag", "baro")}
         self._last_fix: tuple[float, np.ndarray] | None = None
-        self._baro_ref: float | None = None
-        self._z0: np.ndarray | None = None
+        self._baro_offset: np.ndarray | None = None             # barometric altitude minus the filter's height
+        self._baro_diffs: list[np.ndarray] = []
         self._dt: float | None = None
         self.notes: list[str] = []
 
@@ -339,9 +341,12 @@ class ResidueStream:
         if self.filter is None:
             self._keep("baro", t, np.array([float(alt)]))
             return
-        if self._baro_ref is None:
-            self._baro_ref = float(alt)
-        h = float(alt) - self._baro_ref + self._z0              # height in the filter's frame, per flight
+        if self._baro_offset is None:                          # settling: the offset, GPS carries height
+            self._baro_diffs.append(float(alt) - self.filter.ekf.p[:, 2].numpy())
+            if t - self.t0 >= self.BARO_SETTLE:
+                self._baro_offset = np.mean(self._baro_diffs, axis=0)
+            return
+        h = float(alt) - self._baro_offset                      # height in the filter's frame, per flight
         self.filter.push("baro", t, torch.as_tensor(h.reshape(self.n, 1)))
 
     def vio(self, t: float, x: np.ndarray) -> None:
@@ -400,9 +405,7 @@ class ResidueStream:
         field = None
         if "mag" in self.aiding and self._recent["mag"]:
             field = rotation(q0) @ np.mean([v for _, v in self._recent["mag"]], axis=0)
-        if "baro" in self.aiding and self._recent["baro"]:
-            self._baro_ref = float(self._recent["baro"][-1][1][0])
-        self._z0 = fix[:, 2].copy()
+        self._baro_offset, self._baro_diffs = None, []
         nm = noise_model_for(c, dt, field)
         self.filter = OnlineFilter(ekf0, nm, dt, t0, c.gps_rate_hz, self.aiding, c.max_gap_s)
         self.t0 = t0
