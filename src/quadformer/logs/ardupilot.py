@@ -48,7 +48,7 @@ from pymavlink import DFReader
 from quadformer.geometry import frames
 from quadformer.logs._series import (first_fix, interp_linear, median_period, nearest_index,
                                      step_lookup, take)
-from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, LogError, assemble, make_stream
+from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, LogError, assemble, gps_stream, make_stream
 
 __all__ = ["read_dataflash"]
 
@@ -214,7 +214,7 @@ class _DataflashReader:
         cores = self.cores()
         streams = {
             "imu": self.imu(),
-            "gps": self.gps_stream(gps_raw, origin),
+            "gps": gps_stream(gps_raw, origin, self.notes),
             "baro": self.simple("BARO", "baro", ("Alt",), lambda v: {"alt": v[:, 0]}),
             "mag": self.simple("MAG", "mag", ("MagX", "MagY", "MagZ"), self._mag),
             "innovations": self.innovations(cores),
@@ -328,15 +328,6 @@ class _DataflashReader:
         self.notes.append("origin: no ORGN message and no GPS fix; origin is NaN")
         return (math.nan,) * 3, "none"
 
-    def gps_stream(self, raw: dict | None, origin):
-        if raw is None:
-            return None
-        enu = frames.geodetic_to_enu(raw["lat"], raw["lon"], raw["alt"], origin)
-        values = {"x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2], "vx": raw["vel"][:, 0],
-                  "vy": raw["vel"][:, 1], "vz": raw["vel"][:, 2]}
-        values.update({k: raw[k] for k in ("lat", "lon", "alt", "fix_type", "satellites", "eph",
-                                            "epv", "speed_acc") if k in raw})
-        return make_stream("gps", raw["t"], values, self.notes)
 
     @staticmethod
     def _mag(v: np.ndarray) -> dict:

@@ -29,8 +29,10 @@ from typing import Mapping
 import numpy as np
 import pandas as pd
 
+from quadformer.geometry import frames
+
 __all__ = ["GPS_GAP", "IMU_GAP", "REQUIRED", "SOURCES", "STREAMS", "FlightLog", "LogError",
-           "assemble", "clean_stream", "find_segments", "make_stream"]
+           "assemble", "clean_stream", "find_segments", "gps_stream", "make_stream"]
 
 IMU_GAP = 0.5   # s, an IMU interval longer than this ends a segment
 GPS_GAP = 2.0   # s, a GPS interval longer than this ends a segment
@@ -187,6 +189,20 @@ def make_stream(name: str, t: np.ndarray, values: Mapping[str, np.ndarray | floa
     if missing and notes is not None:
         notes.append(f"{name}: not logged, NaN: {', '.join(missing)}")
     return pd.DataFrame(cols)
+
+
+def gps_stream(raw: Mapping[str, np.ndarray] | None, origin: tuple[float, float, float],
+               notes: list[str]) -> pd.DataFrame | None:
+    """The ``gps`` stream of raw fixes (``t``, ``lat``, ``lon``, ``alt``, ``vel`` (n, 3) ENU and
+    any receiver indicators), positions in ENU metres about ``origin``."""
+    if raw is None:
+        return None
+    enu = frames.geodetic_to_enu(raw["lat"], raw["lon"], raw["alt"], origin)
+    values = {"x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2], "vx": raw["vel"][:, 0],
+              "vy": raw["vel"][:, 1], "vz": raw["vel"][:, 2]}
+    values.update({k: raw[k] for k in ("lat", "lon", "alt", "fix_type", "satellites", "eph", "epv",
+                                        "speed_acc", "jamming", "spoofing") if k in raw})
+    return make_stream("gps", raw["t"], values, notes)
 
 
 def clean_stream(name: str, df: pd.DataFrame | None, notes: list[str]) -> pd.DataFrame | None:

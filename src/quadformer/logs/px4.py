@@ -70,7 +70,7 @@ from quadformer.geometry import frames
 from quadformer.logs._series import (first_fix, interp_linear, median_period, nearest_index,
                                      quat_interp, relative_seconds, relative_ticks, row_max,
                                      step_lookup, take)
-from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, LogError, assemble, make_stream
+from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, LogError, assemble, gps_stream, make_stream
 
 __all__ = ["read_ulog"]
 
@@ -220,7 +220,7 @@ class _UlogReader:
             self.notes.append("origin: no autopilot local origin and no GPS fix; origin is NaN")
         streams = {
             "imu": imu,
-            "gps": self.gps_stream(gps_raw, origin),
+            "gps": gps_stream(gps_raw, origin, self.notes),
             "baro": self.baro(),
             "mag": self.mag(),
             "innovations": self.innovations(),
@@ -334,15 +334,6 @@ class _UlogReader:
                "jamming": jam, "spoofing": spoof}
         return {k: np.asarray(v, dtype=float)[keep] for k, v in out.items() if v is not None}
 
-    def gps_stream(self, raw: dict | None, origin):
-        if raw is None:
-            return None
-        enu = frames.geodetic_to_enu(raw["lat"], raw["lon"], raw["alt"], origin)
-        values = {"x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2], "vx": raw["vel"][:, 0],
-                  "vy": raw["vel"][:, 1], "vz": raw["vel"][:, 2]}
-        values.update({k: raw[k] for k in ("lat", "lon", "alt", "fix_type", "satellites", "eph",
-                                            "epv", "speed_acc", "jamming", "spoofing") if k in raw})
-        return make_stream("gps", raw["t"], values, self.notes)
 
     def baro(self):
         d = self.dataset("vehicle_air_data")
