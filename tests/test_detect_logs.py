@@ -25,11 +25,11 @@ COPTER = FIX / "copter-sitl-4.3.bin"
 
 @pytest.fixture(scope="module")
 def models(bias_dataset, tmp_path_factory):
-    """chi2 (reads the NIS only) and a CNN (reads every residue group) fit on simulated flights."""
+    """chi2 (reads the NIS only) and an SVM (reads every residue group) fit on simulated flights."""
     d = tmp_path_factory.mktemp("models")
     data = write_dataset(bias_dataset, d / "ds")
     out = {}
-    for method in ("chi2", "cnn"):
+    for method in ("chi2", "svm"):
         res = runner.invoke(app, ["fit", "--method", method, "--data", str(data), "--label-fraction", "1",
                                   "--out", str(d / f"{method}.json")])
         assert res.exit_code == 0, res.output
@@ -76,7 +76,7 @@ def test_detect_with_autopilot_residues_writes_scores_alerts_and_a_report(models
 
 
 def test_detect_refuses_a_detector_whose_residues_the_source_cannot_provide(models, tmp_path):
-    res = runner.invoke(app, ["detect", str(EVENTS), "--model", str(models["cnn"]), "--residues", "autopilot",
+    res = runner.invoke(app, ["detect", str(EVENTS), "--model", str(models["svm"]), "--residues", "autopilot",
                               "--out", str(tmp_path / "o")])
     assert res.exit_code == 2
     assert "reads res_gps_corr" in res.output and "do not provide" in res.output and "--residues ekf" in res.output
@@ -211,7 +211,7 @@ def test_detect_with_the_replayed_filter_on_px4_and_ardupilot_logs(models, tmp_p
         html = (out / log.name / "report.html").read_text()
         assert "autopilot's estimate" in html or "autopilot" in html
     # a detector fit with VIO residues refuses a log without a camera, and says what would help
-    res = runner.invoke(app, ["detect", str(COPTER), "--model", str(models["cnn"]), "--out", str(tmp_path / "x")])
+    res = runner.invoke(app, ["detect", str(COPTER), "--model", str(models["svm"]), "--out", str(tmp_path / "x")])
     assert res.exit_code == 2 and "res_vio_r" in res.output and "--sensors gps+imu+mag+baro" in res.output
 
 
