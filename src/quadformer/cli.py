@@ -9,7 +9,8 @@ from typing import Any, Optional
 
 import typer
 
-from quadformer.config import ATTACK_KINDS, MODELS, NOISE_SHAPES, SENSOR_CONFIGS, ConfigError, SimConfig, merge
+from quadformer.config import (ATTACK_CHOICES, ATTACK_KINDS, MIX_KINDS, MODELS, NOISE_SHAPES, SENSOR_CONFIGS,
+                               ConfigError, SimConfig, merge)
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="GPS spoofing detection and resilient estimation for quadrotors.")
@@ -104,7 +105,10 @@ def simulate(
     noise: Optional[str] = typer.Option(None, help=f"Noise shape: {', '.join(NOISE_SHAPES)} (default gaussian)."),
     sensors: Optional[str] = typer.Option(None, help=f"Sensor configuration: {', '.join(SENSOR_CONFIGS)} "
                                           "(default gps+imu+vio; names in any order)."),
-    attack: Optional[str] = typer.Option(None, help=f"Attack: {', '.join(ATTACK_KINDS)} (default none)."),
+    attack: Optional[str] = typer.Option(None, help=f"Attack: {', '.join(ATTACK_CHOICES)} (default none); mix: "
+                                         "each attacked flight draws its kind from --mix."),
+    mix: Optional[str] = typer.Option(None, "--mix", help=f"Kinds a mixed attack draws from, e.g. 'bias,ramp' "
+                                      f"(default all: {','.join(MIX_KINDS)})."),
     flights: Optional[int] = typer.Option(None, help="Number of flights (default 8)."),
     duration: Optional[float] = typer.Option(None, help="Seconds per flight (default 60)."),
     seed: Optional[int] = typer.Option(None, help="Dataset seed (default 0)."),
@@ -130,7 +134,7 @@ def simulate(
 
     atk = {"kind": attack, "fraction": attack_fraction, "onset": _pair("--onset", onset),
            "duration": _pair("--attack-duration", attack_duration), "magnitude": _pair("--magnitude", magnitude),
-           "rate": _pair("--rate", rate), "axes": axes}
+           "rate": _pair("--rate", rate), "axes": axes, "mix": mix.split(",") if mix is not None else None}
     fitted = None
     if noise_from:
         from quadformer.logs import LogError, read_log

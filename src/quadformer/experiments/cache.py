@@ -22,7 +22,7 @@ from typing import Any
 
 import pandas as pd
 
-from quadformer.config import SimConfig
+from quadformer.config import MIX, SimConfig
 from quadformer.dataset import FORMAT_VERSION, DatasetError, load_dataset, write_dataset
 from quadformer.evaluation.protocol import Tuned, tune
 from quadformer.experiments.grid import Profile, dataset_summary, profile_configs
@@ -46,6 +46,8 @@ def dataset_key(cfg: SimConfig) -> str:
                 d["ekf"].pop(f)
     if cfg.sensors == SimConfig.sensors:
         d.pop("sensors")
+    if cfg.attack.kind != MIX:
+        d["attack"].pop("mix")   # the kinds of a mixed attack: nothing to a single kind
     d["format_version"] = FORMAT_VERSION   # what the simulator writes
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
