@@ -64,9 +64,16 @@ def simulate_dataset(cfg: SimConfig, out: Path, overwrite: bool = True) -> dict[
 def ensure_datasets(profile: Profile, cache_dir: Path, progress: bool = True,
                     workers: int | None = None) -> dict[str, Path]:
     """Paths of the profile's datasets, simulating those not in the cache."""
+    return ensure_configs(profile_configs(profile), cache_dir, progress=progress, workers=workers)
+
+
+def ensure_configs(configs: list[tuple[str, SimConfig]], cache_dir: Path, progress: bool = True,
+                   workers: int | None = None) -> dict[str, Path]:
+    """Paths of named datasets (``CACHE/<name>-<key>/``), simulating those not in the cache
+    (in worker processes, one dataset per unit)."""
     cache_dir = Path(cache_dir)
     paths, jobs = {}, []
-    for name, cfg in profile_configs(profile):
+    for name, cfg in configs:
         path = cache_dir / f"{name}-{dataset_key(cfg)}"
         paths[name] = path
         try:
