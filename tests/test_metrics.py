@@ -213,3 +213,13 @@ def test_bootstrap_f1_interval_is_seeded_and_brackets_the_f1():
     assert bootstrap_f1(fid, y, a, seed=1) == (lo, hi) and bootstrap_f1(fid, y, a, seed=2) != (lo, hi)
     assert bootstrap_f1(fid, y, y, seed=1) == (1.0, 1.0)          # perfect alarms: no spread
     assert bootstrap_f1(np.zeros(0), np.zeros(0), np.zeros(0)) is None
+
+
+def test_bootstrap_keeps_the_number_of_attacked_flights():
+    """One attacked and one clean flight: every resample holds the attacked flight once, so
+    the interval is that of the clean flight's false alarms only (here none: F1 fixed)."""
+    fid = np.repeat([0, 1], 10)
+    y = np.r_[np.zeros(10), np.r_[np.zeros(3), np.ones(4), np.zeros(3)]].astype(bool)
+    a = y.copy()
+    a[15] = False                         # TP 3, FN 1 on the attacked flight; no false alarm
+    assert bootstrap_f1(fid, y, a, seed=0) == pytest.approx((6 / 7, 6 / 7))

@@ -285,9 +285,10 @@ def event_recall_by_type(flight_ids: np.ndarray, labels: np.ndarray, alarms: np.
 def bootstrap_f1(flight_ids: np.ndarray, labels: np.ndarray, alarms: np.ndarray, n_boot: int = 2000,
                  seed: int = 0, level: float = 0.95) -> tuple[float, float] | None:
     """Percentile bootstrap interval of the point-wise F1 over flights: the flights are
-    resampled with replacement ``n_boot`` times (generator seeded by ``seed``), each
-    resample's pooled TP, FP and FN give its F1, and the interval is the central ``level``
-    of those F1 values. None without flights."""
+    resampled with replacement ``n_boot`` times (generator seeded by ``seed``), attacked and
+    clean flights separately (each resample keeps their numbers, as the stratified split
+    does, so none is left without attacks), each resample's pooled TP, FP and FN give its F1,
+    and the interval is the central ``level`` of those F1 values. None without flights."""
     fid = np.asarray(flight_ids)
     if fid.size == 0:
         return None
@@ -295,9 +296,14 @@ def bootstrap_f1(flight_ids: np.ndarray, labels: np.ndarray, alarms: np.ndarray,
     _, inv = np.unique(fid, return_inverse=True)
     counts = np.stack([np.bincount(inv, weights=(y & a)), np.bincount(inv, weights=(~y & a)),
                        np.bincount(inv, weights=(y & ~a))], axis=1)           # (flights, 3)
+    attacked = np.bincount(inv, weights=y) > 0
     rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0xB007,)))
-    draws = rng.integers(len(counts), size=(n_boot, len(counts)))
-    tp, fp, fn = counts[draws].sum(axis=1).T
+    total = np.zeros((n_boot, 3))
+    for stratum in (np.nonzero(attacked)[0], np.nonzero(~attacked)[0]):
+        if stratum.size:
+            draws = stratum[rng.integers(stratum.size, size=(n_boot, stratum.size))]
+            total += counts[draws].sum(axis=1)
+    tp, fp, fn = total.T
     denom = 2 * tp + fp + fn
     f1 = np.divide(2 * tp, denom, out=np.zeros_like(denom), where=denom > 0)
     q = 100 * (1 - level) / 2
