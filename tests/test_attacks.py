@@ -138,3 +138,145 @@ def test_overrides_from_config_dict():
 def test_bad_attack_settings_name_the_field(kwargs, field):
     with pytest.raises(ConfigError, match=field):
         AttackConfig(**kwargs)
+
+
+# -- mixed attacks --------------------------------------------------------------------------
+
+def _own_ranges(kind):
+    """A kind's default ranges (config._ATTACK_DEFAULTS, else the generic ones)."""
+    from quadformer.config import _ATTACK_DEFAULTS, _GENERIC
+
+    return {k: _ATTACK_DEFAULTS[kind].get(k, g) for k, g in _GENERIC.items()}
+
+
+def test_mixed_attack_draws_every_kind_with_its_own_ranges():
+    from quadformer.config import MIX_KINDS
+
+    a = _batch(AttackConfig(kind="mix"), B=600)
+    assert set(a.kind) == set(MIX_KINDS)                     # each kind occurs
+    counts = [int((a.kind == k).sum()) for k in MIX_KINDS]
+    assert min(counts) > 600 / 6 * 0.6                        # uniformly drawn (about 100 each)
+    for kind in MIX_KINDS:
+        sel = a.kind == kind
+        r = _own_ranges(kind)
+        dur = a.end[sel] - a.onset[sel]
+        assert np.all((dur >= r["duration"][0] - 1e-9) & (dur <= r["duration"][1] + 1e-9)), kind
+        for name in ("magnitude", "rate", "frequency", "period", "delay"):
+            v = getattr(a, name)[sel]
+            assert np.all((v >= r[name][0]) & (v <= r[name][1])), (kind, name)
+        if kind == "ramp":
+            assert np.all(a.direction[sel, 2] == 0.0) and set(a.axes[sel]) <= {"x", "y", "xy"}
+    dur = a.end - a.onset
+    assert dur[a.kind == "ramp"].min() >= 10.0 - 1e-9 and dur[a.kind == "bias"].min() < 10.0
+
+
+def test_mixed_attack_explicit_ranges_apply_to_every_kind_and_the_set_is_validated():
+    cfg = AttackConfig(kind="mix", mix="bias, replay", duration=(2.0, 3.0), magnitude=(1.0, 1.2))
+    assert cfg.mix == ("bias", "replay") and cfg.kinds == ("bias", "replay")
+    assert cfg.ranges("replay")["delay"] == (3.0, 10.0) and cfg.ranges("bias")["duration"] == (2.0, 3.0)
+    a = _batch(cfg, B=200)
+    assert set(a.kind) == {"bias", "replay"}
+    dur = a.end - a.onset
+    assert np.all((dur >= 2.0 - 1e-9) & (dur <= 3.0 + 1e-9)) and np.all((a.magnitude >= 1.0) & (a.magnitude <= 1.2))
+    with pytest.raises(ConfigError, match="attack.mix: unknown attack kind 'jam'"):
+        AttackConfig(kind="mix", mix=("bias", "jam"))
+    with pytest.raises(ConfigError, match="attack.mix: unknown attack kind 'none'"):
+        AttackConfig(kind="mix", mix=("none",))
+    with pytest.raises(ConfigError, match="attack.mix: must name at least one"):
+        AttackConfig(kind="mix", mix=())
+    with pytest.raises(ConfigError, match="attack.mix: a kind is named twice"):
+        AttackConfig(kind="mix", mix=("bias", "bias"))
+    with pytest.raises(ConfigError, match="attack.axes"):
+        AttackConfig(kind="mix", axes="xz")                  # a ramp may be drawn: horizontal only
+    AttackConfig(kind="mix", mix=("bias",), axes="xz")
+    # not attacked: no kind; flights draw the same whether attacked or not
+    gens = batch_generators(1, np.arange(20), Stream.SCENARIO)
+    some = sample_attacks(gens, AttackConfig(kind="mix"), np.arange(20) < 10, 60.0)
+    every = _batch(AttackConfig(kind="mix"), B=20)
+    assert set(some.kind[10:]) == {"none"} and np.array_equal(some.kind[:10], every.kind[:10])
+    assert np.array_equal(some.magnitude[:10], every.magnitude[:10])
+
+
+def _flight(a, i):
+    """The one-flight batch of flight i."""
+    import dataclasses
+
+    return type(a)(**{f.name: getattr(a, f.name)[i:i + 1] for f in dataclasses.fields(a)})
+
+
+def test_a_batch_of_mixed_kinds_applies_each_flights_own_attack():
+    """Each flight of a mixed batch is attacked as the same flight alone, bit for bit."""
+    a = _batch(AttackConfig(kind="mix", onset=(10.0, 12.0), duration=(8.0, 12.0)), B=60)
+    B, n = 60, 300
+    rng = np.random.default_rng(0)
+    hist = torch.from_numpy(rng.standard_normal((B, n, 6)))
+    for j in (99, 110, 125, 150, 185, 230):
+        t = (j + 1) / 10.0
+        p, v, lab, d, dv = a.apply(t, j, hist[:, j, :3], hist[:, j, 3:], hist, 10.0)
+        for i in range(B):
+            p1, v1, lab1, d1, dv1 = _flight(a, i).apply(t, j, hist[i:i + 1, j, :3], hist[i:i + 1, j, 3:],
+                                                        hist[i:i + 1], 10.0)
+            assert torch.equal(p[i:i + 1], p1) and torch.equal(v[i:i + 1], v1), (j, i, a.kind[i])
+            assert lab[i] == lab1[0] and np.array_equal(d[i], d1[0]) and np.array_equal(dv[i], dv1[0])
+    on = a.window(14.0)
+    assert {k for k in a.kind[on]} >= {"bias", "ramp", "replay", "freeze"}
+
+
+def _pin_script():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).parent / "fixtures" / "pins" / "make_attack_kinds.py"
+    spec = importlib.util.spec_from_file_location("make_attack_kinds", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod, np.load(path.with_name("attack_kinds.npz"))
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
+def test_single_kind_data_unchanged_bit_for_bit_by_mixed_attacks():
+    """A small dataset of every single kind equals the one recorded before mixed attacks
+    existed (tests/fixtures/pins/make_attack_kinds.py): drawing a mixed flight's kind shifts no
+    draw of a single-kind configuration."""
+    from quadformer.simulation import simulate
+
+    mod, pin = _pin_script()
+    for kind in mod.KINDS:
+        ds = simulate(mod.config(kind))
+        assert np.array_equal(ds.flights["label"].to_numpy(np.int8), pin[f"{kind}_label"]), kind
+        assert np.array_equal(ds.flights[["atk_d_x", "atk_d_y", "atk_d_z"]].to_numpy(np.float64),
+                              pin[f"{kind}_atk_d"]), kind
+        assert np.array_equal(ds.flights["attack_type"].to_numpy(str), pin[f"{kind}_attack_type"]), kind
+        sc = ds.scenarios[list(mod.SCENARIO_COLUMNS)].to_numpy(np.float64)
+        assert np.array_equal(sc, pin[f"{kind}_scenarios"], equal_nan=True), kind
+        assert np.array_equal(ds.scenarios["attack_type"].to_numpy(str), pin[f"{kind}_scenario_type"]), kind
+        assert np.array_equal(ds.scenarios["attack_axes"].to_numpy(str), pin[f"{kind}_axes"]), kind
+        assert mod.digest(ds) == str(pin[f"{kind}_digest"]), kind
+
+
+def test_simulate_mix_cli_labels_each_flight_with_its_own_kind(tmp_path):
+    """`quadformer simulate --attack mix --mix ...`: the attack_type columns hold each flight's
+    own kind, from the label vocabulary (never 'mix')."""
+    from typer.testing import CliRunner
+
+    from quadformer.cli import app
+    from quadformer.dataset import load_dataset
+    from quadformer.estimator.schema import ATTACK_TYPES
+
+    out = tmp_path / "mix"
+    res = CliRunner().invoke(app, ["simulate", "--attack", "mix", "--mix", "bias,ramp,freeze", "--flights", "6",
+                                   "--duration", "6", "--onset", "0.5,2", "--attack-fraction", "1", "--seed", "4",
+                                   "--out", str(out), "--quiet"])
+    assert res.exit_code == 0, res.output
+    ds = load_dataset(out)
+    assert ds.config.attack.kind == "mix" and ds.config.attack.mix == ("bias", "ramp", "freeze")
+    sc = ds.scenarios.set_index("flight_id")
+    assert set(sc.attack_type) <= {"bias", "ramp", "freeze"} and len(set(sc.attack_type)) >= 2
+    f = ds.flights
+    assert set(f.attack_type) <= {"none", *ATTACK_TYPES} and "mix" not in set(f.attack_type)
+    for fid, g in f.groupby("flight_id"):
+        assert set(g.attack_type[g.label == 1]) == {sc.attack_type[fid]}
+        assert set(g.attack_type[g.label == 0]) <= {"none"}
+    res = CliRunner().invoke(app, ["simulate", "--attack", "mix", "--mix", "bias,jam", "--out", str(tmp_path / "x"),
+                                   "--quiet"])
+    assert res.exit_code == 2 and "attack.mix: unknown attack kind 'jam'" in res.output

@@ -2,6 +2,7 @@
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -77,6 +78,12 @@ def test_resilience_cli_flies_four_policies_and_reuses_tuned_detectors(dataset_d
         assert c["policies"][p]["attacked_flights"] + c["policies"][p]["clean_flights"] == c["test_flights"]
     assert c["policies"]["oracle"]["wrongly_excluded_fraction"] == 0.0
     assert c["policies"]["naive"]["excluded_during_attack"] == 0
+    # detection in the closed loop: GPS excluded against GPS spoofed, point-wise
+    for cc in r["configs"]:
+        if cc["policies"]["oracle"]["attacked_flights"]:
+            assert cc["policies"]["oracle"]["exclusion_f1"] == 1.0
+        assert cc["policies"]["naive"]["exclusion_f1"] == 0.0
+    assert "exclusion F1" in pd.read_csv(out / "overall.csv").columns
     traj = pd.read_parquet(out / "trajectories" / f"{c['name']}.parquet")
     assert len(traj) == 4 * c["test_flights"] * 240
     html = (out / "report.html").read_text()
@@ -109,6 +116,11 @@ def test_fit_then_evaluate_round_trip(dataset_dir, tmp_path):
     (["benchmark", "--methods", "chi2,nope"], "unknown detector 'nope'"),
     (["resilience", "--threshold", "x"], "threshold: unknown choice"),
     (["resilience", "--max-flights", "0"], "max-flights: must be at least 1"),
+    (["benchmark", "--seeds", "0"], "seeds: must be at least 1"),
+    (["benchmark", "--seeds", "2", "--seed-list", "0,1"], "give --seeds or --seed-list, not both"),
+    (["benchmark", "--seed-list", "0,x"], "seed-list: expected comma-separated integers"),
+    (["benchmark", "--seed-list", "1,1"], "seed-list: expected distinct non-negative integers"),
+    (["benchmark", "--data", "x", "--stress"], "need a profile"),
     (["fit", "--method", "cusum", "--data", "/nonexistent", "--out", "m.json"], "no such dataset"),
     (["evaluate", "--model", "/nonexistent.json", "--data", ".", "--out", "x"], "no such model file"),
 ])
@@ -117,3 +129,181 @@ def test_cli_errors(args, message, tmp_path, monkeypatch):
     res = runner.invoke(app, args)
     assert res.exit_code == 2
     assert message in res.output
+
+
+
+# -- mixed profile, stress sets, several seeds ------------------------------------------------
+
+import dataclasses  # noqa: E402
+
+from quadformer.config import MIX_KINDS, AttackConfig, SimConfig  # noqa: E402
+from quadformer.experiments.grid import config_seed  # noqa: E402
+from quadformer.experiments.stress import STRESS_SETS, stress_configs  # noqa: E402
+
+
+def _fill(cache, named_configs, dataset_dir):
+    """The cache filled with one small real dataset under each named config's key (the
+    harness is tested, not the simulator)."""
+    for name, cfg in named_configs:
+        path = cache / f"{name}-{dataset_key(cfg)}"
+        if not path.exists():
+            shutil.copytree(dataset_dir, path)
+
+
+def test_paper_grid_keys_and_seeds_are_unchanged_and_the_mixed_profile_has_its_own():
+    """The dataset keys and seeds of the paper's configurations are those the cache already
+    holds (recorded before mixed attacks and the mixed profile existed)."""
+    quick = dict(profile_configs(PROFILES["quick"]))
+    assert {n: (c.seed, dataset_key(c)) for n, c in quick.items()} == {
+        "modelI-exponential-bias": (3864535762, "9892aab34a88ab6b"),
+        "modelI-exponential-ramp": (284361292, "7ab5504698b1c2aa"),
+        "modelI-laplace-bias": (213587156, "889ae78a43d5cc32"),
+        "modelI-laplace-ramp": (2607961550, "1d548f0162c0f2fe"),
+        "modelII-exponential-bias": (1515697190, "b63136ed22058b47"),
+        "modelII-exponential-ramp": (4077715072, "11394dfd78e0c45f"),
+        "modelII-laplace-bias": (2584796953, "a1cf2a9bee62ce20"),
+        "modelII-laplace-ramp": (1603077921, "50491957c55cf8d9"),
+    }
+    mixed = profile_configs(PROFILES["mixed"])
+    assert [n for n, _ in mixed] == ["modelI-exponential-mix", "modelI-laplace-mix", "modelII-exponential-mix",
+                                     "modelII-laplace-mix"]
+    seeds = [c.seed for _, c in mixed]
+    assert len(set(seeds)) == 4 and not set(seeds) & {c.seed for c in quick.values()}
+    for _, c in mixed:
+        assert c.flights == 60 and c.attack.kind == "mix" and c.attack.mix == MIX_KINDS
+        assert c.attack.magnitude is None            # each kind draws from its own ranges
+    assert config_seed(0, "I", "laplace", "mix") == mixed[1][1].seed
+    assert config_seed(1, "I", "laplace", "mix") != mixed[1][1].seed
+
+
+def test_stress_sets_pair_with_the_tuning_attack_and_leave_its_ranges():
+    cfg = dict(profile_configs(PROFILES["quick"]))
+    bias = stress_configs("b", cfg["modelI-exponential-bias"], 24)
+    ramp = stress_configs("r", cfg["modelII-laplace-ramp"], 24)
+    assert [st.name for _, st, _ in bias] == ["small-offsets", "long-bias", "freeze", "replay", "intermittent",
+                                              "gaussian-noise"]
+    assert [st.name for _, st, _ in ramp] == ["slow-drifts", "long-ramp", "sinusoid", "gaussian-noise"]
+    assert len(stress_configs("m", SimConfig(attack=AttackConfig(kind="mix")), 24)) == len(STRESS_SETS)
+    by = {st.name: c for _, st, c in bias + ramp}
+    for _, _, c in bias + ramp:
+        assert c.flights == 24 and c.attack.fraction == 0.5
+    assert by["small-offsets"].attack.magnitude == (1.0, 1.5)        # tuning: 1.5-6 m
+    assert by["slow-drifts"].attack.rate == (0.05, 0.2)              # tuning: 0.2-1 m/s
+    for name in ("long-bias", "long-ramp"):
+        assert by[name].duration == 90.0 and by[name].attack.duration == (30.0, 60.0)
+        assert by[name].attack.onset[1] + by[name].attack.duration[1] <= by[name].duration
+    g = [c for _, st, c in ramp if st.name == "gaussian-noise"][0]
+    assert g.noise == "gaussian" and g.attack == cfg["modelII-laplace-ramp"].attack and g.model == "II"
+    seeds = [c.seed for _, _, c in bias]
+    assert len(set(seeds)) == len(seeds) and cfg["modelI-exponential-bias"].seed not in seeds
+    assert {c.model for _, _, c in bias} == {"I"}
+
+
+def test_benchmark_stress_scores_the_tuned_detectors_on_stress_sets(dataset_dir, tmp_path):
+    from quadformer.dataset import load_dataset
+    from quadformer.evaluation.metrics import evaluate
+    from quadformer.experiments.cache import model_dir_for
+
+    cache = tmp_path / "cache"
+    configs = profile_configs(PROFILES["demo"])
+    _fill(cache, configs, dataset_dir)
+    for name, cfg in configs:
+        _fill(cache, [(n, c) for n, _, c in stress_configs(name, cfg, PROFILES["demo"].stress_flights)], dataset_dir)
+    out = tmp_path / "bench"
+    res = runner.invoke(app, ["benchmark", "--profile", "demo", "--methods", "chi2,cusum", "--stress", "--cache",
+                              str(cache), "--out", str(out), "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert "Stress sets" in res.output and "slow-drifts" in res.output and "Model I" in res.output
+    r = json.loads((out / "results.json").read_text())
+    st = r["stress"]
+    assert st["flights_per_set"] == 12 and set(st["sets"]) == {s.name for s in STRESS_SETS}
+    assert set(st["configs"]["modelI-exponential-bias"]) == {"small-offsets", "long-bias", "freeze", "replay",
+                                                             "intermittent", "gaussian-noise"}
+    assert set(st["configs"]["modelI-exponential-ramp"]) == {"slow-drifts", "long-ramp", "sinusoid",
+                                                             "gaussian-noise"}
+    pooled = st["pooled"]["small-offsets"]["cusum"]
+    assert pooled["configs"] == 4
+    for k in ("event_recall", "delay_median_s", "false_alarms_per_hour", "f1", "vus_pr", "event_recall_by_type"):
+        assert k in pooled
+    # the stress scores are those of the tuned (cached) detector on the stress flights
+    name = "modelI-exponential-bias"
+    path = Path(r["configs"][0]["dataset"])
+    from quadformer.detectors import load
+
+    model = next(p for p in model_dir_for(cache, path, 0, 0.2).glob("cusum-*.json") if ".tuned." not in p.name)
+    det = load(model)
+    entry = st["configs"][name]["small-offsets"]
+    f = load_dataset(entry["dataset"]).flights
+    s = det.decision_function(f)
+    want = evaluate(f.flight_id.to_numpy(), f.t.to_numpy(), f.label.to_numpy(), s, s > det.threshold_)
+    assert entry["methods"]["cusum"]["f1"] == want["f1"]
+    assert entry["methods"]["cusum"]["event_recall"] == want["event_recall"]
+    html = (out / "report.html").read_text()
+    assert "Stress evaluation" in html and (out / "stress.csv").exists()
+    # per-type recall and type confusion for every method (non-classifiers predict "attack")
+    m = r["configs"][0]["methods"]["chi2"]
+    assert set(m["event_recall_by_type"]) <= {"bias"} and "vus_pr" in m
+    assert all(set(row) <= {"attack"} for row in m["type_confusion"].values())
+    lo, hi = m["f1_ci95"]
+    assert 0.0 <= lo <= hi <= 1.0
+    assert "Event recall per attack type" in html and "VUS-PR" in html
+
+
+@pytest.fixture(scope="module")
+def mixed_dir(tmp_path_factory):
+    from quadformer.simulation import simulate
+
+    cfg = SimConfig(model="II", noise="laplace", flights=10, duration=24.0, seed=9,
+                    attack=AttackConfig(kind="mix", onset=(6.0, 10.0), duration=(6.0, 10.0), fraction=0.6))
+    return write_dataset(simulate(cfg), tmp_path_factory.mktemp("mixdata") / "ds")
+
+
+def test_benchmark_mixed_profile_reports_types(mixed_dir, tmp_path):
+    cache = tmp_path / "cache"
+    _fill(cache, profile_configs(PROFILES["mixed"]), mixed_dir)
+    out = tmp_path / "bench"
+    res = runner.invoke(app, ["benchmark", "--profile", "mixed", "--methods", "chi2,cusum", "--cache", str(cache),
+                              "--out", str(out), "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert "exp-mixed-F1" in res.output
+    r = json.loads((out / "results.json").read_text())
+    assert r["profile"] == "mixed" and [c["attack"] for c in r["configs"]] == ["mix"] * 4
+    csv = pd.read_csv(out / "table_model_I.csv", index_col=0)
+    assert csv.shape == (2, 6)
+    from quadformer.dataset import load_dataset
+    from quadformer.evaluation.protocol import split_flights
+
+    sc = load_dataset(mixed_dir).scenarios
+    assert len(set(sc.attack_type[sc.attacked])) >= 2                   # several kinds in the data
+    test = sc[sc.flight_id.isin(split_flights(sc, 0).test) & sc.attacked]
+    for c in r["configs"]:   # the windows per type are those of the attacked test flights' own kinds
+        assert set(c["methods"]["cusum"]["event_recall_by_type"]) == set(test.attack_type)
+        assert sum(v["windows"] for v in c["methods"]["chi2"]["event_recall_by_type"].values()) >= len(test)
+    recall = pd.read_csv(out / "event_recall_by_type.csv", index_col=0)
+    assert list(recall.index) == ["chi2", "cusum"] and set(recall.columns) == set(test.attack_type)
+    assert "attack type predicted at the first alarm" in (out / "report.html").read_text()
+
+
+def test_benchmark_over_seeds_keeps_each_run_and_the_spread(dataset_dir, tmp_path):
+    cache = tmp_path / "cache"
+    for s in (0, 1):
+        _fill(cache, profile_configs(dataclasses.replace(PROFILES["demo"], seed=s)), dataset_dir)
+    out = tmp_path / "seeds"
+    res = runner.invoke(app, ["benchmark", "--profile", "demo", "--methods", "chi2,cusum", "--seeds", "2",
+                              "--cache", str(cache), "--out", str(out), "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert "over seeds 0, 1" in res.output and "±" in res.output
+    r = json.loads((out / "results.json").read_text())
+    assert r["seeds"] == [0, 1] and set(r["per_seed"]) == {"0", "1"}
+    runs = [json.loads((out / f"seed-{s}" / "results.json").read_text()) for s in (0, 1)]
+    assert [x["seed"] for x in runs] == [0, 1] and [x["dataset_seed"] for x in runs] == [0, 1]
+    assert runs[0]["configs"][0]["dataset"] != runs[1]["configs"][0]["dataset"]     # own datasets per seed
+    name = runs[0]["configs"][0]["name"]
+    f1 = [x["configs"][0]["methods"]["cusum"]["f1"] for x in runs]
+    summ = r["summary"][name]["cusum"]["f1"]
+    assert summ["n"] == 2 and summ["mean"] == pytest.approx(np.mean(f1))
+    assert summ["std"] == pytest.approx(np.std(f1, ddof=1)) and (summ["min"], summ["max"]) == (min(f1), max(f1))
+    assert r["per_seed"]["1"][name]["cusum"]["f1"] == f1[1]
+    df = pd.read_csv(out / "seeds_f1.csv", index_col=0)
+    assert list(df.index) == ["chi2", "cusum"] and len(df.columns) == 8
+    assert (out / "report.html").exists() and (out / "seed-1" / "report.html").exists()

@@ -28,7 +28,7 @@ def data(bias_dataset):
 
 
 def test_methods_registered():
-    assert {"chi2", "cusum", "sprt", "bht", "svm", "cnn", "lstm", "quadformer", "quadformer-noprior",
+    assert {"chi2", "cusum", "sprt", "bht", "pca", "svm", "cnn", "lstm", "quadformer", "quadformer-noprior",
             "quadformer-nosup", "quadformer-nodisc"} <= set(METHODS)
 
 
@@ -181,3 +181,25 @@ def test_chi2_detects_bias_better_than_chance(data):
     lab = test.label.to_numpy() == 1
     assert s[lab].mean() > 2 * s[~lab].mean()
     assert Chi2Gate.gate_threshold(5.0) > 30
+
+
+def test_pca_score_is_the_reconstruction_error_of_a_reference_pca(data):
+    """The PCA detector against scikit-learn's PCA fitted on the same training windows (every
+    window not known to be attacked): the mean squared residual of each test window, to 1e-9."""
+    from sklearn.decomposition import PCA
+
+    from quadformer.detectors.windows import Windows
+
+    train, y, test = data
+    det = make("pca", n_components=4, max_windows=10**6).fit(train, y)
+    win = Windows(train, det.features_, det.normalizer_, det.window)
+    Z = win[np.nonzero(y != 1)[0]].reshape((y != 1).sum(), -1).astype(float)
+    ref = PCA(n_components=4, svd_solver="full").fit(Z)
+    Zt = Windows(test, det.features_, det.normalizer_, det.window)[np.arange(len(test))]
+    Zt = Zt.reshape(len(test), -1).astype(float)
+    want = np.mean((Zt - ref.inverse_transform(ref.transform(Zt))) ** 2, axis=1)
+    np.testing.assert_allclose(det.decision_function(test), want, rtol=1e-9, atol=1e-12)
+    # attacked windows reconstruct worse than clean ones
+    s = det.decision_function(test)
+    lab = test.label.to_numpy() == 1
+    assert s[lab].mean() > s[~lab].mean()

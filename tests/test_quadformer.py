@@ -10,6 +10,7 @@ import torch
 from quadformer.detectors import load, make
 from quadformer.detectors.neural.quadformer import CLASSES, kth_of_last_n
 from quadformer.detectors.neural.quadformer_net import QUADFormerNet, TwoBranchAttention, discrepancy, symmetric_kl
+from quadformer.detectors.windows import Windows
 
 TINY = {"window": 16, "d_model": 16, "heads": 2, "layers": 2, "epochs": 2, "steps_per_epoch": 5, "batch_size": 32}
 
@@ -144,5 +145,38 @@ def test_checkpoint_round_trip_and_variants(fitted, tmp_path):
     assert back.threshold_ == det.threshold_
     nosup = make("quadformer-nosup", **TINY)
     assert not nosup.supervised and "supervised" not in nosup.get_params()
-    assert make("quadformer-noprior").use_prior is False
+    noprior = make("quadformer-noprior")
+    assert noprior.use_prior is True and noprior.prior_sigma == 2.0 and noprior._disc
+    assert "prior_sigma" not in noprior.get_params()
     assert make("quadformer-nodisc").use_discrepancy is False
+
+
+def test_fixed_prior_is_a_gaussian_of_fixed_width():
+    """quadformer-noprior's prior: a Gaussian kernel of width 2 steps, whatever the input."""
+    torch.manual_seed(0)
+    att = TwoBranchAttention(d_model=8, heads=2, window=6, prior_sigma=2.0)
+    assert att.sigma is None
+    _, _, prior = att(torch.randn(3, 6, 8))
+    d = torch.arange(6.0)
+    want = torch.softmax(-(d[:, None] - d[None, :]) ** 2 / (2 * 2.0 ** 2), dim=-1)
+    assert torch.allclose(prior, want.expand(3, 2, 6, 6), atol=1e-7)
+    _, _, last = att(torch.randn(3, 6, 8), last_row=True)
+    assert torch.allclose(last[:, :, 0], want[-1].expand(3, 2, 6), atol=1e-7)
+
+
+def test_noprior_and_nodisc_train_different_networks(bias_dataset):
+    """With a fixed prior the discrepancy still exists: noprior keeps the discrepancy term in
+    its loss and score, nodisc drops it, so the two variants differ (they used to train the
+    same network)."""
+    f = bias_dataset.flights
+    train = f[f.flight_id < 4].reset_index(drop=True)
+    test = f[f.flight_id >= 4].reset_index(drop=True)
+    y = train.label.to_numpy()
+    noprior = make("quadformer-noprior", **TINY).fit(train, y)
+    nodisc = make("quadformer-nodisc", **TINY).fit(train, y)
+    parts = noprior._parts(Windows(test, noprior.features_, noprior.normalizer_, noprior.window),
+                           np.arange(len(test)))
+    assert np.all(parts["dis"] > 0) and noprior.dis_scale_ != 1.0     # a discrepancy is computed
+    assert nodisc.dis_scale_ == 1.0
+    assert not np.allclose(noprior.decision_function(test), nodisc.decision_function(test))
+    assert [h["train_loss"] for h in noprior.history_] != [h["train_loss"] for h in nodisc.history_]

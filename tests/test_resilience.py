@@ -287,3 +287,49 @@ def test_resilience_cli_names_bad_input(tmp_path):
     assert res.exit_code == 2 and "hold_s" in res.output
     res = runner.invoke(app, ["resilience", "--profile", "huge", "--out", str(tmp_path)])
     assert res.exit_code == 2 and "unknown profile 'huge'" in res.output
+
+
+def test_exclusion_precision_recall_hand_case():
+    """GPS excluded against GPS spoofed, point-wise over every step of every flight.
+    Flight A: spoofed steps 3-6, excluded 4-8 -> TP 3 (4, 5, 6), FP 2 (7, 8), FN 1 (3).
+    Flight B (clean): excluded at step 2 -> FP 1. Pooled: P = 3/6, R = 3/4, F1 = 0.6."""
+    from quadformer.evaluation.resilience import exclusion_counts, exclusion_prf, summarize_policy
+
+    lab_a = np.zeros(10, bool)
+    lab_a[3:7] = True
+    fused_a = np.ones(10, bool)
+    fused_a[4:9] = False
+    fused_b = np.ones(10, bool)
+    fused_b[2] = False
+    a, b = exclusion_counts(lab_a, fused_a), exclusion_counts(np.zeros(10, bool), fused_b)
+    assert a == {"excluded_tp": 3, "excluded_fp": 2, "excluded_fn": 1}
+    assert b == {"excluded_tp": 0, "excluded_fp": 1, "excluded_fn": 0}
+    got = exclusion_prf([a, b])
+    assert got["exclusion_precision"] == pytest.approx(0.5) and got["exclusion_recall"] == pytest.approx(0.75)
+    assert got["exclusion_f1"] == pytest.approx(0.6)
+    # nothing excluded (naive): precision and F1 0, recall 0
+    assert exclusion_prf([exclusion_counts(lab_a, np.ones(10, bool))]) == {
+        "exclusion_precision": 0.0, "exclusion_recall": 0.0, "exclusion_f1": 0.0}
+    # through flight_metrics and summarize_policy
+    t = np.arange(10) / 10.0
+    z = np.zeros((10, 3))
+    rows = [flight_metrics(t, lab_a, z, z, z, fused_a), flight_metrics(t, np.zeros(10, bool), z, z, z, fused_b)]
+    s = summarize_policy(rows)
+    assert (s["exclusion_precision"], s["exclusion_recall"], s["exclusion_f1"]) == pytest.approx((0.5, 0.75, 0.6))
+
+
+def test_oracle_exclusion_scores_one_in_the_loop(loop):
+    """In closed loop the oracle excludes exactly the spoofed fixes: exclusion P = R = F1 = 1;
+    the naive policy excludes nothing."""
+    from quadformer.evaluation.resilience import summarize_policy
+
+    r = loop["r"]
+
+    def policy(p):
+        return summarize_policy([flight_metrics(r["t"], r["label"][b], r["true_pos"][b], r["est_pos"][b],
+                                                r["ref_pos"][b], r["admission"]["fused"][b]) for b in _rows(loop, p)])
+
+    oracle, naive = policy("oracle"), policy("naive")
+    assert oracle["exclusion_precision"] == oracle["exclusion_recall"] == oracle["exclusion_f1"] == 1.0
+    assert naive["exclusion_recall"] == 0.0 and naive["exclusion_f1"] == 0.0
+    assert 0.0 < policy("resilient")["exclusion_recall"] <= 1.0

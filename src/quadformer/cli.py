@@ -9,7 +9,8 @@ from typing import Any, Optional
 
 import typer
 
-from quadformer.config import ATTACK_KINDS, MODELS, NOISE_SHAPES, SENSOR_CONFIGS, ConfigError, SimConfig, merge
+from quadformer.config import (ATTACK_CHOICES, ATTACK_KINDS, MIX_KINDS, MODELS, NOISE_SHAPES, SENSOR_CONFIGS,
+                               ConfigError, SimConfig, merge)
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="GPS spoofing detection and resilient estimation for quadrotors.")
@@ -104,7 +105,10 @@ def simulate(
     noise: Optional[str] = typer.Option(None, help=f"Noise shape: {', '.join(NOISE_SHAPES)} (default gaussian)."),
     sensors: Optional[str] = typer.Option(None, help=f"Sensor configuration: {', '.join(SENSOR_CONFIGS)} "
                                           "(default gps+imu+vio; names in any order)."),
-    attack: Optional[str] = typer.Option(None, help=f"Attack: {', '.join(ATTACK_KINDS)} (default none)."),
+    attack: Optional[str] = typer.Option(None, help=f"Attack: {', '.join(ATTACK_CHOICES)} (default none); mix: "
+                                         "each attacked flight draws its kind from --mix."),
+    mix: Optional[str] = typer.Option(None, "--mix", help=f"Kinds a mixed attack draws from, e.g. 'bias,ramp' "
+                                      f"(default all: {','.join(MIX_KINDS)})."),
     flights: Optional[int] = typer.Option(None, help="Number of flights (default 8)."),
     duration: Optional[float] = typer.Option(None, help="Seconds per flight (default 60)."),
     seed: Optional[int] = typer.Option(None, help="Dataset seed (default 0)."),
@@ -130,7 +134,7 @@ def simulate(
 
     atk = {"kind": attack, "fraction": attack_fraction, "onset": _pair("--onset", onset),
            "duration": _pair("--attack-duration", attack_duration), "magnitude": _pair("--magnitude", magnitude),
-           "rate": _pair("--rate", rate), "axes": axes}
+           "rate": _pair("--rate", rate), "axes": axes, "mix": mix.split(",") if mix is not None else None}
     fitted = None
     if noise_from:
         from quadformer.logs import LogError, read_log
@@ -189,42 +193,103 @@ def _print_tables(results: dict) -> None:
         flat = df.copy()
         flat.columns = [f"{n[:3]}-{a.split('(')[1].rstrip(')')}-{m}" for n, a, m in df.columns]
         typer.echo(flat.to_string(float_format=lambda v: f"{v:.2f}"))
+    _print_stress(results)
+
+
+def _print_stress(results: dict) -> None:
+    from quadformer.report.detection import stress_table
+
+    df = stress_table(results)
+    if df is None:
+        return
+    typer.echo(f"\nStress sets ({results['stress']['flights_per_set']} flights each, half attacked; detectors "
+               "tuned as above, thresholds from validation flights), pooled over configurations:")
+    cols = ["stress set", "method", "event recall", "delay median (s)", "FA/h (clean flights)", "F1 (point-wise)"]
+    typer.echo(df[cols].to_string(index=False, na_rep="-", float_format=lambda v: f"{v:.2f}"))
+
+
+def _print_seeds(results: dict) -> None:
+    from quadformer.report.detection import seeds_table
+
+    typer.echo(f"\nPoint-wise F1 on test flights over seeds {', '.join(map(str, results['seeds']))}: "
+               "mean ± std [min, max]")
+    typer.echo(seeds_table(results, "f1").to_string())
+
+
+def _seed_list(seeds: Optional[int], seed_list: Optional[str], seed: int) -> Optional[list[int]]:
+    """--seeds N (seeds seed .. seed+N-1) or --seed-list a,b,c; None for a single run."""
+    if seeds is not None and seed_list is not None:
+        _fail("seeds: give --seeds or --seed-list, not both")
+    if seeds is not None:
+        if seeds < 1:
+            _fail(f"seeds: must be at least 1, got {seeds}")
+        return list(range(seed, seed + seeds))
+    if seed_list is not None:
+        try:
+            out = [int(x) for x in seed_list.split(",") if x.strip()]
+        except ValueError:
+            _fail(f"seed-list: expected comma-separated integers, got {seed_list!r}")
+        if not out or len(set(out)) != len(out) or min(out) < 0:
+            _fail(f"seed-list: expected distinct non-negative integers, got {seed_list!r}")
+        return out
+    return None
 
 
 @app.command()
 def benchmark(
-    profile: str = typer.Option("demo", help="demo (20 flights/config), quick (60) or paper (600)."),
+    profile: str = typer.Option("demo", help="demo (20 flights/config), quick (60), paper (600), or mixed (60 "
+                                "flights/config of mixed attacks, Model I/II x exponential/Laplace noise)."),
     methods: Optional[str] = typer.Option(None, help="Comma-separated detector names; default: every registered "
                                           "detector except ablations; 'all': every one."),
     data: list[Path] = typer.Option([], "--data", help="Benchmark on these dataset directories instead of a "
                                     "profile (repeatable): simulated ones or `quadformer logs import` ones."),
     out: Path = typer.Option(Path("runs/benchmark"), "--out", help="Output directory."),
     cache: Path = typer.Option(Path("runs/cache"), help="Dataset cache directory."),
-    seed: int = typer.Option(0, help="Split seed."),
+    seed: int = typer.Option(0, help="Split seed (with --seeds, the first seed)."),
     label_fraction: float = typer.Option(0.2, help="Share of training flights whose labels methods may use."),
+    stress: bool = typer.Option(False, "--stress", help="Also score the tuned detectors on small stress datasets "
+                                "outside the tuning ranges (small offsets, slow drifts, long attacks, other attack "
+                                "shapes, Gaussian noise; the profile's stress_flights each, 24 on quick)."),
+    seeds: Optional[int] = typer.Option(None, "--seeds", help="Run the whole protocol for N seeds (seed, seed+1, "
+                                        "...): each seed its own datasets (profile seed) and split; tables of mean, "
+                                        "std and min-max over seeds."),
+    seed_list: Optional[str] = typer.Option(None, "--seed-list", help="Like --seeds with these seeds, e.g. 0,3,7."),
     workers: Optional[int] = typer.Option(None, help="Simulation processes (default: one per core)."),
     quiet: bool = typer.Option(False, help="No progress bars."),
 ) -> None:
-    """Simulate (or reuse) the 8 configurations, tune and evaluate methods, write tables and a report.
-    With --data, the same protocol on given datasets."""
+    """Simulate (or reuse) the profile's configurations, tune and evaluate methods, write tables and a
+    report. With --data, the same protocol on given datasets."""
     from quadformer.dataset import DatasetError
-    from quadformer.experiments.detection import run_benchmark, run_datasets
+    from quadformer.experiments.detection import run_benchmark, run_datasets, run_seeds
     from quadformer.io import set_threads
 
     if not data:
         _profile(profile)
     if not 0.0 <= label_fraction <= 1.0:
         _fail(f"label-fraction: must be in [0, 1], got {label_fraction}")
+    seed_runs = _seed_list(seeds, seed_list, seed)
+    if data and (stress or seed_runs is not None):
+        _fail("--stress, --seeds and --seed-list need a profile (simulated datasets), not --data")
     names = _methods(methods)
     set_threads()
     try:
         if data:
             results = run_datasets(data, names, out, progress=not quiet, seed=seed, label_fraction=label_fraction)
+        elif seed_runs is not None:
+            results = run_seeds(profile, names, out, cache, seed_runs, progress=not quiet, workers=workers,
+                                label_fraction=label_fraction, stress=stress)
         else:
             results = run_benchmark(profile, names, out, cache, progress=not quiet, workers=workers, seed=seed,
-                                    label_fraction=label_fraction)
+                                    label_fraction=label_fraction, stress=stress)
     except (DatasetError, ValueError) as e:
         _fail(str(e))
+    if seed_runs is not None:
+        _print_seeds(results)
+        typer.echo(f"\nbenchmark over {len(seed_runs)} seeds took {results['timing_s']['total']:.0f} s; each seed's "
+                   f"tables and report in {out}/seed-<s>/")
+        typer.echo(f"results: {(out / 'results.json').resolve()}")
+        typer.echo(f"report:  {(out / 'report.html').resolve()}")
+        return
     _print_tables(results)
     typer.echo(f"\nbenchmark took {results['timing_s']['total']:.0f} s "
                f"(simulation {results['timing_s']['simulate']:.0f} s)")
@@ -362,6 +427,7 @@ def _print_resilience(results: dict) -> None:
     typer.echo(f"\nResilience, detector {results['detector']}, all configurations (test flights flown again "
                "under each policy):")
     typer.echo(overall_table(results).to_string(index=False, na_rep="-", float_format=lambda v: f"{v:.2f}"))
+    typer.echo("exclusion P / R / F1: every GPS step a prediction, GPS excluded, against GPS spoofed (point-wise)")
     n = sum(c.get("alerts", 0) for c in results["configs"])
     typer.echo(f"{n} alert(s) raised on the resilient flights (start, estimated onset, type, peak score, end) "
                "in alerts.csv")
@@ -369,7 +435,8 @@ def _print_resilience(results: dict) -> None:
 
 @app.command()
 def resilience(
-    profile: str = typer.Option("demo", help="demo (20 flights/config), quick (60) or paper (600)."),
+    profile: str = typer.Option("demo", help="demo (20 flights/config), quick (60), paper (600) or mixed (60, "
+                                "mixed attacks)."),
     detector: str = typer.Option("quadformer", help="Registered detector driving the resilient policy."),
     out: Path = typer.Option(Path("runs/resilience"), "--out", help="Output directory."),
     cache: Path = typer.Option(Path("runs/cache"), help="Dataset and tuned-model cache directory."),

@@ -15,6 +15,12 @@ from typing import Any, Mapping
 MODELS = ("I", "II")
 NOISE_SHAPES = ("gaussian", "exponential", "laplace")
 ATTACK_KINDS = ("none", "bias", "ramp", "sinusoid", "intermittent", "replay", "freeze")
+#: a mixed attack: each attacked flight draws its own kind from ``AttackConfig.mix``
+MIX = "mix"
+#: the kinds a mixed attack may draw (every kind but "none"), the default of ``AttackConfig.mix``
+MIX_KINDS = tuple(k for k in ATTACK_KINDS if k != "none")
+#: the values of ``AttackConfig.kind``
+ATTACK_CHOICES = (*ATTACK_KINDS, MIX)
 MISSION_KINDS = ("hover", "circle", "lissajous", "minsnap")
 #: sensors a configuration may name, in the canonical order of ``SimConfig.sensors``
 SENSOR_NAMES = ("gps", "imu", "vio", "mag", "baro")
@@ -196,8 +202,12 @@ _GENERIC = {"duration": (5.0, 20.0), "magnitude": (1.5, 6.0), "rate": (0.2, 1.0)
 
 @dataclass(frozen=True)
 class AttackConfig:
-    """False data injection on GPS, y = g(x) + v + d. Ranges are sampled uniformly per flight."""
-    kind: str = "none"
+    """False data injection on GPS, y = g(x) + v + d. Ranges are sampled uniformly per flight.
+
+    ``kind="mix"``: each attacked flight draws its kind uniformly from ``mix``, then its
+    parameters from that kind's ranges: a range given here applies to every kind, one left
+    at None takes each kind's own default (``ranges(kind)``)."""
+    kind: str = "none"                                 # one of ATTACK_KINDS, or "mix"
     fraction: float = 0.5                              # share of flights attacked (one window each)
     onset: tuple[float, float] = (10.0, 40.0)          # s
     duration: tuple[float, float] | None = None        # s (per-kind default)
@@ -207,17 +217,28 @@ class AttackConfig:
     period: tuple[float, float] | None = None          # s, on/off period (intermittent)
     delay: tuple[float, float] | None = None           # s, replay delay
     axes: str | None = None    # fixed attacked axes, e.g. "x" or "xz"; None: random sparse subset
+    mix: tuple[str, ...] = MIX_KINDS                   # kinds a mixed attack draws from (kind "mix")
 
     def __post_init__(self) -> None:
-        _require(self.kind in ATTACK_KINDS, "attack.kind",
-                 f"unknown attack {self.kind!r}; choose from {', '.join(ATTACK_KINDS)}")
+        _require(self.kind in ATTACK_CHOICES, "attack.kind",
+                 f"unknown attack {self.kind!r}; choose from {', '.join(ATTACK_CHOICES)}")
         _require(isinstance(self.fraction, (int, float)) and 0.0 <= self.fraction <= 1.0,
                  "attack.fraction", f"must be in [0, 1], got {self.fraction!r}")
         object.__setattr__(self, "onset", _range("attack.onset", self.onset, lo=0.0))
-        defaults = _ATTACK_DEFAULTS[self.kind]
+        mix = self.mix.split(",") if isinstance(self.mix, str) else self.mix
+        _require(isinstance(mix, (tuple, list)) and len(mix) > 0, "attack.mix",
+                 f"must name at least one attack kind, got {self.mix!r}")
+        mix = tuple(str(k).strip() for k in mix)
+        for k in mix:
+            _require(k in MIX_KINDS, "attack.mix", f"unknown attack kind {k!r}; choose from {', '.join(MIX_KINDS)}")
+        _require(len(set(mix)) == len(mix), "attack.mix", f"a kind is named twice in {self.mix!r}")
+        object.__setattr__(self, "mix", mix)
+        defaults = _ATTACK_DEFAULTS.get(self.kind, {})
         for name, generic in _GENERIC.items():
             value = getattr(self, name)
             if value is None:
+                if self.kind == MIX:
+                    continue          # resolved per flight, from the kind it draws (ranges())
                 value = defaults.get(name, generic)
             lo = 1e-6 if name in ("duration", "frequency", "period", "delay") else 0.0
             object.__setattr__(self, name, _range(f"attack.{name}", value, lo=lo))
@@ -227,9 +248,29 @@ class AttackConfig:
                      "attack.axes", f"must be a subset of 'xyz' such as 'x' or 'xy', got {self.axes!r}")
             _require(("x" in axes) or ("y" in axes), "attack.axes",
                      f"must include a horizontal axis (x or y), got {self.axes!r}")
-            if self.kind == "ramp":
+            if self.kind == "ramp" or (self.kind == MIX and "ramp" in mix):
                 _require("z" not in axes, "attack.axes", "a ramp drifts along a horizontal direction: use x and/or y")
             object.__setattr__(self, "axes", axes)
+
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        """The kinds the attacked flights may have: ``mix`` for a mixed attack, else ``(kind,)``
+        (none for ``kind="none"``)."""
+        if self.kind == MIX:
+            return self.mix
+        return () if self.kind == "none" else (self.kind,)
+
+    def ranges(self, kind: str | None = None) -> dict[str, tuple[float, float]]:
+        """The ranges a flight attacked by ``kind`` (default: the config's kind) draws from:
+        the config's own where given, else that kind's defaults (``_ATTACK_DEFAULTS``)."""
+        kind = self.kind if kind is None else kind
+        _require(kind in ATTACK_KINDS, "attack.kind", f"ranges of a single kind, got {kind!r}")
+        defaults = _ATTACK_DEFAULTS[kind]
+        out = {}
+        for name, generic in _GENERIC.items():
+            value = getattr(self, name)
+            out[name] = value if value is not None else defaults.get(name, generic)
+        return out
 
 
 @dataclass(frozen=True)

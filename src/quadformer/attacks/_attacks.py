@@ -14,6 +14,11 @@ horizontal axis (or the axes fixed by the config):
 
 The label of a GPS sample is 1 when it is falsified: inside the window, and for
 ``intermittent`` only while the injection is on.
+
+Mixed attacks (``AttackConfig(kind="mix")``): each flight first draws its kind uniformly
+from ``mix`` (one extra draw from its scenario generator, made only for mixed attacks, so a
+single-kind configuration draws exactly what it drew before mixed attacks existed), then
+its parameters from that kind's ranges. A batch holds one kind per flight.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from quadformer.config import AttackConfig
+from quadformer.config import MIX, AttackConfig
 
 _SUBSETS = ("x", "y", "xy", "xz", "yz", "xyz")
 _HORIZONTAL = ("x", "y", "xy")
@@ -31,7 +36,7 @@ _HORIZONTAL = ("x", "y", "xy")
 
 @dataclass(frozen=True)
 class AttackBatch:
-    kind: str
+    kind: np.ndarray         # (B,) each flight's attack kind ("none" when not attacked)
     attacked: np.ndarray     # (B,) bool
     onset: np.ndarray        # (B,) s (nan when not attacked)
     end: np.ndarray          # (B,) s, exclusive, clipped to the flight
@@ -50,7 +55,7 @@ class AttackBatch:
 
     def apply(self, t: float, j: int, pos: torch.Tensor, vel: torch.Tensor,
               history: torch.Tensor, rate_hz: float):
-        """Attacked GPS fix at GPS step j (time t).
+        """Attacked GPS fix at GPS step j (time t), each flight under its own kind.
 
         pos, vel: (B,3) honest fix; history: (B, n_gps, 6) honest fixes so far (replay and
         freeze read it). Returns (pos, vel, label (B,) bool, d_pos (B,3), d_vel (B,3)).
@@ -58,40 +63,50 @@ class AttackBatch:
         B = pos.shape[0]
         zero = np.zeros((B, 3))
         active = self.window(t)
-        if self.kind == "none" or not active.any():
+        if not active.any():
             return pos, vel, active, zero, zero
         tau = np.where(active, t - self.onset, 0.0)
-        u = self.direction
         d_pos, d_vel = zero.copy(), zero.copy()
-        if self.kind == "bias":
-            d_pos = self.magnitude[:, None] * u
-        elif self.kind == "ramp":
-            d_pos = (self.rate * tau)[:, None] * u
-            d_vel = self.rate[:, None] * u
-        elif self.kind == "sinusoid":
-            w = 2 * np.pi * self.frequency
-            d_pos = (self.magnitude * np.sin(w * tau))[:, None] * u
-            d_vel = (self.magnitude * w * np.cos(w * tau))[:, None] * u
-        elif self.kind == "intermittent":
-            on = np.mod(tau, self.period) < 0.5 * self.period
-            active = active & on
-            d_pos = self.magnitude[:, None] * u
-        elif self.kind in ("replay", "freeze"):
-            if self.kind == "replay":
-                src = j - np.round(self.delay * rate_hz).astype(int)
-            else:
-                src = np.round(self.onset * rate_hz).astype(int) - 1   # the last honest fix
-            src = np.clip(np.where(active, src, j), 0, j)
-            fake = history[torch.arange(B), torch.as_tensor(src)].numpy()
-            honest = torch.cat([pos, vel], -1).numpy()
-            diff = fake - honest
-            d_pos, d_vel = diff[:, :3], diff[:, 3:]
-        else:  # pragma: no cover - the config validates kinds
-            raise ValueError(self.kind)
+        for kind in np.unique(self.kind[active]):
+            m = active & (self.kind == kind)
+            dp, dv, on = self._offset(str(kind), m, tau, j, pos, vel, history, rate_hz)
+            d_pos[m], d_vel[m] = dp[m], dv[m]
+            if on is not None:
+                active = active & (on | ~m)
         m = active[:, None]
         d_pos = np.where(m, d_pos, 0.0)
         d_vel = np.where(m, d_vel, 0.0)
         return (pos + torch.from_numpy(d_pos), vel + torch.from_numpy(d_vel), active, d_pos, d_vel)
+
+    def _offset(self, kind: str, m: np.ndarray, tau: np.ndarray, j: int, pos: torch.Tensor, vel: torch.Tensor,
+                history: torch.Tensor, rate_hz: float):
+        """Position and velocity offsets (B,3) of attack ``kind``, valid on the flights ``m``
+        (computed for every flight, so a flight's arithmetic does not depend on the others),
+        and for ``intermittent`` whether the injection is on (else None)."""
+        B = pos.shape[0]
+        u = self.direction
+        zero = np.zeros((B, 3))
+        if kind == "bias":
+            return self.magnitude[:, None] * u, zero, None
+        if kind == "ramp":
+            return (self.rate * tau)[:, None] * u, self.rate[:, None] * u, None
+        if kind == "sinusoid":
+            w = 2 * np.pi * self.frequency
+            return (self.magnitude * np.sin(w * tau))[:, None] * u, (self.magnitude * w * np.cos(w * tau))[:, None] * u, None
+        if kind == "intermittent":
+            period = np.where(m, self.period, 1.0)
+            return self.magnitude[:, None] * u, zero, np.mod(tau, period) < 0.5 * period
+        if kind in ("replay", "freeze"):
+            if kind == "replay":
+                src = j - np.round(np.where(m, self.delay, 0.0) * rate_hz).astype(int)
+            else:
+                src = np.round(np.where(m, self.onset, 0.0) * rate_hz).astype(int) - 1   # the last honest fix
+            src = np.clip(np.where(m, src, j), 0, j)
+            fake = history[torch.arange(B), torch.as_tensor(src)].numpy()
+            honest = torch.cat([pos, vel], -1).numpy()
+            diff = fake - honest
+            return diff[:, :3], diff[:, 3:], None
+        raise ValueError(f"unknown attack kind {kind!r}")   # pragma: no cover - the config validates kinds
 
 
 def sample_attacks(gens: list[np.random.Generator], cfg: AttackConfig, attacked: np.ndarray,
@@ -101,13 +116,17 @@ def sample_attacks(gens: list[np.random.Generator], cfg: AttackConfig, attacked:
     B = len(gens)
     out = {k: np.full(B, np.nan) for k in ("onset", "end", "magnitude", "rate", "frequency", "period", "delay")}
     axes = np.array([""] * B, dtype=object)
+    kinds = np.array(["none"] * B, dtype=object)
     direction = np.zeros((B, 3))
     attacked = np.asarray(attacked, dtype=bool) & (cfg.kind != "none")
     for b, rng in enumerate(gens):
+        # a mixed attack draws the flight's kind first; a single kind draws nothing for it
+        kind = cfg.mix[int(rng.integers(len(cfg.mix)))] if cfg.kind == MIX else cfg.kind
+        ranges = cfg.ranges(kind)
         onset = rng.uniform(*cfg.onset)
-        dur = rng.uniform(*cfg.duration)
-        vals = {k: rng.uniform(*getattr(cfg, k)) for k in ("magnitude", "rate", "frequency", "period", "delay")}
-        choices = _HORIZONTAL if cfg.kind == "ramp" else _SUBSETS
+        dur = rng.uniform(*ranges["duration"])
+        vals = {k: rng.uniform(*ranges[k]) for k in ("magnitude", "rate", "frequency", "period", "delay")}
+        choices = _HORIZONTAL if kind == "ramp" else _SUBSETS
         ax = cfg.axes if cfg.axes is not None else choices[int(rng.integers(len(choices)))]
         n = rng.standard_normal(3)
         if not attacked[b]:
@@ -116,9 +135,10 @@ def sample_attacks(gens: list[np.random.Generator], cfg: AttackConfig, attacked:
         vec = np.where(sel, n, 0.0)
         direction[b] = vec / np.linalg.norm(vec)
         axes[b] = ax
+        kinds[b] = kind
         out["onset"][b] = onset
         out["end"][b] = min(onset + dur, duration + 1e-9)
         for k, v in vals.items():
             out[k][b] = v
-    return AttackBatch(cfg.kind, attacked, out["onset"], out["end"], axes, direction,
+    return AttackBatch(kinds, attacked, out["onset"], out["end"], axes, direction,
                        out["magnitude"], out["rate"], out["frequency"], out["period"], out["delay"])

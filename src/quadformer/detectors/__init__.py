@@ -2,7 +2,7 @@
 window classifiers and QUADFormer; their online streams and alert events; the network
 detectors exported as ONNX graphs and scored with onnxruntime."""
 
-from quadformer.detectors import classical, svm  # noqa: F401  (registration)
+from quadformer.detectors import classical, pca, svm  # noqa: F401  (registration)
 from quadformer.detectors import neural  # noqa: F401  (registration)
 from quadformer.detectors.alarms import Alert, alerts_frame, alerts_from_scores, runs, write_alerts
 from quadformer.detectors.base import Detector, NotFittedError, flight_slices

@@ -7,7 +7,13 @@ Per flight (attack steps: fixes that are spoofed):
 - time from attack onset to the first excluded fix (detected flights);
 - time from the first honest fix after the attack to re-admission (flights excluded at the
   end of the attack);
-- share of clean-flight time with GPS wrongly excluded.
+- share of clean-flight time with GPS wrongly excluded;
+- detection in the closed loop: each GPS step is a prediction, "GPS excluded" (the fix not
+  fused), against the truth, "GPS spoofed" (the fix falsified); per flight the counts
+  (TP: excluded and spoofed, FP: excluded and honest, FN: fused and spoofed), summed over a
+  policy's flights into point-wise precision, recall and F1 (``exclusion_prf``). Steps after
+  an attack while GPS is still excluded count as false positives: re-admission delay costs
+  precision.
 """
 
 from __future__ import annotations
@@ -22,7 +28,8 @@ def flight_metrics(t: np.ndarray, label: np.ndarray, true_pos: np.ndarray, est_p
     """Metrics of one flight (arrays per GPS step)."""
     err = np.linalg.norm(est_pos - true_pos, axis=1)
     dev = np.linalg.norm(true_pos - ref_pos, axis=1)
-    out: dict[str, Any] = {"attacked": bool(label.any()), "max_dev_flight_m": float(dev.max())}
+    out: dict[str, Any] = {"attacked": bool(label.any()), "max_dev_flight_m": float(dev.max()),
+                           **exclusion_counts(label, fused)}
     if not label.any():
         out["excluded_fraction"] = float(1.0 - fused.mean())
         return out
@@ -41,6 +48,26 @@ def flight_metrics(t: np.ndarray, label: np.ndarray, true_pos: np.ndarray, est_p
     after = slice(a1 + 1, min(len(t), a1 + 1 + int(round(10 / (t[1] - t[0])))))
     out["max_dev_after_m"] = float(dev[after].max()) if after.start < after.stop else None
     return out
+
+
+def exclusion_counts(label: np.ndarray, fused: np.ndarray) -> dict[str, int]:
+    """Per-step counts of "GPS excluded" (``~fused``) against "GPS spoofed" (``label``):
+    excluded_tp (excluded, spoofed), excluded_fp (excluded, honest), excluded_fn (fused, spoofed)."""
+    y, x = np.asarray(label, bool), ~np.asarray(fused, bool)
+    return {"excluded_tp": int((x & y).sum()), "excluded_fp": int((x & ~y).sum()), "excluded_fn": int((~x & y).sum())}
+
+
+def exclusion_prf(rows: list[dict[str, Any]]) -> dict[str, float]:
+    """Point-wise precision, recall and F1 of "GPS excluded" against "GPS spoofed", from the
+    counts of ``exclusion_counts`` summed over flights (every step of every flight weighs the
+    same). Precision is 0 when nothing was excluded, recall 0 when nothing was spoofed."""
+    tp = sum(r.get("excluded_tp", 0) for r in rows)
+    fp = sum(r.get("excluded_fp", 0) for r in rows)
+    fn = sum(r.get("excluded_fn", 0) for r in rows)
+    p = tp / (tp + fp) if tp + fp else 0.0
+    r = tp / (tp + fn) if tp + fn else 0.0
+    f = 2 * p * r / (p + r) if p + r else 0.0
+    return {"exclusion_precision": p, "exclusion_recall": r, "exclusion_f1": f}
 
 
 def summarize_policy(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -68,4 +95,5 @@ def summarize_policy(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "not_readmitted": sum(r["readmitted"] is False for r in att),
         "wrongly_excluded_fraction": stat("excluded_fraction", np.mean, clean),
         "clean_max_dev_median_m": stat("max_dev_flight_m", np.median, clean),
+        **exclusion_prf(rows),
     }

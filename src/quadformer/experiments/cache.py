@@ -22,7 +22,7 @@ from typing import Any
 
 import pandas as pd
 
-from quadformer.config import SimConfig
+from quadformer.config import MIX, SimConfig
 from quadformer.dataset import FORMAT_VERSION, DatasetError, load_dataset, write_dataset
 from quadformer.evaluation.protocol import Tuned, tune
 from quadformer.experiments.grid import Profile, dataset_summary, profile_configs
@@ -46,6 +46,8 @@ def dataset_key(cfg: SimConfig) -> str:
                 d["ekf"].pop(f)
     if cfg.sensors == SimConfig.sensors:
         d.pop("sensors")
+    if cfg.attack.kind != MIX:
+        d["attack"].pop("mix")   # the kinds of a mixed attack: nothing to a single kind
     d["format_version"] = FORMAT_VERSION   # what the simulator writes
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -62,9 +64,16 @@ def simulate_dataset(cfg: SimConfig, out: Path, overwrite: bool = True) -> dict[
 def ensure_datasets(profile: Profile, cache_dir: Path, progress: bool = True,
                     workers: int | None = None) -> dict[str, Path]:
     """Paths of the profile's datasets, simulating those not in the cache."""
+    return ensure_configs(profile_configs(profile), cache_dir, progress=progress, workers=workers)
+
+
+def ensure_configs(configs: list[tuple[str, SimConfig]], cache_dir: Path, progress: bool = True,
+                   workers: int | None = None) -> dict[str, Path]:
+    """Paths of named datasets (``CACHE/<name>-<key>/``), simulating those not in the cache
+    (in worker processes, one dataset per unit)."""
     cache_dir = Path(cache_dir)
     paths, jobs = {}, []
-    for name, cfg in profile_configs(profile):
+    for name, cfg in configs:
         path = cache_dir / f"{name}-{dataset_key(cfg)}"
         paths[name] = path
         try:

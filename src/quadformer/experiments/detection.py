@@ -1,12 +1,17 @@
-"""The detection benchmark: the paper's eight configurations, every method, one protocol.
+"""The detection benchmark: a profile's configurations, every method, one protocol.
 
 For each configuration and method the protocol of ``evaluation.protocol`` picks
 hyper-parameters and threshold on validation flights; the test flights are scored once.
 Datasets and tuned detectors come from the caches of ``experiments.cache``.
+
+Beside the main run: ``stress=True`` scores the tuned detectors on stress datasets outside
+their tuning ranges (``experiments.stress``); ``run_seeds`` repeats the whole protocol over
+several seeds (datasets and splits) and summarises the spread.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 from typing import Any
@@ -17,23 +22,29 @@ import pandas as pd
 from quadformer.dataset import Dataset, load_dataset
 from quadformer.detectors import alerts_frame, alerts_from_scores, get, runs
 from quadformer.detectors.alarms import run_starts
-from quadformer.evaluation.metrics import evaluate
+from quadformer.evaluation.metrics import bootstrap_f1, evaluate, event_recall_by_type
 from quadformer.evaluation.protocol import split_flights
-from quadformer.experiments.cache import ensure_datasets, model_dir_for, tuned_model
-from quadformer.experiments.grid import PAPER_GRID, Profile, get_profile
+from quadformer.experiments.cache import ensure_configs, model_dir_for, tuned_model
+from quadformer.experiments.grid import Profile, get_profile, profile_configs
 from quadformer.io import atomic_path, package_versions, write_json
+
+#: bootstrap resamples of the test flights for the F1 interval of a run
+N_BOOTSTRAP = 2000
 
 
 def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: float = 0.2,
-               budget_per_hour: float = 1.0, model_dir: Path | None = None) -> tuple[dict[str, Any], pd.DataFrame]:
+               budget_per_hour: float = 1.0, model_dir: Path | None = None,
+               detectors: dict[str, Any] | None = None) -> tuple[dict[str, Any], pd.DataFrame]:
     """Tune and evaluate every method on one dataset. Returns (results, per-step test scores).
 
-    model_dir: cache of tuned detectors (see ``tuned_model``); None: always tune."""
+    model_dir: cache of tuned detectors (see ``tuned_model``); None: always tune.
+    detectors: if given, receives each method's tuned (calibrated) detector."""
     rate = ds.gps_rate_hz
     sp = split_flights(ds.scenarios, seed, label_fraction=label_fraction)
     parts = sp.frames(ds.flights)
     test = parts.test
     offsets = np.linalg.norm(test[["atk_d_x", "atk_d_y", "atk_d_z"]].to_numpy(), axis=1)
+    true_types = np.where(test.label.to_numpy() == 1, test.attack_type.astype(str).to_numpy(), "none")
     scores = test[["flight_id", "t", "label"]].copy()
     out: dict[str, Any] = {}
     alerts: list[pd.DataFrame] = []
@@ -47,8 +58,13 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
         args = (test.flight_id.to_numpy(), test.t.to_numpy(), test.label.to_numpy(), s)
         alarms = s > det.threshold_
         res = evaluate(*args, alarms, gps_rate_hz=rate, offsets=offsets)
-        at_budget = evaluate(*args, s > det.budget_threshold_, gps_rate_hz=rate, offsets=offsets)
+        at_budget = evaluate(*args, s > det.budget_threshold_, gps_rate_hz=rate, offsets=offsets, vus=False)
         res.update(onset_and_types(det, test, alarms))
+        res["event_recall_by_type"] = event_recall_by_type(args[0], args[2], alarms, true_types)
+        ci = bootstrap_f1(args[0], args[2], alarms, n_boot=N_BOOTSTRAP, seed=seed)
+        res["f1_ci95"] = list(ci) if ci is not None else None
+        if detectors is not None:
+            detectors[m] = det
         out[m] = {**res, "threshold": det.threshold_, "params": tuned.params, "val_f1": tuned.val_f1,
                   "budget": {**at_budget, "threshold": det.budget_threshold_,
                              "alarms_per_hour_allowed": budget_per_hour},
@@ -61,9 +77,10 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
 
 
 def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray) -> dict[str, Any]:
-    """For detectors that estimate onsets and attack types: onset error of each detected
-    window (estimated minus true onset, s) and a confusion count of the type predicted at the
-    first alarm of each alarm run (true type ``none`` for a false alarm)."""
+    """For detectors that estimate onsets: onset error of each detected window (estimated
+    minus true onset, s). For every detector: a confusion count of the type predicted at the
+    first alarm of each alarm run against the true type there (``none`` for a false alarm);
+    a detector that does not classify predicts ``attack``."""
     out: dict[str, Any] = {}
     if hasattr(det, "onset_times"):
         # attack windows (first and last attacked times) per flight, computed once
@@ -77,34 +94,45 @@ def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray) -> dict[str, An
             errors += [t_onset - s0 for s0, e0 in windows.get(fid, []) if s0 <= t_alarm <= e0]
         out["onset_error_median_s"] = float(np.median(errors)) if errors else None
         out["onset_error_p95_s"] = float(np.percentile(np.abs(errors), 95)) if errors else None
-    if hasattr(det, "predict_type"):
-        pred = det.predict_type(test)
-        true = np.where(test.label.to_numpy() == 1, test.attack_type.astype(str).to_numpy(), "none")
-        first = run_starts(test, alarms)
-        conf: dict[str, dict[str, int]] = {}
-        for tt, pp in zip(true[first], pred[first]):
-            conf.setdefault(tt, {}).setdefault(str(pp), 0)
-            conf[tt][str(pp)] += 1
-        out["type_confusion"] = conf
+    pred = det.predict_type(test) if hasattr(det, "predict_type") else np.full(len(test), "attack", dtype=object)
+    true = np.where(test.label.to_numpy() == 1, test.attack_type.astype(str).to_numpy(), "none")
+    first = run_starts(test, alarms)
+    conf: dict[str, dict[str, int]] = {}
+    for tt, pp in zip(true[first], pred[first]):
+        conf.setdefault(tt, {}).setdefault(str(pp), 0)
+        conf[tt][str(pp)] += 1
+    out["type_confusion"] = conf
     return out
 
 
 def run_benchmark(profile: str | Profile, methods: list[str], out: Path, cache_dir: Path,
                   progress: bool = True, workers: int | None = None, seed: int = 0,
-                  label_fraction: float = 0.2, budget_per_hour: float = 1.0) -> dict[str, Any]:
-    """Every method on the profile's eight configurations (datasets and tuned detectors cached)."""
+                  label_fraction: float = 0.2, budget_per_hour: float = 1.0, stress: bool = False) -> dict[str, Any]:
+    """Every method on the profile's configurations (datasets and tuned detectors cached).
+
+    stress: also score the tuned detectors on each configuration's stress datasets
+    (``experiments.stress``; simulated and cached like the others), under ``results["stress"]``."""
+    from quadformer.experiments.stress import stress_configs
+
     prof = get_profile(profile)
     for m in methods:
         get(m)   # unknown names fail before any work
     t_start = time.perf_counter()
-    paths = ensure_datasets(prof, cache_dir, progress=progress, workers=workers)
+    configs = profile_configs(prof)
+    stress_units = {name: stress_configs(name, cfg, prof.stress_flights) for name, cfg in configs} if stress else {}
+    paths = ensure_configs(configs + [(n, c) for units in stress_units.values() for n, _, c in units], cache_dir,
+                           progress=progress, workers=workers)
     t_sim = time.perf_counter() - t_start
-    items = [(name, path, model_dir_for(cache_dir, path, seed, label_fraction),
+    items = [(name, paths[name], model_dir_for(cache_dir, paths[name], seed, label_fraction),
               {"model": model, "noise": noise, "attack": attack})
-             for (model, noise, attack), (name, path) in zip(PAPER_GRID, paths.items())]
-    head = {"profile": prof.name, "flights_per_config": prof.flights, "duration_s": prof.duration}
+             for (model, noise, attack), (name, _) in zip(prof.grid, configs)]
+    head = {"profile": prof.name, "flights_per_config": prof.flights, "duration_s": prof.duration,
+            "dataset_seed": prof.seed}
+    stress_items = {name: [(n, st, paths[n], c.seed) for n, st, c in units] for name, units in stress_units.items()}
+    if stress:
+        head["stress_flights_per_set"] = prof.stress_flights
     return _evaluate(items, methods, Path(out), head, t_start, t_sim, progress, seed, label_fraction,
-                     budget_per_hour)
+                     budget_per_hour, stress=stress_items if stress else None)
 
 
 def run_datasets(paths: list[Path], methods: list[str], out: Path, progress: bool = True, seed: int = 0,
@@ -125,9 +153,12 @@ def run_datasets(paths: list[Path], methods: list[str], out: Path, progress: boo
 
 
 def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t_sim: float, progress: bool,
-              seed: int, label_fraction: float, budget_per_hour: float) -> dict[str, Any]:
+              seed: int, label_fraction: float, budget_per_hour: float,
+              stress: dict[str, list] | None = None) -> dict[str, Any]:
     """Tune and score every method on each (name, dataset path, model cache, description);
-    write results.json, scores, alerts and the report."""
+    with ``stress`` (configuration name -> [(dataset name, stress set, path, seed)]) score the
+    tuned detectors on those datasets too; write results.json, scores, alerts and the report."""
+    from quadformer.experiments.stress import StressPool, score_stress, stress_sets_doc
     from quadformer.report import write_report
 
     (out / "scores").mkdir(parents=True, exist_ok=True)
@@ -137,10 +168,21 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
     if progress:
         from tqdm.auto import tqdm
         iterator = tqdm(items, desc="evaluate", unit="dataset")
+    pool = StressPool()
+    stress_out: dict[str, Any] = {}
+    t_stress, rate = 0.0, 10.0
     for name, path, model_dir, described in iterator:
         ds = load_dataset(path)
+        rate = ds.gps_rate_hz
+        tuned: dict[str, Any] = {}
         res, scores = run_config(ds, methods, seed=seed, label_fraction=label_fraction,
-                                 budget_per_hour=budget_per_hour, model_dir=model_dir)
+                                 budget_per_hour=budget_per_hour, model_dir=model_dir, detectors=tuned)
+        t0 = time.perf_counter()
+        for ds_name, st, st_path, st_seed in (stress or {}).get(name, []):
+            stress_out.setdefault(name, {})[st.name] = {
+                "dataset": str(st_path), "dataset_seed": st_seed,
+                "methods": score_stress(tuned, load_dataset(st_path), st.name, pool)}
+        t_stress += time.perf_counter() - t0
         with atomic_path(out / "scores" / f"{name}.parquet") as tmp:
             scores.to_parquet(tmp, index=False)
         frame = res.pop("alerts")
@@ -155,9 +197,87 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
         "configs": configs, "versions": package_versions(),
         "timing_s": {"simulate": t_sim, "total": time.perf_counter() - t_start},
     }
+    if stress is not None:
+        results["stress"] = {
+            "flights_per_set": head.get("stress_flights_per_set"),
+            "protocol": "detectors tuned as in the main run (same datasets, split and tuned-model cache), "
+                        "thresholds from validation flights; every flight of a stress dataset is a test flight",
+            "sets": stress_sets_doc(), "configs": stress_out, "pooled": pool.results(rate),
+        }
+        results["timing_s"]["stress_scoring"] = t_stress
     if all_alerts:    # every method's alerts on the test flights
         with atomic_path(out / "alerts.csv") as tmp:
             pd.concat(all_alerts, ignore_index=True).to_csv(tmp, index=False)
     write_json(out / "results.json", results)
     write_report(results, out)
     return results
+
+
+#: metrics summarised over seeds (mean, std, min, max) per configuration and method
+SEED_METRICS = ("f1", "precision", "recall", "event_f1", "event_recall", "delay_median_s", "false_alarms_per_hour",
+                "auroc", "auprc", "vus_pr")
+
+
+def run_seeds(profile: str | Profile, methods: list[str], out: Path, cache_dir: Path, seeds: list[int],
+              progress: bool = True, workers: int | None = None, label_fraction: float = 0.2,
+              budget_per_hour: float = 1.0, stress: bool = False) -> dict[str, Any]:
+    """The whole protocol once per seed: seed s simulates its own datasets (the profile's
+    dataset seed set to s, from which each configuration derives its own) and splits them
+    with split seed s. Each run writes its own directory ``out/seed-<s>/`` (results.json,
+    tables, report); ``out/results.json`` keeps every run's metrics per configuration and
+    method and their mean, standard deviation (ddof 1) and min-max over the seeds, and
+    ``out/report.html`` shows them."""
+    from quadformer.report.detection import write_seeds_report
+
+    prof = get_profile(profile)
+    seeds = [int(s) for s in seeds]
+    if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise ValueError(f"seeds: distinct non-negative integers needed, got {seeds}")
+    for m in methods:
+        get(m)
+    out = Path(out)
+    t_start = time.perf_counter()
+    runs_: list[dict[str, Any]] = []
+    for s in seeds:
+        res = run_benchmark(dataclasses.replace(prof, seed=s), methods, out / f"seed-{s}", cache_dir,
+                            progress=progress, workers=workers, seed=s, label_fraction=label_fraction,
+                            budget_per_hour=budget_per_hour, stress=stress)
+        runs_.append(res)
+    results = {
+        "profile": prof.name, "flights_per_config": prof.flights, "duration_s": prof.duration, "seeds": seeds,
+        "label_fraction": label_fraction, "methods_run": methods,
+        "protocol": "per seed s: datasets simulated from profile seed s (each configuration its own derived "
+                    "seed), split by flight with seed s, hyper-parameters and thresholds on validation flights, "
+                    "test scored once; the spread over seeds covers datasets, splits and training",
+        "runs": [{"seed": s, "dir": str(out / f"seed-{s}")} for s in seeds],
+        "per_seed": {str(s): {c["name"]: {m: {k: r.get(k) for k in (*SEED_METRICS, "f1_ci95")}
+                                          for m, r in c["methods"].items()}
+                              for c in res["configs"]} for s, res in zip(seeds, runs_)},
+        "summary": seed_summary(runs_),
+        "versions": package_versions(),
+        "timing_s": {"total": time.perf_counter() - t_start,
+                     "per_seed": {str(s): r["timing_s"]["total"] for s, r in zip(seeds, runs_)}},
+    }
+    write_json(out / "results.json", results)
+    write_seeds_report(results, out)
+    return results
+
+
+def seed_summary(runs_: list[dict[str, Any]], metrics: tuple[str, ...] = SEED_METRICS) -> dict[str, Any]:
+    """Per configuration, method and metric over the runs (one per seed): mean, standard
+    deviation (ddof 1; None for a single run), min, max and the number of runs with a value."""
+    values: dict[str, dict[str, dict[str, list[float]]]] = {}
+    for res in runs_:
+        for c in res["configs"]:
+            for m, r in c["methods"].items():
+                for k in metrics:
+                    v = r.get(k)
+                    if v is not None and np.isfinite(v):
+                        values.setdefault(c["name"], {}).setdefault(m, {}).setdefault(k, []).append(float(v))
+    out: dict[str, Any] = {}
+    for name, per_method in values.items():
+        for m, per_metric in per_method.items():
+            out.setdefault(name, {})[m] = {k: {
+                "mean": float(np.mean(v)), "std": float(np.std(v, ddof=1)) if len(v) > 1 else None,
+                "min": float(np.min(v)), "max": float(np.max(v)), "n": len(v)} for k, v in per_metric.items()}
+    return out

@@ -1,5 +1,6 @@
-"""The paper's eight configurations (Model I/II x exponential/laplace noise x bias/ramp) and
-the benchmark profiles that size them."""
+"""The paper's eight configurations (Model I/II x exponential/laplace noise x bias/ramp), the
+mixed-attack grid (Model I/II x exponential/laplace noise x mixed attacks) and the benchmark
+profiles that size them."""
 
 from __future__ import annotations
 
@@ -11,10 +12,12 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from quadformer.config import SimConfig
+from quadformer.config import ATTACK_CHOICES, MIX, MODELS, NOISE_SHAPES, SimConfig
 from quadformer.dataset import Dataset
 
 PAPER_GRID = tuple(itertools.product(("I", "II"), ("exponential", "laplace"), ("bias", "ramp")))
+#: mixed attacks: every attacked flight draws its kind from all six (``AttackConfig.mix``)
+MIXED_GRID = tuple(itertools.product(("I", "II"), ("exponential", "laplace"), (MIX,)))
 
 
 @dataclass(frozen=True)
@@ -22,13 +25,16 @@ class Profile:
     name: str
     flights: int            # per configuration
     duration: float = 60.0  # s per flight
-    seed: int = 0
+    seed: int = 0           # datasets' seed (each configuration derives its own from it)
+    grid: tuple[tuple[str, str, str], ...] = PAPER_GRID   # (model, noise, attack) configurations
+    stress_flights: int = 24   # flights per stress dataset (``benchmark --stress``)
 
 
 PROFILES = {
-    "demo": Profile("demo", 20),
+    "demo": Profile("demo", 20, stress_flights=12),
     "quick": Profile("quick", 60),
-    "paper": Profile("paper", 600),
+    "paper": Profile("paper", 600, stress_flights=120),
+    "mixed": Profile("mixed", 60, grid=MIXED_GRID),
 }
 
 
@@ -63,15 +69,20 @@ def dataset_summary(ds: Dataset) -> dict[str, Any]:
 
 def config_seed(seed: int, model: str, noise: str, attack: str) -> int:
     """Each configuration's own dataset seed, derived from ``seed``: configurations do not
-    share missions or noise realisations (which would make them near copies)."""
-    idx = PAPER_GRID.index((model, noise, attack))
-    return int(np.random.SeedSequence(seed, spawn_key=(0xC0F, idx)).generate_state(1)[0])
+    share missions or noise realisations (which would make them near copies). The paper's
+    eight keep the seeds they always had; any other (model, noise, attack) derives its own
+    from its names' indices under a different key."""
+    if (model, noise, attack) in PAPER_GRID:
+        key: tuple[int, ...] = (0xC0F, PAPER_GRID.index((model, noise, attack)))
+    else:
+        key = (0xC0F, 0x1, MODELS.index(model), NOISE_SHAPES.index(noise), ATTACK_CHOICES.index(attack))
+    return int(np.random.SeedSequence(seed, spawn_key=key).generate_state(1)[0])
 
 
 def profile_configs(profile: Profile) -> list[tuple[str, SimConfig]]:
-    """(name, config) of the eight configurations at the profile's size."""
+    """(name, config) of the profile's configurations (``profile.grid``) at its size."""
     base = SimConfig(flights=profile.flights, duration=profile.duration, seed=profile.seed)
-    return [(config_name(*c), grid_config(base, *c)) for c in PAPER_GRID]
+    return [(config_name(*c), grid_config(base, *c)) for c in profile.grid]
 
 
 def grid_config(base: SimConfig, model: str, noise: str, attack: str) -> SimConfig:

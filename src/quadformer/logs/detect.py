@@ -136,7 +136,6 @@ def logs_dataset(paths: list[Path], residues: str = "ekf", config: FilterConfig 
     # one flight per (log, segment, repetition); attacks drawn per flight index
     units = [(li, seg) for li, log in enumerate(logs) for seg in range(len(log.segments))]
     units = [u for u in units for _ in range(repeat)]
-    kind = attack.kind if attack is not None else "none"
     attacked = attacked_flights(seed, len(units), attack.fraction if attack is not None else 0.0)
     frames, scen, notes = [], [], {str(p): [] for p in paths}
     batches = []
@@ -167,7 +166,7 @@ def logs_dataset(paths: list[Path], residues: str = "ekf", config: FilterConfig 
             frames.append(rows)
             row = {"flight_id": fid, **({"group": f"{paths[li]}#{seg}"} if group else {}),
                    "attacked": bool(batch is not None and rows.label.any()),
-                   "attack_type": kind if batch is not None else "none", "log": str(paths[li]), "segment": seg,
+                   "attack_type": str(batch.kind[0]) if batch is not None else "none", "log": str(paths[li]), "segment": seg,
                    "repeat": k - start, "duration": float(rows.t.iloc[-1] - rows.t.iloc[0]), "sensors": f.sensors}
             if batch is not None:
                 row.update(onset=float(batch.onset[0]), end=float(batch.end[0]), magnitude=float(batch.magnitude[0]),

@@ -262,7 +262,7 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
         for i, a in enumerate("xyz"):
             rows[f"atk_d_{a}"] = d_pos[idx, i]
         rows["label"] = label[idx].astype(np.int8)
-        rows["attack_type"] = np.where(label[idx], attack.kind if attack is not None else "none", "none").astype(object)
+        rows["attack_type"] = np.where(label[idx], str(attack.kind[0]) if attack is not None else "none", "none").astype(object)
         flights.append(LogFlight(seg, pd.DataFrame(rows), sensors, list(notes)))
     return flights
 

@@ -17,7 +17,20 @@ from quadformer.report.html import img, page, png, table
 
 NOISES = ("exponential", "laplace")
 ATTACKS = ("bias", "ramp")
-ATTACK_TITLE = {"bias": "Attack I (bias)", "ramp": "Attack II (ramp)"}
+ATTACK_TITLE = {"bias": "Attack I (bias)", "ramp": "Attack II (ramp)", "mix": "Attack mix (mixed)"}
+
+
+def _grid_axes(results: dict[str, Any]) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The noise shapes and attacks of a profile run's configurations, in the paper's order."""
+    noises = tuple(dict.fromkeys(c["noise"] for c in results["configs"]))
+    attacks = tuple(dict.fromkeys(c["attack"] for c in results["configs"]))
+    order = {k: i for i, k in enumerate(("exponential", "laplace", "gaussian", "bias", "ramp", "mix"))}
+    return (tuple(sorted(noises, key=lambda k: order.get(k, 99))),
+            tuple(sorted(attacks, key=lambda k: order.get(k, 99))))
+
+
+def _title(attack: str) -> str:
+    return ATTACK_TITLE.get(attack, f"Attack {attack} ({attack})")
 
 
 def dataset_table(results: dict[str, Any]) -> pd.DataFrame:
@@ -36,14 +49,17 @@ def paper_tables(results: dict[str, Any]) -> dict[str, pd.DataFrame]:
     if results.get("profile") is None:
         return tables
     methods = results["methods_run"]
+    noises, attacks = _grid_axes(results)
     for model in ("I", "II"):
-        cols = pd.MultiIndex.from_tuples([(n, ATTACK_TITLE[a], m) for n in NOISES for a in ATTACKS
+        if not any(c["model"] == model for c in results["configs"]):
+            continue
+        cols = pd.MultiIndex.from_tuples([(n, _title(a), m) for n in noises for a in attacks
                                           for m in ("P", "R", "F1")])
         rows = []
         for method in methods:
             row = []
-            for n in NOISES:
-                for a in ATTACKS:
+            for n in noises:
+                for a in attacks:
                     c = _find(results, model, n, a)
                     r = c["methods"].get(method) if c else None
                     row += [r["precision"], r["recall"], r["f1"]] if r else [np.nan] * 3
@@ -69,11 +85,13 @@ def _markdown(df: pd.DataFrame) -> str:
 
 def _latex(df: pd.DataFrame, model: str) -> str:
     n = len(df.columns)
+    noises = tuple(dict.fromkeys(nz for nz, _, _ in df.columns))
+    titles = tuple(dict.fromkeys(a for _, a, _ in df.columns))
     out = [r"\begin{tabular}{l" + "c" * n + "}", r"\toprule",
-           r"Model " + model + " & " + " & ".join(rf"\multicolumn{{6}}{{c}}{{{nz.capitalize()} noise}}"
-                                                 for nz in NOISES) + r" \\",
-           " & " + " & ".join(rf"\multicolumn{{3}}{{c}}{{{ATTACK_TITLE[a]}}}" for _ in NOISES
-                              for a in ATTACKS) + r" \\",
+           r"Model " + model + " & " + " & ".join(rf"\multicolumn{{{3 * len(titles)}}}{{c}}{{{nz.capitalize()} noise}}"
+                                                 for nz in noises) + r" \\",
+           " & " + " & ".join(rf"\multicolumn{{3}}{{c}}{{{a}}}" for _ in noises
+                              for a in titles) + r" \\",
            "Method & " + " & ".join(m for _, _, m in df.columns) + r" \\", r"\midrule"]
     for idx, row in df.iterrows():
         out.append(str(idx).replace("_", r"\_") + " & " + " & ".join(_f(v) for v in row) + r" \\")
@@ -93,6 +111,9 @@ def extra_table(results: dict[str, Any]) -> pd.DataFrame:
                 "config": c["name"], "method": m, "F1": r["f1"], "event F1": r["event_f1"],
                 "delay med (s)": r["delay_median_s"], "delay p95 (s)": r["delay_p95_s"],
                 "FA/h (clean)": r["false_alarms_per_hour"], "AUROC": r["auroc"], "AUPRC": r["auprc"],
+                "VUS-PR": r.get("vus_pr"),
+                "F1 95% CI low": (r.get("f1_ci95") or [None, None])[0],
+                "F1 95% CI high": (r.get("f1_ci95") or [None, None])[1],
                 "offset at det. (m)": r["offset_at_detection_median_m"],
                 "F1 @budget": r["budget"]["f1"], "FA/h @budget": r["budget"]["false_alarms_per_hour"],
                 "F1 point-adjusted (inflated)": r["f1_point_adjusted"],
@@ -128,6 +149,55 @@ def confusion_table(results: dict[str, Any], method: str) -> pd.DataFrame | None
     if not found:
         return None
     return pd.DataFrame(total).T.fillna(0).astype(int)
+
+
+def type_recall_table(results: dict[str, Any]) -> pd.DataFrame | None:
+    """Event recall per true attack type: rows methods, columns types, cells "found/windows"
+    pooled over the test flights of every configuration (None when no run recorded it)."""
+    counts: dict[str, dict[str, list[int]]] = {}
+    for c in results["configs"]:
+        for m, r in c["methods"].items():
+            for t, row in (r.get("event_recall_by_type") or {}).items():
+                acc = counts.setdefault(m, {}).setdefault(t, [0, 0])
+                acc[0] += row["found"]
+                acc[1] += row["windows"]
+    if not counts:
+        return None
+    types = sorted({t for per in counts.values() for t in per})
+    rows = {m: {t: _ratio(per.get(t)) for t in types} for m, per in counts.items()}
+    return pd.DataFrame(rows).T.reindex([m for m in results["methods_run"] if m in rows])
+
+
+def _ratio(acc: list[int] | None) -> str:
+    if not acc or not acc[1]:
+        return "-"
+    return f"{acc[0] / acc[1]:.2f} ({acc[0]}/{acc[1]})"
+
+
+STRESS_COLUMNS = {"event_recall": "event recall", "windows": "attack windows", "delay_median_s": "delay median (s)",
+                  "false_alarms_per_hour": "FA/h (clean flights)", "clean_flight_hours": "clean flight-hours",
+                  "f1": "F1 (point-wise)", "vus_pr": "VUS-PR"}
+
+
+def stress_table(results: dict[str, Any]) -> pd.DataFrame | None:
+    """Per stress set and method, pooled over the configurations it scores: event recall,
+    median detection delay, false alarms per flight-hour on the clean stress flights, point-wise
+    F1 (and VUS-PR). None without a stress evaluation."""
+    st = results.get("stress")
+    if not st:
+        return None
+    rows = []
+    for set_name in st["sets"]:
+        for m in results["methods_run"]:
+            r = st["pooled"].get(set_name, {}).get(m)
+            if r is None:
+                continue
+            rows.append({"stress set": set_name, "method": m, "configs": r["configs"],
+                         **{title: r.get(k) for k, title in STRESS_COLUMNS.items()}})
+    df = pd.DataFrame(rows)
+    for col in df.columns[2:]:
+        df[col] = pd.to_numeric(df[col])
+    return df
 
 
 def _figures(results: dict[str, Any], out: Path) -> dict[str, str]:
@@ -252,7 +322,9 @@ def write_report(results: dict[str, Any], out: Path) -> Path:
         parts.append("<h2>Point-wise precision, recall, F1 (test flights)</h2>")
         parts.append(table(df))
     parts.append("<h2>All metrics</h2><p>Event-wise scores, detection delays, false alarms per hour on clean "
-                 "test flights, threshold-free AUROC/AUPRC, scores at the false-alarm budget threshold. "
+                 "test flights, threshold-free AUROC/AUPRC and VUS-PR (range-based PR area averaged over label "
+                 "buffers of 0 to 5 s, Paparrizos et al.), a 95% bootstrap interval of the F1 over test flights, "
+                 "scores at the false-alarm budget threshold. "
                  "The point-adjusted F1 is shown only for comparison with the literature: it inflates "
                  "scores and is not the result.</p>")
     parts.append(table(extra, index=False))
@@ -261,17 +333,91 @@ def write_report(results: dict[str, Any], out: Path) -> Path:
     abl = ablation_table(results)
     if abl is not None:
         atomic_write_text(out / "ablation.csv", abl.to_csv())
-        parts.append("<h2>QUADFormer ablations: point-wise F1 (test)</h2><p>noprior: no prior branch; nosup: no "
+        parts.append("<h2>QUADFormer ablations: point-wise F1 (test)</h2><p>noprior: a fixed prior (Gaussian "
+                     "kernel of width 2 steps, not learned); nosup: no "
                      "supervised terms (no labels); nodisc: no discrepancy term.</p>")
         parts.append(table(abl))
+    stress = stress_table(results)
+    if stress is not None:
+        atomic_write_text(out / "stress.csv", stress.to_csv(index=False))
+        st = results["stress"]
+        parts.append("<h2>Stress evaluation: attacks outside the tuning ranges</h2>"
+                     f"<p>{html.escape(st['protocol'])}. {st['flights_per_set']} flights per stress dataset "
+                     "(half attacked), one dataset per set and configuration; a set is pooled over the "
+                     "configurations whose detectors it scores (bias-tuned: small offsets, long bias, freeze, "
+                     "replay, intermittent; ramp-tuned: slow drifts, long ramp, sinusoid; mix-tuned: all; "
+                     "every detector: its own attack under Gaussian noise). False alarms per flight-hour are "
+                     "counted on the clean stress flights.</p>")
+        sets = pd.DataFrame([{"stress set": k, "what": v["what"],
+                              "scores detectors tuned on": ", ".join(v["scores_detectors_tuned_on"]),
+                              "flight (s)": v["flight_s"] or "as the configuration"} for k, v in st["sets"].items()])
+        parts.append(table(sets, index=False))
+        parts.append(table(stress, index=False))
+    recall = type_recall_table(results)
+    if recall is not None:
+        atomic_write_text(out / "event_recall_by_type.csv", recall.to_csv(index_label="method"))
+        parts.append("<h2>Event recall per attack type (test flights)</h2><p>Attack windows holding an alarm "
+                     "over the windows of that true type, all configurations pooled: recall (found/windows).</p>")
+        parts.append(table(recall))
     for m in results["methods_run"]:
         conf = confusion_table(results, m)
         if conf is not None:
             parts.append(f"<h2>{html.escape(m)}: attack type predicted at the first alarm of each alarm run</h2>"
-                         "<p>Rows: true type (none: a false alarm); columns: predicted type; all test flights "
-                         "of all configurations.</p>")
+                         "<p>Rows: true type (none: a false alarm); columns: predicted type (attack: the "
+                         "detector does not classify); all test flights of all configurations.</p>")
             parts.append(table(conf))
     parts.append("<h2>Versions</h2><pre>" + html.escape(str(results.get("versions", {}))) + "</pre>")
     doc = page("quadformer report", parts)
     atomic_write_text(out / "report.html", doc)
     return out / "report.html"
+
+
+# -- several seeds ----------------------------------------------------------------------------
+
+def seeds_table(results: dict[str, Any], metric: str = "f1") -> pd.DataFrame:
+    """One metric over the seeds: rows methods, columns configurations, cells
+    "mean ± std [min, max]" (``run_seeds``' summary)."""
+    summary = results["summary"]
+    cols = list(summary)
+    rows = {}
+    for m in results["methods_run"]:
+        rows[m] = {c: _spread(summary[c].get(m, {}).get(metric)) for c in cols}
+    return pd.DataFrame(rows).T[cols]
+
+
+def _spread(v: dict[str, Any] | None) -> str:
+    if not v:
+        return "-"
+    std = "-" if v["std"] is None else f"{v['std']:.2f}"
+    return f"{v['mean']:.2f} ± {std} [{v['min']:.2f}, {v['max']:.2f}]"
+
+
+SEED_TABLES = {"f1": "point-wise F1", "event_f1": "event-wise F1", "vus_pr": "VUS-PR", "auprc": "AUPRC",
+               "false_alarms_per_hour": "false alarms per flight-hour (clean test flights)"}
+
+
+def write_seeds_report(results: dict[str, Any], out: Path) -> Path:
+    """``seeds_<metric>.{md,csv}`` and report.html of a several-seed run."""
+    out = Path(out)
+    parts = [f"<h1>quadformer benchmark over {len(results['seeds'])} seeds: profile "
+             f"{html.escape(results['profile'])}</h1><p>{html.escape(results['protocol'])}. Seeds: "
+             + ", ".join(str(s) for s in results["seeds"]) + ". Cells: mean ± standard deviation over the seeds "
+             "[min, max]. Each seed's own report: "
+             + ", ".join(f"<code>{html.escape(r['dir'])}/report.html</code>" for r in results["runs"]) + ".</p>"]
+    for metric, title in SEED_TABLES.items():
+        df = seeds_table(results, metric)
+        atomic_write_text(out / f"seeds_{metric}.csv", df.to_csv(index_label="method"))
+        atomic_write_text(out / f"seeds_{metric}.md", _markdown_plain(df))
+        parts.append(f"<h2>{html.escape(title)} over seeds (test flights)</h2>")
+        parts.append(table(df))
+    parts.append("<h2>Versions</h2><pre>" + html.escape(str(results.get("versions", {}))) + "</pre>")
+    atomic_write_text(out / "report.html", page("quadformer report over seeds", parts))
+    return out / "report.html"
+
+
+def _markdown_plain(df: pd.DataFrame) -> str:
+    head = ["method", *map(str, df.columns)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for idx, row in df.iterrows():
+        lines.append("| " + " | ".join([str(idx), *map(str, row)]) + " |")
+    return "\n".join(lines) + "\n"

@@ -24,6 +24,9 @@ COLUMNS = {
     "readmit_delay_max_s": "end to re-admission, max (s)",
     "not_readmitted": "never re-admitted",
     "wrongly_excluded_fraction": "GPS wrongly excluded, clean flights (share of time)",
+    "exclusion_precision": "exclusion precision (vs spoofed)",
+    "exclusion_recall": "exclusion recall (vs spoofed)",
+    "exclusion_f1": "exclusion F1 (vs spoofed)",
 }
 
 
@@ -48,6 +51,9 @@ OVERALL = {
     "readmit_delay_p95_s": "end to re-admission p95 (s)",
     "not_readmitted": "never re-admitted",
     "wrongly_excluded_fraction": "wrongly excluded (clean time)",
+    "exclusion_precision": "exclusion P",
+    "exclusion_recall": "exclusion R",
+    "exclusion_f1": "exclusion F1",
 }
 
 
@@ -114,7 +120,10 @@ def write_resilience_report(results: dict[str, Any], out: Path) -> Path:
              f"to GPS after {adm['reset_after_s']:g} s of rejections), resilient (exclude GPS on the detector's "
              f"alarm, re-admit after it has been clear and GPS has agreed with the estimate for "
              f"{adm['hold_s']:g} s, blended over {adm['blend_s']:g} s), oracle (excludes exactly the spoofed "
-             "fixes). Deviations are of the true vehicle from its mission during the attack window.</p>",
+             "fixes). Deviations are of the true vehicle from its mission during the attack window. Exclusion "
+             "P/R/F1: every GPS step of every flight (attacked and clean) is a prediction, GPS excluded, "
+             "against the truth, GPS spoofed (point-wise, no adjustment; steps still excluded after an attack "
+             "ends are false positives); the oracle scores 1 by construction.</p>",
              "<h2>All configurations</h2>",
              table(overall, index=False),
              "<h2>Per configuration</h2>",

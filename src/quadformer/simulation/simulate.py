@@ -21,25 +21,25 @@ from quadformer.simulation.closed_loop import BatchResult, simulate_batch
 
 def _batch_frames(cfg: SimConfig, r: BatchResult) -> tuple[pd.DataFrame, pd.DataFrame]:
     B, n = r["label"].shape
-    kind = cfg.attack.kind
+    m, w, a = r["missions"], r["wind_params"], r["attacks"]
+    kinds = np.asarray(a.kind, dtype=object)     # each flight's own kind ("none": not attacked)
     cols: dict[str, np.ndarray] = {
         "flight_id": np.repeat(r["flights"].astype(np.int32), n),
         "t": np.tile(r["t"], B),
         "label": r["label"].reshape(-1).astype(np.int8),
     }
-    cols["attack_type"] = np.where(cols["label"] == 1, kind, "none")
+    cols["attack_type"] = np.where(cols["label"] == 1, np.repeat(kinds, n), "none")
     for g in groups_for(cfg.sensors):      # the columns follow the sensor configuration
         for i, c in enumerate(g.columns):
             cols[c] = r[g.name][..., i].reshape(-1)
     flights = pd.DataFrame(cols)
     flights["attack_type"] = flights["attack_type"].astype("string")
 
-    m, w, a = r["missions"], r["wind_params"], r["attacks"]
     scen = pd.DataFrame({
         "flight_id": r["flights"].astype(np.int32),
         "mission": m.kind.astype(str), "speed": m.speed, "altitude": m.altitude,
         "wind_mean_x": w.mean[:, 0], "wind_mean_y": w.mean[:, 1], "gust_std": w.gust_std[:, 0],
-        "attacked": a.attacked, "attack_type": np.where(a.attacked, kind, "none"),
+        "attacked": a.attacked, "attack_type": np.where(a.attacked, kinds, "none").astype(str),
         "attack_axes": a.axes.astype(str), "onset": a.onset, "end": a.end,
         "magnitude": a.magnitude, "rate": a.rate, "frequency": a.frequency, "period": a.period,
         "delay": a.delay,

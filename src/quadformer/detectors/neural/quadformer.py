@@ -66,6 +66,7 @@ class QUADFormer(TorchCheckpoint, Detector):
                  epochs: int = 15, batch_size: int = 64, lr: float = 1e-3, lambda_dis: float = 0.1,
                  lambda_ce: float = 1.0, lambda_margin: float = 0.1, margin: float = 0.5,
                  use_prior: bool = True, supervised: bool = True, use_discrepancy: bool = True,
+                 prior_sigma: float | None = None,
                  k: int = 2, n: int = 3, w_anomaly: float = 1.0, augment: bool = True, steps_per_epoch: int = 60,
                  seed: int = 0, device: str = "cpu", progress: bool = False) -> None:
         self.window = window
@@ -82,6 +83,7 @@ class QUADFormer(TorchCheckpoint, Detector):
         self.use_prior = use_prior
         self.supervised = supervised
         self.use_discrepancy = use_discrepancy
+        self.prior_sigma = prior_sigma
         self.k = k
         self.n = n
         self.w_anomaly = w_anomaly
@@ -98,7 +100,7 @@ class QUADFormer(TorchCheckpoint, Detector):
 
     def _build(self) -> nn.Module:
         return QUADFormerNet(len(self.features_), len(self.classes_), self.window, self.d_model, self.heads,
-                             self.layers, use_prior=self.use_prior)
+                             self.layers, use_prior=self.use_prior, prior_sigma=self.prior_sigma)
 
     def get_params(self) -> dict[str, Any]:
         sig = inspect.signature(QUADFormer.__init__)
@@ -108,6 +110,8 @@ class QUADFormer(TorchCheckpoint, Detector):
     def fit(self, X: pd.DataFrame, y: np.ndarray | None = None) -> "QUADFormer":
         if self.k > self.n:
             raise ValueError(f"k ({self.k}) must not exceed n ({self.n})")
+        if self.prior_sigma is not None and not (np.isfinite(self.prior_sigma) and self.prior_sigma > 0):
+            raise ValueError(f"prior_sigma must be a positive number of steps or None, got {self.prior_sigma!r}")
         if float(self.w_anomaly) not in W_ANOMALY:
             raise ValueError(f"w_anomaly must be one of {W_ANOMALY}, got {self.w_anomaly!r}")
         self.features_ = input_features(X)
@@ -339,6 +343,10 @@ def _variant(name: str, doc: str, **fixed: Any) -> type[QUADFormer]:
 
 
 register("quadformer")(QUADFormer)
-_variant("quadformer-noprior", "Ablation: no prior branch (no association discrepancy).", use_prior=False)
+_variant("quadformer-noprior", "Ablation: a fixed prior, no learned one: the prior association is a Gaussian "
+         "kernel of fixed width (sigma = 2 GPS steps, the same for every head and position), so the "
+         "association discrepancy is still trained and scored, against a prior that learns nothing. "
+         "(Without any prior branch there would be no discrepancy and the variant would train the "
+         "network of quadformer-nodisc.)", prior_sigma=2.0)
 _variant("quadformer-nosup", "Ablation: no supervised terms (no labels used).", supervised=False)
 _variant("quadformer-nodisc", "Ablation: no discrepancy term in loss or score.", use_discrepancy=False)

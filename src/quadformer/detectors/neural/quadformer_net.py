@@ -3,7 +3,8 @@
 Each attention head computes
 - a series association S = softmax(Q K^T / sqrt(d)), learned from the data, and
 - a prior association P: a Gaussian kernel over the temporal distance |i - j| whose width
-  sigma is predicted per head and position from the input, rows normalised to sum to 1.
+  sigma is predicted per head and position from the input, rows normalised to sum to 1
+  (``prior_sigma``: a fixed width in steps instead, learned by nothing).
 Normal steps spread their association over the window (far from the local prior); attacked
 steps concentrate it on their neighbours (close to it). The per-step association
 discrepancy, the symmetric KL between P and S averaged over heads and layers, is the
@@ -27,11 +28,14 @@ def symmetric_kl(p: torch.Tensor, q: torch.Tensor, eps: float = 1e-8) -> torch.T
 
 
 class TwoBranchAttention(nn.Module):
-    def __init__(self, d_model: int, heads: int, window: int, use_prior: bool = True):
+    def __init__(self, d_model: int, heads: int, window: int, use_prior: bool = True,
+                 prior_sigma: float | None = None):
         super().__init__()
         self.h, self.dk = heads, d_model // heads
         self.qkv = nn.Linear(d_model, 3 * d_model)
-        self.sigma = nn.Linear(d_model, heads)
+        # the prior's width: learned per head and position, or fixed (prior_sigma steps)
+        self.sigma = nn.Linear(d_model, heads) if prior_sigma is None else None
+        self.prior_sigma = prior_sigma
         self.out = nn.Linear(d_model, d_model)
         self.use_prior = use_prior
         idx = torch.arange(window, dtype=torch.float32)
@@ -50,18 +54,22 @@ class TwoBranchAttention(nn.Module):
             series = series[:, :, -1:]
         if not self.use_prior:
             return self.out(z), series, None
-        # width in steps: at least 0.5, learned per head and position
         xs = x[:, -1:] if last_row else x
-        sigma = nn.functional.softplus(self.sigma(xs)).transpose(1, 2) + 0.5            # (B,H,W|1)
+        if self.sigma is not None:
+            # width in steps: at least 0.5, learned per head and position
+            sigma = nn.functional.softplus(self.sigma(xs)).transpose(1, 2) + 0.5        # (B,H,W|1)
+        else:
+            sigma = xs.new_full((B, self.h, xs.shape[1]), float(self.prior_sigma))      # fixed width
         rows = self.dist2[W - 1:W, :W] if last_row else self.dist2[:W, :W]
         prior = torch.softmax(-rows / (2 * sigma[..., None] ** 2), dim=-1)  # normalised Gaussian rows
         return self.out(z), series, prior
 
 
 class Layer(nn.Module):
-    def __init__(self, d_model: int, heads: int, window: int, use_prior: bool, dropout: float):
+    def __init__(self, d_model: int, heads: int, window: int, use_prior: bool, dropout: float,
+                 prior_sigma: float | None = None):
         super().__init__()
-        self.attn = TwoBranchAttention(d_model, heads, window, use_prior)
+        self.attn = TwoBranchAttention(d_model, heads, window, use_prior, prior_sigma)
         self.n1 = nn.LayerNorm(d_model)
         self.ff = nn.Sequential(nn.Linear(d_model, 2 * d_model), nn.GELU(), nn.Dropout(dropout),
                                 nn.Linear(2 * d_model, d_model))
@@ -79,7 +87,7 @@ class Layer(nn.Module):
 
 class QUADFormerNet(nn.Module):
     def __init__(self, n_features: int, n_classes: int, window: int, d_model: int = 64, heads: int = 4,
-                 layers: int = 2, dropout: float = 0.1, use_prior: bool = True):
+                 layers: int = 2, dropout: float = 0.1, use_prior: bool = True, prior_sigma: float | None = None):
         super().__init__()
         self.embed = nn.Linear(n_features, d_model)
         pos = torch.arange(window, dtype=torch.float32)[:, None]
@@ -88,7 +96,8 @@ class QUADFormerNet(nn.Module):
         pe[:, 0::2] = torch.sin(pos * div)
         pe[:, 1::2] = torch.cos(pos * div)
         self.register_buffer("pe", pe, persistent=False)
-        self.layers = nn.ModuleList([Layer(d_model, heads, window, use_prior, dropout) for _ in range(layers)])
+        self.layers = nn.ModuleList([Layer(d_model, heads, window, use_prior, dropout, prior_sigma)
+                                     for _ in range(layers)])
         self.recon = nn.Linear(d_model, n_features)
         self.classify = nn.Linear(d_model, n_classes)
         self.use_prior = use_prior

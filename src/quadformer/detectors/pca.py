@@ -1,0 +1,84 @@
+"""PCA reconstruction error on causal residue windows: a simple unsupervised anchor.
+
+Each step's causal window of normalised residues (``detectors.windows``; the same features,
+window and normalisation as the learned detectors) is flattened into one vector. A PCA is
+fitted on training windows not known to be attacked (unlabelled ones and those of labelled
+clean steps; at most ``max_windows`` of them, drawn with the seed): their mean and the top
+``n_components`` principal directions (SVD of the centred windows). Score of a step: the mean
+squared residual of its window after projection onto that subspace, i.e. what the normal
+subspace cannot explain. ``n_components`` is searched on validation flights like every
+hyper-parameter; no label is needed to fit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from quadformer.detectors.base import Detector, check_residues
+from quadformer.detectors.registry import register
+from quadformer.detectors.windows import Normalizer, Windows, WindowStream, input_features
+
+
+@register("pca")
+class PCADetector(Detector):
+    param_grid = {"n_components": [2, 4, 8, 16, 32]}
+
+    def __init__(self, window: int = 32, n_components: int = 8, max_windows: int = 6000, seed: int = 0) -> None:
+        self.window = window
+        self.n_components = n_components
+        self.max_windows = max_windows
+        self.seed = seed
+
+    def fit(self, X: pd.DataFrame, y: np.ndarray | None = None) -> "PCADetector":
+        self.features_ = input_features(X)
+        self.normalizer_ = Normalizer().fit(check_residues(X, self.features_))
+        win = Windows(X, self.features_, self.normalizer_, self.window)
+        normal = np.arange(len(X)) if y is None else np.nonzero(np.asarray(y) != 1)[0]
+        if normal.size == 0:
+            raise ValueError("pca needs training steps not known to be attacked")
+        rng = np.random.default_rng(self.seed)
+        pick = np.sort(rng.choice(normal, min(len(normal), self.max_windows), replace=False))
+        Z = win[pick].reshape(len(pick), -1).astype(np.float64)
+        self.mean_ = Z.mean(axis=0)
+        _, _, vt = np.linalg.svd(Z - self.mean_, full_matrices=False)
+        k = int(min(self.n_components, vt.shape[0]))
+        self.components_ = vt[:k]
+        self.fitted_ = True
+        return self
+
+    def decision_function(self, X: pd.DataFrame) -> np.ndarray:
+        self.check_fitted()
+        win = Windows(X, self.features_, self.normalizer_, self.window)
+        out = np.empty(len(win))
+        for i in range(0, len(win), 4096):
+            idx = np.arange(i, min(i + 4096, len(win)))
+            out[idx] = self.score_windows(win[idx])[0]
+        return out
+
+    def score_windows(self, windows: np.ndarray) -> tuple[np.ndarray, None]:
+        """Mean squared reconstruction residual of normalised windows (n, W, features)."""
+        z = windows.reshape(len(windows), -1).astype(np.float64) - self.mean_
+        coef = z @ self.components_.T
+        resid = z - coef @ self.components_
+        return np.mean(resid * resid, axis=1), None
+
+    def stream(self, n_flights: int = 1) -> WindowStream:
+        return WindowStream(self, n_flights)
+
+    def learned_state(self) -> dict:
+        return {"features_": list(self.features_), "normalizer_": self.normalizer_.state(),
+                "mean_": self.mean_.tolist(), "components_": self.components_.tolist(),
+                **{k: v for k, v in vars(self).items()
+                   if k.endswith("_") and not k.startswith("_")
+                   and k not in ("features_", "normalizer_", "mean_", "components_", "fitted_")}}
+
+    def load_state(self, state: dict) -> None:
+        for k, v in state.items():
+            if k == "normalizer_":
+                self.normalizer_ = Normalizer.from_state(v)
+            elif k in ("mean_", "components_"):
+                setattr(self, k, np.asarray(v, dtype=np.float64))
+            else:
+                setattr(self, k, v)
+        self.fitted_ = True
