@@ -24,7 +24,7 @@ from quadformer.detectors import alerts_frame, alerts_from_scores, get, runs
 from quadformer.detectors.alarms import run_starts
 from quadformer.evaluation.metrics import bootstrap_f1, evaluate, event_recall_by_type
 from quadformer.evaluation.protocol import split_flights
-from quadformer.experiments.cache import ensure_configs, ensure_tuned, model_dir_for, tuned_model
+from quadformer.experiments.cache import check_device, ensure_configs, ensure_tuned, model_dir_for, tuned_model
 from quadformer.experiments.grid import Profile, get_profile, profile_configs
 from quadformer.experiments.pool import Backend
 from quadformer.io import atomic_path, package_versions, write_json
@@ -133,6 +133,7 @@ def run_benchmark(profile: str | Profile, methods: list[str], out: Path, cache_d
     prof = get_profile(profile)
     for m in methods:
         get(m)   # unknown names fail before any work
+    check_device(device, backend, workers)   # an unavailable GPU fails before any work
     t_start = time.perf_counter()
     configs = profile_configs(prof)
     stress_units = {name: stress_configs(name, cfg, prof.stress_flights) for name, cfg in configs} if stress else {}

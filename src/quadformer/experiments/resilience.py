@@ -23,7 +23,7 @@ from quadformer.detectors import alerts_frame, alerts_from_scores, get
 from quadformer.estimator.schema import RESIDUES
 from quadformer.evaluation.protocol import split_flights
 from quadformer.evaluation.resilience import flight_metrics, summarize_policy
-from quadformer.experiments.cache import ensure_datasets, ensure_tuned, model_dir_for, tuned_model
+from quadformer.experiments.cache import check_device, ensure_datasets, ensure_tuned, model_dir_for, tuned_model
 from quadformer.experiments.grid import Profile, get_profile
 from quadformer.experiments.pool import Backend, run_jobs
 from quadformer.io import atomic_path, package_versions, write_json
@@ -120,6 +120,7 @@ def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: 
     get(detector)    # unknown names fail before any work
     if threshold not in THRESHOLDS:
         raise ValueError(f"threshold: unknown choice {threshold!r}; choose from {', '.join(THRESHOLDS)}")
+    check_device(device, backend, workers)   # an unavailable GPU fails before any work
     out = Path(out)
     t_start = time.perf_counter()
     paths = ensure_datasets(prof, cache_dir, progress=progress, workers=workers, backend=backend)
