@@ -96,7 +96,7 @@ _ADDRESS_HELP = ("With --backend ray: auto (the cluster `ray start` started here
 _DEVICE_HELP = "Where network detectors train: auto (a GPU when there is one), cpu or cuda."
 
 
-def _backend(kind: str, address: Optional[str], device: str):
+def _backend(kind: str, address: Optional[str], device: str, workers: Optional[int] = None):
     """The backend, checked before any work: Ray installed (and its cluster reachable) for
     ``ray``, and the training device available where the units run."""
     from quadformer.experiments.cache import check_device
@@ -106,7 +106,7 @@ def _backend(kind: str, address: Optional[str], device: str):
         be = Backend(kind, address)
         if be.kind == "ray":
             ray_module()
-        check_device(device, be)
+        check_device(device, be, workers)
     except (ValueError, BackendError) as e:
         _fail(str(e))
     return be
@@ -298,7 +298,7 @@ def benchmark(
     if data and (stress or seed_runs is not None):
         _fail("--stress, --seeds and --seed-list need a profile (simulated datasets), not --data")
     names = _methods(methods)
-    be = _backend(backend, address, device)
+    be = _backend(backend, address, device, workers)
     if data and be.kind != "local":
         _fail("--data runs in this process; --backend ray needs a profile")
     set_threads()
@@ -507,7 +507,7 @@ def resilience(
     if max_flights is not None and max_flights < 1:
         _fail(f"max-flights: must be at least 1, got {max_flights}")
     _methods(detector)
-    be = _backend(backend, address, device)
+    be = _backend(backend, address, device, workers)
     set_threads()
     try:
         results = run_resilience(profile, detector, out, cache, progress=not quiet, workers=workers, seed=seed,

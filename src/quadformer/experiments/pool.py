@@ -15,7 +15,9 @@ number of workers.
   on a Ray runtime started here when there is none. Ray is an optional dependency
   (``pip install 'quadformer[ray]'``).
 
-One progress bar counts finished units, in whatever order they finish. A unit that raises
+One progress bar counts finished units, in whatever order they finish; each unit's duration,
+measured in its worker, is logged at DEBUG level on this module's logger (``unit_desc``,
+``unit_label`` and ``unit_seconds`` on the record; ``benchmarks/sweep.py`` reads them). A unit that raises
 does not stop the others: every unit runs to its end, then ``UnitError`` names the failed
 ones (their labels: configuration, seed, method). Units that write caches keep what they
 wrote, so running again does only what is missing.
@@ -27,6 +29,7 @@ import logging
 import multiprocessing
 import os
 import re
+import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
@@ -36,6 +39,7 @@ from quadformer.io import set_threads
 BACKENDS = ("local", "ray")
 RAY_INSTALL = "pip install 'quadformer[ray]'"
 _ADDRESS = re.compile(r"^(auto|ray://[^\s:/]+:\d+|[^\s:/]+:\d+)$")
+log = logging.getLogger(__name__)
 
 
 class BackendError(RuntimeError):
@@ -95,9 +99,12 @@ class Backend:
 LOCAL = Backend()
 
 
-def _call(fn: Callable[..., Any], threads: int, args: tuple) -> Any:
+def _call(fn: Callable[..., Any], threads: int, args: tuple) -> tuple[Any, float]:
+    """``fn(*args)`` with ``threads`` torch threads; returns (result, seconds it took)."""
     set_threads(threads)
-    return fn(*args)
+    t0 = time.perf_counter()
+    out = fn(*args)
+    return out, time.perf_counter() - t0
 
 
 def run_jobs(fn: Callable[..., Any], units: Sequence[tuple], workers: int | None = None, progress: bool = True,
@@ -125,12 +132,19 @@ def run_jobs(fn: Callable[..., Any], units: Sequence[tuple], workers: int | None
         bar = tqdm(total=len(units), desc=desc, unit=unit)
     try:
         if backend.kind == "ray":
-            out, failed = _run_ray(fn, units, backend, workers, gpu, bar)
+            done, failed = _run_ray(fn, units, backend, workers, gpu, bar)
         else:
-            out, failed = _run_local(fn, units, workers, bar)
+            done, failed = _run_local(fn, units, workers, bar)
     finally:
         if bar is not None:
             bar.close()
+    out = []
+    for label, d in zip(labels, done):
+        result, seconds = d if d is not None else (None, None)
+        out.append(result)
+        if seconds is not None:
+            log.debug("%s: %s took %.2f s", desc, label, seconds,
+                      extra={"unit_desc": desc, "unit_label": label, "unit_seconds": seconds})
     if failed:
         failures = [(labels[i], e) for i, e in sorted(failed.items())]
         raise UnitError(desc, failures, len(units)) from failures[0][1]
