@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing
+import os
 import shutil
 import sys
 import time
@@ -230,3 +231,21 @@ def test_ray_backend_without_ray_says_how_to_install_it(tmp_path, monkeypatch):
                               "--out", str(tmp_path / "o")])
     assert res.exit_code == 2
     assert "the ray backend needs Ray, which is not installed: pip install 'quadformer[ray]'" in res.output
+
+
+def test_a_lock_left_by_a_dead_process_is_taken_over_and_a_live_one_is_waited_for(tmp_path):
+    import socket
+    import subprocess
+
+    from quadformer.io import LockTimeout, exclusive
+
+    entry = tmp_path / "entry"
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True,
+                          check=True)
+    (tmp_path / "entry.lock").write_text(f"{socket.gethostname()} {int(dead.stdout)}\n")   # killed mid-write
+    with exclusive(entry, timeout_s=5) as lock:
+        assert lock.read_text().split() == [socket.gethostname(), str(os.getpid())]
+        with pytest.raises(LockTimeout, match="entry.lock: held by"):
+            with exclusive(entry, poll_s=0.05, timeout_s=0.3):
+                pass
+    assert not (tmp_path / "entry.lock").exists()
