@@ -89,6 +89,29 @@ def _fail(msg: str) -> None:
     raise typer.Exit(2)
 
 
+_BACKEND_HELP = ("Where work units run: local (processes of this machine) or ray (tasks on a Ray cluster; "
+                 "pip install 'quadformer[ray]').")
+_ADDRESS_HELP = ("With --backend ray: auto (the cluster `ray start` started here) or ray://host:port; default: a "
+                 "Ray runtime started on this machine.")
+_DEVICE_HELP = "Where network detectors train: auto (a GPU when there is one), cpu or cuda."
+
+
+def _backend(kind: str, address: Optional[str], device: str, workers: Optional[int] = None):
+    """The backend, checked before any work: Ray installed (and its cluster reachable) for
+    ``ray``, and the training device available where the units run."""
+    from quadformer.experiments.cache import check_device
+    from quadformer.experiments.pool import Backend, BackendError, ray_module
+
+    try:
+        be = Backend(kind, address)
+        if be.kind == "ray":
+            ray_module()
+        check_device(device, be, workers)
+    except (ValueError, BackendError) as e:
+        _fail(str(e))
+    return be
+
+
 def _profile(name: str):
     from quadformer.experiments.grid import get_profile
 
@@ -254,13 +277,17 @@ def benchmark(
                                         "...): each seed its own datasets (profile seed) and split; tables of mean, "
                                         "std and min-max over seeds."),
     seed_list: Optional[str] = typer.Option(None, "--seed-list", help="Like --seeds with these seeds, e.g. 0,3,7."),
-    workers: Optional[int] = typer.Option(None, help="Simulation processes (default: one per core)."),
+    workers: Optional[int] = typer.Option(None, help="Local worker processes (default: one per core)."),
+    backend: str = typer.Option("local", help=_BACKEND_HELP),
+    address: Optional[str] = typer.Option(None, help=_ADDRESS_HELP),
+    device: str = typer.Option("auto", help=_DEVICE_HELP),
     quiet: bool = typer.Option(False, help="No progress bars."),
 ) -> None:
     """Simulate (or reuse) the profile's configurations, tune and evaluate methods, write tables and a
     report. With --data, the same protocol on given datasets."""
     from quadformer.dataset import DatasetError
     from quadformer.experiments.detection import run_benchmark, run_datasets, run_seeds
+    from quadformer.experiments.pool import BackendError, UnitError
     from quadformer.io import set_threads
 
     if not data:
@@ -271,17 +298,21 @@ def benchmark(
     if data and (stress or seed_runs is not None):
         _fail("--stress, --seeds and --seed-list need a profile (simulated datasets), not --data")
     names = _methods(methods)
+    be = _backend(backend, address, device, workers)
+    if data and be.kind != "local":
+        _fail("--data runs in this process; --backend ray needs a profile")
     set_threads()
     try:
         if data:
-            results = run_datasets(data, names, out, progress=not quiet, seed=seed, label_fraction=label_fraction)
+            results = run_datasets(data, names, out, progress=not quiet, seed=seed, label_fraction=label_fraction,
+                                   device=device)
         elif seed_runs is not None:
             results = run_seeds(profile, names, out, cache, seed_runs, progress=not quiet, workers=workers,
-                                label_fraction=label_fraction, stress=stress)
+                                label_fraction=label_fraction, stress=stress, backend=be, device=device)
         else:
             results = run_benchmark(profile, names, out, cache, progress=not quiet, workers=workers, seed=seed,
-                                    label_fraction=label_fraction, stress=stress)
-    except (DatasetError, ValueError) as e:
+                                    label_fraction=label_fraction, stress=stress, backend=be, device=device)
+    except (DatasetError, ValueError, BackendError, UnitError) as e:
         _fail(str(e))
     if seed_runs is not None:
         _print_seeds(results)
@@ -448,11 +479,16 @@ def resilience(
                                   "(1 alarm per flight-hour on clean flights)."),
     max_flights: Optional[int] = typer.Option(None, help="Fly only the first N test flights of each configuration "
                                               "(by flight index; default: all)."),
-    workers: Optional[int] = typer.Option(None, help="Processes (default: one per core)."),
+    workers: Optional[int] = typer.Option(None, help="Local worker processes (default: one per core)."),
+    backend: str = typer.Option("local", help=_BACKEND_HELP),
+    address: Optional[str] = typer.Option(None, help=_ADDRESS_HELP),
+    device: str = typer.Option("auto", help=_DEVICE_HELP),
     quiet: bool = typer.Option(False, help="No progress bars."),
 ) -> None:
     """Fly each configuration's test flights in closed loop under four GPS policies (naive, PX4-like,
     resilient with DETECTOR, oracle); write results.json, alerts.csv, tables and a report."""
+    from quadformer.dataset import DatasetError
+    from quadformer.experiments.pool import BackendError, UnitError
     from quadformer.experiments.resilience import run_resilience
     from quadformer.io import set_threads
     from quadformer.resilience import AdmissionConfig
@@ -471,10 +507,14 @@ def resilience(
     if max_flights is not None and max_flights < 1:
         _fail(f"max-flights: must be at least 1, got {max_flights}")
     _methods(detector)
+    be = _backend(backend, address, device, workers)
     set_threads()
-    results = run_resilience(profile, detector, out, cache, progress=not quiet, workers=workers, seed=seed,
-                             label_fraction=label_fraction, admission=adm, threshold=threshold,
-                             max_flights=max_flights)
+    try:
+        results = run_resilience(profile, detector, out, cache, progress=not quiet, workers=workers, seed=seed,
+                                 label_fraction=label_fraction, admission=adm, threshold=threshold,
+                                 max_flights=max_flights, backend=be, device=device)
+    except (DatasetError, ValueError, BackendError, UnitError) as e:
+        _fail(str(e))
     _print_resilience(results)
     typer.echo(f"\nresilience run took {results['timing_s']['total']:.0f} s")
     typer.echo(f"results: {(out / 'results.json').resolve()}")

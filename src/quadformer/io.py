@@ -1,9 +1,11 @@
-"""Small I/O helpers shared by every layer: atomic writes, JSON encoding, package versions
-and thread settings.
+"""Small I/O helpers shared by every layer: atomic writes, JSON encoding, package versions,
+thread settings and lock files.
 
 Nothing is half-written: every file goes to a uniquely named temporary sibling and is moved
 into place with ``os.replace`` (atomic on POSIX), so a reader never sees a partial file and
-two writers of the same path never share a temporary file (the last one wins).
+two writers of the same path never share a temporary file (the last one wins). Writers that
+must not both do the work (cache entries) take ``exclusive(path)`` first: a lock file
+created with ``O_CREAT | O_EXCL``, which one process wins, also on shared storage.
 """
 
 from __future__ import annotations
@@ -12,7 +14,9 @@ import json
 import os
 import platform
 import shutil
+import socket
 import tempfile
+import time
 from contextlib import contextmanager
 from importlib import metadata
 from pathlib import Path
@@ -110,3 +114,62 @@ def set_threads(n: int | None = None) -> None:
     import torch
 
     torch.set_num_threads(n or os.cpu_count() or 1)
+
+
+class LockTimeout(TimeoutError):
+    """A lock file held by another process for longer than the caller would wait."""
+
+
+def _holder(lock: Path) -> tuple[str, int] | None:
+    """(host, pid) written in a lock file; None when unreadable (just created, or gone)."""
+    try:
+        host, pid = lock.read_text().split()[:2]
+        return host, int(pid)
+    except (OSError, ValueError):
+        return None
+
+
+def _dead_here(holder: tuple[str, int] | None) -> bool:
+    """Whether a lock's holder is a process of this host that no longer exists."""
+    if holder is None or holder[0] != socket.gethostname():
+        return False
+    try:
+        os.kill(holder[1], 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False
+    return False
+
+
+@contextmanager
+def exclusive(path: str | os.PathLike, poll_s: float = 0.2, timeout_s: float | None = None) -> Iterator[Path]:
+    """Hold the lock file ``<path>.lock`` (created with ``O_CREAT | O_EXCL``: one process wins)
+    for the duration of the block; wait while another process holds it.
+
+    The file names its holder (host and pid). A lock left by a process of this host that no
+    longer exists (killed mid-write) is removed; one left by a vanished process of another
+    host has to be removed by hand (the wait says which file). ``timeout_s``: give up with
+    ``LockTimeout`` after so many seconds (None: wait as long as it takes)."""
+    path = Path(path)
+    lock = path.with_name(path.name + ".lock")
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    start = time.monotonic()
+    while True:
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            break
+        except FileExistsError:
+            if _dead_here(_holder(lock)):
+                lock.unlink(missing_ok=True)
+                continue
+            if timeout_s is not None and time.monotonic() - start > timeout_s:
+                raise LockTimeout(f"{lock}: held by {_holder(lock) or 'another process'} for more than "
+                                  f"{timeout_s:g} s; remove the file if that process is gone") from None
+            time.sleep(poll_s)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(f"{socket.gethostname()} {os.getpid()}\n")
+        yield lock
+    finally:
+        lock.unlink(missing_ok=True)

@@ -118,11 +118,15 @@ class Detector:
         """JSON with the method name, parameters and learned state, alarm rule included
         (written atomically, after any file ``save_extra`` writes beside it)."""
         path = Path(path)
-        doc = {"method": self.name, "params": self.get_params(), "state": self.learned_state(),
+        doc = {"method": self.name, "params": self.saved_params(), "state": self.learned_state(),
                "format_version": 1}
         self.save_extra(path)
         write_json(path, doc)
         return path
+
+    def saved_params(self) -> dict[str, Any]:
+        """Hook: the parameters the saved document records (default: ``get_params``)."""
+        return self.get_params()
 
     def save_extra(self, path: Path) -> None:
         """Hook: files saved beside the JSON document (e.g. network weights)."""

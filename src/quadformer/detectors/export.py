@@ -204,7 +204,7 @@ def _metadata(detector: Detector, graph_sha256: str, opset: int = OPSET) -> dict
         doc["onset_level"] = detector._lower()
     if getattr(detector, "calibration_", None):
         doc["calibration"] = detector.calibration_
-    doc["params"] = detector.get_params()
+    doc["params"] = detector.saved_params()   # device: cpu, whatever it trained on
     doc["versions"] = package_versions((*PACKAGES, "onnx", "onnxruntime"))
     return doc
 

@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import inspect
 import itertools
 from dataclasses import dataclass, field
 from typing import Any
@@ -152,16 +153,23 @@ def grid_points(grid: dict[str, list[Any]]) -> list[dict[str, Any]]:
 
 def tune(method: str, train: pd.DataFrame, y_train: np.ndarray, val: pd.DataFrame,
          gps_rate_hz: float = 10.0, budget_per_hour: float = 1.0,
-         grid: dict[str, list[Any]] | None = None, **fixed: Any) -> Tuned:
-    """Steps 3 and 4 of the protocol for one method; the winner comes back calibrated."""
+         grid: dict[str, list[Any]] | None = None, device: str | None = None, **fixed: Any) -> Tuned:
+    """Steps 3 and 4 of the protocol for one method; the winner comes back calibrated.
+
+    device: the torch device network detectors train on (``cpu``, ``cuda``, ``cuda:N``; None:
+    their default); it is not a hyper-parameter and is not recorded in ``Tuned.params``."""
     cls = get(method)
+    if device is not None and "device" in inspect.signature(cls.__init__).parameters:
+        fixed_make = {**fixed, "device": device}
+    else:
+        fixed_make = fixed
     grid = cls.param_grid if grid is None else grid
     y_val = val["label"].to_numpy()
     best: tuple[Detector, dict[str, Any], float, float, np.ndarray] | None = None
     tried = []
     post_grid = cls.post_grid
     for point in grid_points(grid):
-        fitted = make(method, **{**fixed, **point}).fit(train, y_train)
+        fitted = make(method, **{**fixed_make, **point}).fit(train, y_train)
         # post-processing parameters (e.g. an alarm rule) need no refit
         for post in grid_points(post_grid):
             det = fitted.with_post(**post) if post else fitted

@@ -8,15 +8,25 @@
   The detection and resilience benchmarks share them instead of training twice; a change
   of the detector code invalidates them.
 
-Every entry is published atomically (written beside, then renamed), so a half-written entry
-is never read; an unreadable entry is rebuilt.
+Several workers, of one run or of several runs sharing a cache directory (``--cache`` on
+shared storage), may ask for the same entry at once:
+
+- a run dispatches each entry once (units are deduplicated before dispatch);
+- a worker builds an entry only while holding its lock file (``<entry>.lock``, created with
+  ``O_CREAT | O_EXCL``, see ``io.exclusive``), and looks again once it holds it: a worker that
+  waited on another's lock reads the entry that one wrote instead of building it twice;
+- every entry is published atomically (written beside, then renamed into place; a tuned
+  model's ``.tuned.json`` last), so a half-written entry is never read; an unreadable entry
+  is rebuilt.
 """
 
 from __future__ import annotations
 
 import functools
 import hashlib
+import inspect
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -26,8 +36,8 @@ from quadformer.config import MIX, SimConfig
 from quadformer.dataset import FORMAT_VERSION, DatasetError, load_dataset, write_dataset
 from quadformer.evaluation.protocol import Tuned, tune
 from quadformer.experiments.grid import Profile, dataset_summary, profile_configs
-from quadformer.experiments.pool import run_jobs
-from quadformer.io import write_json
+from quadformer.experiments.pool import Backend, cluster_gpus, run_jobs
+from quadformer.io import exclusive, write_json
 
 
 # settings that change nothing unless the sensor is configured (SimConfig field, EKFConfig fields)
@@ -52,35 +62,47 @@ def dataset_key(cfg: SimConfig) -> str:
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def simulate_dataset(cfg: SimConfig, out: Path, overwrite: bool = True) -> dict[str, Any]:
-    """One work unit: simulate ``cfg``, write it to ``out``; returns its summary."""
+def simulate_dataset(cfg: SimConfig, out: Path, overwrite: bool = True) -> bool:
+    """One work unit: simulate ``cfg`` and write it to ``out``, holding the entry's lock, unless
+    a readable dataset is there once the lock is held (another worker wrote it). Returns
+    whether this call simulated it."""
     from quadformer.simulation import simulate
 
-    ds = simulate(cfg, progress=False)
-    write_dataset(ds, out, overwrite=overwrite)
-    return dataset_summary(ds)
+    with exclusive(out):
+        try:
+            load_dataset(out)
+            return False
+        except DatasetError:
+            pass
+        ds = simulate(cfg, progress=False)
+        write_dataset(ds, out, overwrite=overwrite)
+    return True
 
 
 def ensure_datasets(profile: Profile, cache_dir: Path, progress: bool = True,
-                    workers: int | None = None) -> dict[str, Path]:
+                    workers: int | None = None, backend: Backend | None = None) -> dict[str, Path]:
     """Paths of the profile's datasets, simulating those not in the cache."""
-    return ensure_configs(profile_configs(profile), cache_dir, progress=progress, workers=workers)
+    return ensure_configs(profile_configs(profile), cache_dir, progress=progress, workers=workers, backend=backend)
 
 
 def ensure_configs(configs: list[tuple[str, SimConfig]], cache_dir: Path, progress: bool = True,
-                   workers: int | None = None) -> dict[str, Path]:
+                   workers: int | None = None, backend: Backend | None = None) -> dict[str, Path]:
     """Paths of named datasets (``CACHE/<name>-<key>/``), simulating those not in the cache
-    (in worker processes, one dataset per unit)."""
+    (one work unit per dataset, each dataset once, on ``backend``)."""
     cache_dir = Path(cache_dir)
-    paths, jobs = {}, []
+    paths, jobs, labels = {}, {}, {}
     for name, cfg in configs:
         path = cache_dir / f"{name}-{dataset_key(cfg)}"
         paths[name] = path
+        if path in jobs:
+            continue
         try:
             load_dataset(path)
         except DatasetError:
-            jobs.append((cfg, path))
-    run_jobs(simulate_dataset, jobs, workers=workers, progress=progress, desc="simulate", unit="dataset")
+            jobs[path] = (cfg, path)
+            labels[path] = f"config {name}, dataset seed {cfg.seed}"
+    run_jobs(simulate_dataset, list(jobs.values()), workers=workers, progress=progress, desc="simulate",
+             unit="dataset", backend=backend, labels=list(labels.values()))
     return paths
 
 
@@ -103,21 +125,117 @@ def model_dir_for(cache_dir: Path, dataset_path: Path, seed: int, label_fraction
 
 
 def tuned_model(method: str, train: pd.DataFrame, y_train, val: pd.DataFrame, rate: float,
-                budget_per_hour: float, model_dir: Path | None) -> Tuned:
-    """``protocol.tune``, cached in ``model_dir`` (None: always tune)."""
+                budget_per_hour: float, model_dir: Path | None, device: str | None = None) -> Tuned:
+    """``protocol.tune``, cached in ``model_dir`` (None: always tune). A miss is tuned while
+    holding the entry's lock; a worker that waited on that lock reads what the holder wrote.
+
+    device: where network detectors train (resolved, e.g. ``cpu`` or ``cuda``; None: their
+    default); a model is saved and loaded the same whatever device it trained on."""
     if model_dir is None:
-        return tune(method, train, y_train, val, gps_rate_hz=rate, budget_per_hour=budget_per_hour)
+        return tune(method, train, y_train, val, gps_rate_hz=rate, budget_per_hour=budget_per_hour, device=device)
+    stem = _stem(method, budget_per_hour)
+    model_path, meta_path = Path(model_dir) / f"{stem}.json", Path(model_dir) / f"{stem}.tuned.json"
+    found = cached_model(method, budget_per_hour, model_dir)
+    if found is not None:
+        return found
+    with exclusive(model_path):
+        found = cached_model(method, budget_per_hour, model_dir)   # written while this worker waited
+        if found is not None:
+            return found
+        tuned = tune(method, train, y_train, val, gps_rate_hz=rate, budget_per_hour=budget_per_hour, device=device)
+        tuned.detector.save(model_path)
+        write_json(meta_path, {"params": tuned.params, "val_f1": tuned.val_f1, "grid": tuned.grid})   # published last
+    return tuned
+
+
+def _stem(method: str, budget_per_hour: float) -> str:
+    return f"{method}-b{budget_per_hour:g}-{detectors_digest()}"
+
+
+def cached_model(method: str, budget_per_hour: float, model_dir: Path) -> Tuned | None:
+    """The tuned detector cached in ``model_dir``, or None when there is none (or it is
+    unreadable: it will be tuned again and overwritten)."""
     from quadformer.detectors import load
 
-    stem = f"{method}-b{budget_per_hour:g}-{detectors_digest()}"
+    stem = _stem(method, budget_per_hour)
     model_path, meta_path = Path(model_dir) / f"{stem}.json", Path(model_dir) / f"{stem}.tuned.json"
-    if meta_path.exists():
-        try:
-            meta = json.loads(meta_path.read_text())
-            return Tuned(load(model_path), meta["params"], meta["val_f1"], meta["grid"], cached=True)
-        except (OSError, ValueError, KeyError):
-            pass   # unreadable cache entry: tune again and overwrite it
-    tuned = tune(method, train, y_train, val, gps_rate_hz=rate, budget_per_hour=budget_per_hour)
-    tuned.detector.save(model_path)
-    write_json(meta_path, {"params": tuned.params, "val_f1": tuned.val_f1, "grid": tuned.grid})   # published last
-    return tuned
+    if not meta_path.exists():
+        return None
+    try:
+        meta = json.loads(meta_path.read_text())
+        return Tuned(load(model_path), meta["params"], meta["val_f1"], meta["grid"], cached=True)
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def trains_network(method: str) -> bool:
+    """Whether a method trains a network (has a torch ``device`` parameter)."""
+    from quadformer.detectors import get
+
+    return "device" in inspect.signature(get(method).__init__).parameters
+
+
+def check_device(device: str, backend: Backend | None = None, workers: int | None = None) -> float:
+    """Fail early on a device the backend cannot give; returns the GPUs a unit that trains a
+    network asks the backend for (Ray only: its ``gpu_share`` when the cluster has GPUs and the
+    device is not ``cpu``; 0 otherwise)."""
+    from quadformer.detectors.neural import resolve_device
+
+    backend = backend or Backend()
+    if backend.kind != "ray":
+        resolve_device(device)     # raises when cuda is asked for and absent
+        return 0.0
+    if device not in ("auto", "cpu") and not device.startswith("cuda"):
+        resolve_device(device)     # the unknown-choice error
+    if device == "cpu":
+        return 0.0
+    if cluster_gpus(backend, workers) == 0:
+        if device != "auto":
+            raise ValueError(f"device: {device!r} requested but the Ray cluster has no GPU; use --device cpu or auto")
+        return 0.0
+    return backend.gpu_share
+
+
+def tune_unit(dataset_path: Path, method: str, seed: int, label_fraction: float, budget_per_hour: float,
+              model_dir: Path, device: str = "cpu") -> dict[str, Any]:
+    """One work unit: the tuned detector of one dataset, split and method, in the cache
+    (tuned now unless there already). ``device`` is resolved here, in the worker
+    (``auto``: this worker's GPU if it has one). Returns {"cached", "seconds"}."""
+    from quadformer.detectors.neural import resolve_device
+    from quadformer.evaluation.protocol import split_flights
+
+    t0 = time.perf_counter()
+    if cached_model(method, budget_per_hour, model_dir) is not None:
+        return {"cached": True, "seconds": time.perf_counter() - t0}
+    ds = load_dataset(dataset_path)
+    parts = split_flights(ds.scenarios, seed, label_fraction=label_fraction).frames(ds.flights)
+    dev = resolve_device(device) if trains_network(method) else None
+    tuned = tuned_model(method, parts.train, parts.y_train, parts.val, ds.gps_rate_hz, budget_per_hour, model_dir,
+                        device=dev)
+    return {"cached": tuned.cached, "seconds": time.perf_counter() - t0}
+
+
+def ensure_tuned(items: list[tuple[str, Path, Path]], methods: list[str], seed: int, label_fraction: float,
+                 budget_per_hour: float = 1.0, device: str = "cpu", progress: bool = True,
+                 workers: int | None = None, backend: Backend | None = None) -> dict[tuple[str, str], dict[str, Any]]:
+    """Tuned detectors of every (configuration, method) in the model cache: one work unit per
+    pair not there yet, on ``backend``. ``items``: (configuration name, dataset path, model
+    directory). Returns {(name, method): {"cached": bool, "seconds": tuning time}}."""
+    gpu = check_device(device, backend, workers)
+    out: dict[tuple[str, str], dict[str, Any]] = {}
+    units, keys, labels, gpus = [], [], [], []
+    for name, path, model_dir in items:
+        for m in methods:
+            if (name, m) in out or (name, m) in keys:
+                continue
+            if cached_model(m, budget_per_hour, model_dir) is not None:
+                out[(name, m)] = {"cached": True, "seconds": None}
+                continue
+            units.append((path, m, seed, label_fraction, budget_per_hour, model_dir, device))
+            keys.append((name, m))
+            labels.append(f"config {name}, seed {seed}, method {m}")
+            gpus.append(gpu if trains_network(m) else 0.0)
+    done = run_jobs(tune_unit, units, workers=workers, progress=progress, desc="tune", unit="model",
+                    backend=backend, labels=labels, gpus=gpus)
+    out.update(zip(keys, done))
+    return out

@@ -24,8 +24,9 @@ from quadformer.detectors import alerts_frame, alerts_from_scores, get, runs
 from quadformer.detectors.alarms import run_starts
 from quadformer.evaluation.metrics import bootstrap_f1, evaluate, event_recall_by_type
 from quadformer.evaluation.protocol import split_flights
-from quadformer.experiments.cache import ensure_configs, model_dir_for, tuned_model
+from quadformer.experiments.cache import check_device, ensure_configs, ensure_tuned, model_dir_for, tuned_model
 from quadformer.experiments.grid import Profile, get_profile, profile_configs
+from quadformer.experiments.pool import Backend
 from quadformer.io import atomic_path, package_versions, write_json
 
 #: bootstrap resamples of the test flights for the F1 interval of a run
@@ -34,11 +35,16 @@ N_BOOTSTRAP = 2000
 
 def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: float = 0.2,
                budget_per_hour: float = 1.0, model_dir: Path | None = None,
-               detectors: dict[str, Any] | None = None) -> tuple[dict[str, Any], pd.DataFrame]:
+               detectors: dict[str, Any] | None = None, device: str | None = None,
+               tuning: dict[str, dict[str, Any]] | None = None) -> tuple[dict[str, Any], pd.DataFrame]:
     """Tune and evaluate every method on one dataset. Returns (results, per-step test scores).
 
     model_dir: cache of tuned detectors (see ``tuned_model``); None: always tune.
-    detectors: if given, receives each method's tuned (calibrated) detector."""
+    detectors: if given, receives each method's tuned (calibrated) detector.
+    device: where network detectors train when tuned here (resolved; None: the CPU).
+    tuning: per method, what ``cache.ensure_tuned`` reported when the models were tuned in
+    work units before (``cached``, ``seconds``): recorded as ``model_from_cache`` and
+    ``tune_seconds`` instead of the time taken to load them."""
     rate = ds.gps_rate_hz
     sp = split_flights(ds.scenarios, seed, label_fraction=label_fraction)
     parts = sp.frames(ds.flights)
@@ -50,7 +56,7 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
     alerts: list[pd.DataFrame] = []
     for m in methods:
         t0 = time.perf_counter()
-        tuned = tuned_model(m, parts.train, parts.y_train, parts.val, rate, budget_per_hour, model_dir)
+        tuned = tuned_model(m, parts.train, parts.y_train, parts.val, rate, budget_per_hour, model_dir, device=device)
         det = tuned.detector
         t1 = time.perf_counter()
         s = det.decision_function(test)
@@ -69,6 +75,11 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
                   "budget": {**at_budget, "threshold": det.budget_threshold_,
                              "alarms_per_hour_allowed": budget_per_hour},
                   "tune_seconds": t1 - t0, "score_seconds": t2 - t1, "model_from_cache": tuned.cached}
+        unit = (tuning or {}).get(m)
+        if unit is not None:
+            out[m]["model_from_cache"] = bool(unit["cached"])
+            if not unit["cached"]:
+                out[m]["tune_seconds"] = unit["seconds"]
         scores[f"score_{m}"] = s
         scores[f"alarm_{m}"] = alarms.astype(np.int8)
         alerts.append(alerts_frame(alerts_from_scores(test, s, det)).assign(method=m))
@@ -107,38 +118,52 @@ def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray) -> dict[str, An
 
 def run_benchmark(profile: str | Profile, methods: list[str], out: Path, cache_dir: Path,
                   progress: bool = True, workers: int | None = None, seed: int = 0,
-                  label_fraction: float = 0.2, budget_per_hour: float = 1.0, stress: bool = False) -> dict[str, Any]:
+                  label_fraction: float = 0.2, budget_per_hour: float = 1.0, stress: bool = False,
+                  backend: Backend | None = None, device: str = "auto") -> dict[str, Any]:
     """Every method on the profile's configurations (datasets and tuned detectors cached).
 
+    Work units on ``backend`` (default: local processes): one per dataset to simulate, then one
+    per (configuration, method) to tune; the test flights are then scored here, with the
+    tuned detectors read from the cache, so the figures do not depend on the backend.
     stress: also score the tuned detectors on each configuration's stress datasets
-    (``experiments.stress``; simulated and cached like the others), under ``results["stress"]``."""
+    (``experiments.stress``; simulated and cached like the others), under ``results["stress"]``.
+    device: where network detectors train (``auto``: a GPU when the worker has one)."""
     from quadformer.experiments.stress import stress_configs
 
     prof = get_profile(profile)
     for m in methods:
         get(m)   # unknown names fail before any work
+    check_device(device, backend, workers)   # an unavailable GPU fails before any work
     t_start = time.perf_counter()
     configs = profile_configs(prof)
     stress_units = {name: stress_configs(name, cfg, prof.stress_flights) for name, cfg in configs} if stress else {}
     paths = ensure_configs(configs + [(n, c) for units in stress_units.values() for n, _, c in units], cache_dir,
-                           progress=progress, workers=workers)
+                           progress=progress, workers=workers, backend=backend)
     t_sim = time.perf_counter() - t_start
     items = [(name, paths[name], model_dir_for(cache_dir, paths[name], seed, label_fraction),
               {"model": model, "noise": noise, "attack": attack})
              for (model, noise, attack), (name, _) in zip(prof.grid, configs)]
+    t0 = time.perf_counter()
+    tuning = ensure_tuned([(name, path, model_dir) for name, path, model_dir, _ in items], methods, seed,
+                          label_fraction, budget_per_hour, device=device, progress=progress, workers=workers,
+                          backend=backend)
+    t_tune = time.perf_counter() - t0
     head = {"profile": prof.name, "flights_per_config": prof.flights, "duration_s": prof.duration,
             "dataset_seed": prof.seed}
     stress_items = {name: [(n, st, paths[n], c.seed) for n, st, c in units] for name, units in stress_units.items()}
     if stress:
         head["stress_flights_per_set"] = prof.stress_flights
     return _evaluate(items, methods, Path(out), head, t_start, t_sim, progress, seed, label_fraction,
-                     budget_per_hour, stress=stress_items if stress else None)
+                     budget_per_hour, stress=stress_items if stress else None, tuning=tuning, t_tune=t_tune)
 
 
 def run_datasets(paths: list[Path], methods: list[str], out: Path, progress: bool = True, seed: int = 0,
-                 label_fraction: float = 0.2, budget_per_hour: float = 1.0) -> dict[str, Any]:
+                 label_fraction: float = 0.2, budget_per_hour: float = 1.0, device: str = "auto") -> dict[str, Any]:
     """Every method on given datasets (simulated, or imported from flight logs), same protocol;
-    detectors are tuned afresh (no cache)."""
+    detectors are tuned afresh (no cache), here in this process."""
+    from quadformer.detectors.neural import resolve_device
+
+    device = resolve_device(device)
     for m in methods:
         get(m)
     for p in paths:
@@ -149,12 +174,13 @@ def run_datasets(paths: list[Path], methods: list[str], out: Path, progress: boo
     items = [(name, Path(p), None, {}) for name, p in zip(names, paths)]
     head = {"profile": None, "datasets": [str(p) for p in paths]}
     return _evaluate(items, methods, Path(out), head, time.perf_counter(), 0.0, progress, seed, label_fraction,
-                     budget_per_hour)
+                     budget_per_hour, device=device)
 
 
 def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t_sim: float, progress: bool,
               seed: int, label_fraction: float, budget_per_hour: float,
-              stress: dict[str, list] | None = None) -> dict[str, Any]:
+              stress: dict[str, list] | None = None, tuning: dict[tuple[str, str], dict[str, Any]] | None = None,
+              t_tune: float | None = None, device: str | None = None) -> dict[str, Any]:
     """Tune and score every method on each (name, dataset path, model cache, description);
     with ``stress`` (configuration name -> [(dataset name, stress set, path, seed)]) score the
     tuned detectors on those datasets too; write results.json, scores, alerts and the report."""
@@ -176,7 +202,8 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
         rate = ds.gps_rate_hz
         tuned: dict[str, Any] = {}
         res, scores = run_config(ds, methods, seed=seed, label_fraction=label_fraction,
-                                 budget_per_hour=budget_per_hour, model_dir=model_dir, detectors=tuned)
+                                 budget_per_hour=budget_per_hour, model_dir=model_dir, detectors=tuned, device=device,
+                                 tuning={m: tuning[(name, m)] for m in methods} if tuning else None)
         t0 = time.perf_counter()
         for ds_name, st, st_path, st_seed in (stress or {}).get(name, []):
             stress_out.setdefault(name, {})[st.name] = {
@@ -197,6 +224,8 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
         "configs": configs, "versions": package_versions(),
         "timing_s": {"simulate": t_sim, "total": time.perf_counter() - t_start},
     }
+    if t_tune is not None:
+        results["timing_s"]["tune"] = t_tune
     if stress is not None:
         results["stress"] = {
             "flights_per_set": head.get("stress_flights_per_set"),
@@ -220,7 +249,8 @@ SEED_METRICS = ("f1", "precision", "recall", "event_f1", "event_recall", "delay_
 
 def run_seeds(profile: str | Profile, methods: list[str], out: Path, cache_dir: Path, seeds: list[int],
               progress: bool = True, workers: int | None = None, label_fraction: float = 0.2,
-              budget_per_hour: float = 1.0, stress: bool = False) -> dict[str, Any]:
+              budget_per_hour: float = 1.0, stress: bool = False, backend: Backend | None = None,
+              device: str = "auto") -> dict[str, Any]:
     """The whole protocol once per seed: seed s simulates its own datasets (the profile's
     dataset seed set to s, from which each configuration derives its own) and splits them
     with split seed s. Each run writes its own directory ``out/seed-<s>/`` (results.json,
@@ -241,7 +271,7 @@ def run_seeds(profile: str | Profile, methods: list[str], out: Path, cache_dir: 
     for s in seeds:
         res = run_benchmark(dataclasses.replace(prof, seed=s), methods, out / f"seed-{s}", cache_dir,
                             progress=progress, workers=workers, seed=s, label_fraction=label_fraction,
-                            budget_per_hour=budget_per_hour, stress=stress)
+                            budget_per_hour=budget_per_hour, stress=stress, backend=backend, device=device)
         runs_.append(res)
     results = {
         "profile": prof.name, "flights_per_config": prof.flights, "duration_s": prof.duration, "seeds": seeds,

@@ -23,9 +23,9 @@ from quadformer.detectors import alerts_frame, alerts_from_scores, get
 from quadformer.estimator.schema import RESIDUES
 from quadformer.evaluation.protocol import split_flights
 from quadformer.evaluation.resilience import flight_metrics, summarize_policy
-from quadformer.experiments.cache import ensure_datasets, model_dir_for, tuned_model
+from quadformer.experiments.cache import check_device, ensure_datasets, ensure_tuned, model_dir_for, tuned_model
 from quadformer.experiments.grid import Profile, get_profile
-from quadformer.experiments.pool import run_jobs
+from quadformer.experiments.pool import Backend, run_jobs
 from quadformer.io import atomic_path, package_versions, write_json
 from quadformer.resilience import POLICIES, Admission, AdmissionConfig
 from quadformer.simulation import simulate_batch
@@ -109,23 +109,36 @@ def _fly_config(path: Path, *args: Any) -> tuple[dict[str, Any], pd.DataFrame, p
 def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: Path, progress: bool = True,
                    workers: int | None = None, seed: int = 0, label_fraction: float = 0.2,
                    policies: tuple[str, ...] = POLICIES, admission: AdmissionConfig | None = None,
-                   max_flights: int | None = None, threshold: str = "f1") -> dict[str, Any]:
+                   max_flights: int | None = None, threshold: str = "f1", backend: Backend | None = None,
+                   device: str = "auto") -> dict[str, Any]:
+    """Work units on ``backend`` (default: local processes): the datasets to simulate, the
+    detector to tune per configuration (``device``: where a network trains), then one
+    closed-loop batch per configuration (its test flights under every policy)."""
     from quadformer.report.resilience import write_resilience_report
 
     prof = get_profile(profile)
     get(detector)    # unknown names fail before any work
     if threshold not in THRESHOLDS:
         raise ValueError(f"threshold: unknown choice {threshold!r}; choose from {', '.join(THRESHOLDS)}")
+    check_device(device, backend, workers)   # an unavailable GPU fails before any work
     out = Path(out)
     t_start = time.perf_counter()
-    paths = ensure_datasets(prof, cache_dir, progress=progress, workers=workers)
+    paths = ensure_datasets(prof, cache_dir, progress=progress, workers=workers, backend=backend)
     t_sim = time.perf_counter() - t_start
+    model_dirs = {name: model_dir_for(cache_dir, p, seed, label_fraction) for name, p in paths.items()}
+    tuning = ensure_tuned([(name, p, model_dirs[name]) for name, p in paths.items()], [detector], seed,
+                          label_fraction, 1.0, device=device, progress=progress, workers=workers, backend=backend)
     (out / "trajectories").mkdir(parents=True, exist_ok=True)
-    units = [(p, detector, seed, label_fraction, tuple(policies), admission, max_flights,
-              model_dir_for(cache_dir, p, seed, label_fraction), threshold) for p in paths.values()]
-    outputs = run_jobs(_fly_config, units, workers=workers, progress=progress, desc="fly", unit="config")
+    units = [(p, detector, seed, label_fraction, tuple(policies), admission, max_flights, model_dirs[name],
+              threshold) for name, p in paths.items()]
+    outputs = run_jobs(_fly_config, units, workers=workers, progress=progress, desc="fly", unit="config",
+                       backend=backend, labels=[f"config {name}, seed {seed}, detector {detector}" for name in paths])
     configs, all_alerts = [], []
     for (model, noise, attack), name, (res, traj, alerts) in zip(prof.grid, paths, outputs):
+        unit = tuning[(name, detector)]
+        res["model_from_cache"] = bool(unit["cached"])
+        if not unit["cached"]:
+            res["tune_seconds"] = unit["seconds"]
         with atomic_path(out / "trajectories" / f"{name}.parquet") as tmp:
             traj.to_parquet(tmp, index=False)
         if len(alerts):

@@ -2,6 +2,7 @@
 
 from quadformer.detectors.neural.detector import CNNDetector, LSTMDetector, WindowClassifier
 from quadformer.detectors.neural.quadformer import QUADFormer
-from quadformer.detectors.neural.training import TrainConfig, train
+from quadformer.detectors.neural.training import DEVICES, TrainConfig, resolve_device, train
 
-__all__ = ["CNNDetector", "LSTMDetector", "QUADFormer", "TrainConfig", "WindowClassifier", "train"]
+__all__ = ["DEVICES", "CNNDetector", "LSTMDetector", "QUADFormer", "TrainConfig", "WindowClassifier", "resolve_device",
+           "train"]

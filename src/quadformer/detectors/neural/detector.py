@@ -29,7 +29,14 @@ from quadformer.io import atomic_path
 
 class TorchCheckpoint:
     """Persistence of a network detector: learned attributes in the JSON document, the
-    network's state dict beside it (``.pt``), read back with ``weights_only=True``."""
+    network's state dict beside it (``.pt``), read back with ``weights_only=True``.
+
+    The device a network trained on does not change what is saved: the state dict is moved to
+    the CPU and the document records ``device: cpu``, so a model trained on a GPU is saved,
+    cached and loaded as one trained on the CPU."""
+
+    def saved_params(self) -> dict[str, Any]:
+        return {**self.get_params(), "device": "cpu"}
 
     def learned_state(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
@@ -44,7 +51,7 @@ class TorchCheckpoint:
 
     def save_extra(self, path: Path) -> None:
         with atomic_path(Path(path).with_suffix(".pt")) as tmp:
-            torch.save(self.model_.state_dict(), tmp)
+            torch.save({k: v.detach().cpu() for k, v in self.model_.state_dict().items()}, tmp)
 
     def load_extra(self, path: Path) -> None:
         wpath = Path(path).with_suffix(".pt")

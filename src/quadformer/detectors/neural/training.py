@@ -9,12 +9,35 @@ context, so the caller's global RNG state is untouched.
 from __future__ import annotations
 
 import copy
+import re
 from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 import torch
 from torch import nn
+
+
+DEVICES = ("auto", "cpu", "cuda")
+
+
+def resolve_device(device: str) -> str:
+    """The torch device to train on: ``auto`` is ``cuda`` when torch sees a CUDA device, else
+    ``cpu``; ``cuda`` (or ``cuda:N``) without one is an error saying so."""
+    name = str(device)
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cpu":
+        return "cpu"
+    if name == "cuda" or re.fullmatch(r"cuda:\d+", name):
+        if not torch.cuda.is_available():
+            raise ValueError(f"device: {name!r} requested but torch {torch.__version__} sees no CUDA device "
+                             "(a CPU-only build, or no GPU on this machine); use --device cpu or auto")
+        index = int(name.split(":")[1]) if ":" in name else 0
+        if index >= torch.cuda.device_count():
+            raise ValueError(f"device: {name!r} requested but torch sees {torch.cuda.device_count()} CUDA device(s)")
+        return name
+    raise ValueError(f"device: unknown choice {name!r}; choose from {', '.join(DEVICES)} (or cuda:N)")
 
 
 @dataclass(frozen=True)
