@@ -47,6 +47,7 @@ from quadformer.estimator.eskf import (
     predict,
     vio_update,
 )
+from quadformer.estimator.reference import GpsFreeReference
 from quadformer.estimator.residues import ResidueTracker
 
 
@@ -76,10 +77,13 @@ class OnlineFilter:
         self.n = ekf0.p.shape[0]
         self.aiding = tuple(a for a in AIDING if a in aiding)
         self.tracker = ResidueTracker(self.n, gps_rate_hz, aiding=self.aiding)
+        self.reference = GpsFreeReference(ekf0, nm, gps_rate_hz, self.aiding)
         self.queues: dict[str, deque] = {name: deque() for name in (*self.aiding, "gps")}
         self._fuse = {"vio": lambda s, x: vio_update(s, x[:, 0:3], x[:, 3:7], self.nm),
                       "mag": lambda s, x: mag_update(s, x, self.nm), "baro": lambda s, x: baro_update(s, x, self.nm)}
         self._track = {"vio": self.tracker.on_vio, "mag": self.tracker.on_mag, "baro": self.tracker.on_baro}
+        self._refer = {"vio": lambda x: self.reference.vio(x[:, 0:3]), "mag": lambda x: None,
+                       "baro": self.reference.baro}
 
     # -- samples ------------------------------------------------------------------------
     def push(self, stream: str, t: float, x: torch.Tensor, std: torch.Tensor | None = None) -> None:
@@ -98,19 +102,24 @@ class OnlineFilter:
             raise GapError(f"imu: gap of {step:.3f} s before t = {t:.3f} s (more than {self.max_gap} s); "
                            f"split the log there")
         h = self.dt if abs(step - self.dt) < EPS else float(step)
+        self.reference.predict(self.ekf, x[:, 0:3], h)
         self.ekf = predict(self.ekf, x[:, 0:3], x[:, 3:6], h, self.nm)
         self.t = t
         for name in self.aiding:
             q = self.queues[name]
             while q and q[0][0] <= t + EPS:
-                self.ekf, inn = self._fuse[name](self.ekf, q.popleft()[1])
+                sample = q.popleft()[1]
+                self.ekf, inn = self._fuse[name](self.ekf, sample)
                 self._track[name](inn)
+                self._refer[name](sample)
         rows = []
         q = self.queues["gps"]
         while q and q[0][0] <= t + EPS:
             stamp, fix, std = q.popleft()
             self.ekf, inn = gps_update(self.ekf, fix[:, 0:3], fix[:, 3:6], self.nm, std=std)
-            rows.append((stamp, {"est_pos": self.ekf.p, "est_vel": self.ekf.v, **self.tracker.on_gps(inn)}))
+            res = {**self.tracker.on_gps(inn), **self.reference.on_gps(fix[:, 0:3], fix[:, 3:6], std)}
+            self.reference.anchor(self.ekf)
+            rows.append((stamp, {"est_pos": self.ekf.p, "est_vel": self.ekf.v, **res}))
         return rows
 
     @property
