@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from quadformer.config import EKFConfig, GPSConfig, AttackConfig, IMUConfig, SimConfig, VIOConfig
+from quadformer.config import AttackConfig, EKFConfig, GPSConfig, IMUConfig, SimConfig, VIOConfig
 from quadformer.estimator.eskf import init_state, noise_model
 from quadformer.estimator.reference import GpsFreeReference, ReferenceConfig
 from quadformer.estimator.schema import PERSISTENT, groups_for

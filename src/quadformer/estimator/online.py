@@ -15,7 +15,8 @@ Two levels:
   samples up to its fix.
 
 ``OnlineFilter`` holds the state of the same error-state EKF as the closed loop (``predict``,
-the aiding updates, ``gps_update``, ``ResidueTracker``) for a batch of flights that share
+the aiding updates, ``gps_update``, ``ResidueTracker``, and the GPS-free reference beside it,
+``GpsFreeReference``, fed the same IMU, VIO and barometer samples) for a batch of flights that share
 timestamps (one flight for a log or a live vehicle). Samples arrive in time order per stream:
 ``imu(t, x)`` propagates, then applies the samples queued since with stamps at or before t,
 in the order VIO, magnetometer, barometer, GPS; each GPS fix applied yields one row of

@@ -14,16 +14,17 @@ At each GPS step the difference d (position, velocity) is smoothed (``smooth_tau
 and compared
 
 - with an anchor A, a value of a from a time when GPS agreed with the reference
-  (``res_ref_w``): the anchor follows ``anchor_lag`` seconds behind while both whitened
-  horizontal position components of a - A have stayed below ``agree_k`` for ``agree_window``
-  seconds; a disagreement freezes it, and it follows again only after both, whitened as if
-  the anchor were fresh (``anchor_lag`` old: GPS has come back to where the anchor is), have
-  stayed below ``release_k`` for ``agree_window`` seconds (the vertical is left out: GPS
-  height is the noisiest component, and a spoof that moves only the height is rare) (during the first ``agree_window`` +
-  ``anchor_lag`` seconds, while the smoothing settles, it follows regardless). A spoof therefore never enters the anchor:
-  its offset stays in a - A until the spoof ends (or until the reference's growing
-  uncertainty and the GPS's own slow error make it indistinguishable, which the whitening
-  states);
+  (``res_ref_d`` in metres, ``res_ref_w`` whitened; ``res_ref_age`` the anchor's age): the
+  anchor follows ``anchor_lag`` seconds behind while both whitened horizontal position
+  components of a - A have stayed below ``agree_k`` for ``agree_window`` seconds (and, while
+  the smoothing settles during the first ``agree_window`` + ``anchor_lag`` seconds,
+  regardless); a disagreement freezes it, and it follows again only after both, whitened as
+  if the anchor were fresh (``anchor_lag`` old: GPS has come back to where the anchor is),
+  have stayed below ``release_k`` for ``agree_window`` seconds. The vertical is left out of
+  the rule (GPS height is the noisiest component). A spoof's offset therefore never enters
+  the anchor and stays in a - A while the spoof lasts; its whitened size falls as the
+  anchor ages, because the GPS's own slow error may wander as far (which the whitening
+  states), while the anchor's age keeps growing;
 - with itself ``horizons`` seconds earlier (``res_ref_h5``, ``res_ref_h30``; never earlier
   than two smoothing time constants after the start, 0 until then);
 - the velocity difference is also averaged over ``vel_tau`` seconds (``res_ref_vmean``): with

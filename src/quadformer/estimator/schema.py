@@ -100,8 +100,8 @@ RESIDUES = (
 )
 
 #: the persistent residues, in table order (after every other residue)
-PERSISTENT = ("res_gps_corr5", "res_gps_corr120", "res_ref_d", "res_ref_w", "res_ref_h5", "res_ref_h30", "res_ref_vmean",
-              "res_ref_age", "res_gps_pv")
+PERSISTENT = ("res_gps_corr5", "res_gps_corr120", "res_ref_d", "res_ref_w", "res_ref_h5", "res_ref_h30",
+              "res_ref_vmean", "res_ref_age", "res_gps_pv")
 
 #: the groups of each aiding sensor: absent when the configuration leaves the sensor out
 SENSOR_GROUPS = {

@@ -4,8 +4,10 @@ At every 100 Hz step: the SE(3) controller flies on the EKF estimate, rotorpy in
 the vehicle in its wind, the IMU samples the motion and the EKF propagates. The configured
 aiding sensors update the EKF at their rates, in the order VIO (20 Hz), magnetometer heading
 (50 Hz), barometric height (25 Hz); at 10 Hz the GPS fix (honest, then attacked) updates it
-and the innovation statistics are recorded as residues. A spoofed fix therefore moves the
-real vehicle. A sensor the configuration leaves out draws nothing and records nothing.
+and the innovation statistics are recorded as residues. Beside the filter, the GPS-free
+reference (``estimator.reference``) propagates with the same IMU samples and takes the same VIO
+and barometer samples, never GPS; at each fix it gives the persistent residues. A spoofed fix
+therefore moves the real vehicle. A sensor the configuration leaves out draws nothing and records nothing.
 
 With an ``Admission`` (resilience), each GPS step first computes the innovation for every
 flight, lets an online detector score the residues, and fuses the fix only where the
