@@ -14,14 +14,16 @@ CFG = SimConfig(model="II", noise="exponential", flights=2, duration=8.0, seed=9
                 attack=AttackConfig(kind="ramp", onset=(3.0, 4.0), fraction=1.0))
 # the other configurations, shorter
 CONFIGS = {s: CFG if s == CFG.sensors else CFG.replace(sensors=s, duration=5.0) for s in SENSOR_CONFIGS}
+PERSISTENT = ["res_gps_corr5", "res_gps_corr120", "res_ref_d", "res_ref_w", "res_ref_h5", "res_ref_h30", "res_ref_vmean",
+              "res_ref_age", "res_gps_pv"]
 GROUPS = {
     "gps+imu+vio": ["res_gps_r", "res_gps_w", "res_gps_s", "res_gps_nis", "res_gps_corr", "res_vio_r",
-                    "res_vio_nis", "res_vio_nis_mean"],
+                    "res_vio_nis", "res_vio_nis_mean", *PERSISTENT],
     "gps+imu+mag+baro": ["res_gps_r", "res_gps_w", "res_gps_s", "res_gps_nis", "res_gps_corr", "res_mag_r",
-                         "res_mag_nis", "res_baro_r", "res_baro_nis"],
+                         "res_mag_nis", "res_baro_r", "res_baro_nis", *PERSISTENT],
     "gps+imu+vio+mag+baro": ["res_gps_r", "res_gps_w", "res_gps_s", "res_gps_nis", "res_gps_corr", "res_vio_r",
                              "res_vio_nis", "res_vio_nis_mean", "res_mag_r", "res_mag_nis", "res_baro_r",
-                             "res_baro_nis"],
+                             "res_baro_nis", *PERSISTENT],
 }
 
 

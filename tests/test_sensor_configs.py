@@ -14,7 +14,7 @@ from quadformer.config import AttackConfig, BaroConfig, ConfigError, EKFConfig, 
 from quadformer.dataset import load_dataset
 from quadformer.detectors.windows import input_features
 from quadformer.estimator.eskf import noise_model
-from quadformer.estimator.schema import DETECTOR_FEATURES, columns, groups_for
+from quadformer.estimator.schema import DETECTOR_FEATURES, PERSISTENT, columns, groups_for
 from quadformer.experiments.cache import dataset_key
 from quadformer.simulation import simulate
 
@@ -26,12 +26,14 @@ PIN_CFG = SimConfig(model="II", noise="laplace", flights=2, duration=6.0, seed=2
 
 def test_default_configuration_reproduces_the_recorded_dataset():
     """Recorded before magnetometer and barometer existed: every column, same names, same order,
-    same values bit for bit. (A tolerance would not do: one ulp on one filter noise std moves
+    same values bit for bit, the persistent residues (added later) appended after them. (A tolerance would not do: one ulp on one filter noise std moves
     this dataset by under 1e-13.) The recording holds this platform's floating-point results;
     tests/fixtures/pins/make_default_sensors.py says how it was made."""
     pin = np.load(PIN)
     f = simulate(PIN_CFG).flights
-    assert list(f.columns) == [*pin["columns"][:3], "attack_type", *pin["columns"][3:]]
+    new = columns(*PERSISTENT)              # added later, after every pinned column
+    assert list(f.columns) == [*pin["columns"][:3], "attack_type", *pin["columns"][3:], *new]
+    f = f.drop(columns=new)
     got = f.drop(columns=["attack_type"]).to_numpy(dtype=np.float64)
     diff = np.abs(got - pin["values"])
     assert np.array_equal(got, pin["values"]), \
@@ -104,22 +106,26 @@ def test_filter_noise_follows_the_sensors_unless_overridden():
 
 
 def test_dataset_cache_keys_of_default_sensors_are_unchanged():
-    """Recorded before sensor configurations existed: cached datasets stay valid. Settings of a
-    sensor the configuration leaves out do not change the key (they do not change the data)."""
-    assert dataset_key(SimConfig()) == "8b1987e9d405c730"
-    assert dataset_key(SimConfig(mag=MagConfig(noise_std=0.1), ekf=EKFConfig(baro_std=2.0))) == "8b1987e9d405c730"
+    """Sensor configurations left the default configuration's key as it was (8b1987e9d405c730 at
+    format version 2); the persistent residues changed the format (version 3: a cached dataset
+    without their columns is simulated again). Settings of a sensor the configuration leaves
+    out do not change the key (they do not change the data)."""
+    assert dataset_key(SimConfig()) == "14d6a294b3aeaf59"
+    assert dataset_key(SimConfig(mag=MagConfig(noise_std=0.1), ekf=EKFConfig(baro_std=2.0))) == "14d6a294b3aeaf59"
     mb = SimConfig(sensors="gps+imu+mag+baro")
     assert dataset_key(mb) != dataset_key(mb.replace(mag=MagConfig(noise_std=0.1)))
 
 
 def test_detector_inputs_follow_the_columns_present():
     """The default configuration's inputs and their order are unchanged; the magnetometer and
-    barometer residues come after the others, VIO's are simply absent without VIO."""
+    barometer residues come after the others and the persistent residues last, VIO's are
+    simply absent without VIO."""
     default = input_features(pd.DataFrame(columns=columns(*(g.name for g in groups_for("gps+imu+vio")))))
     assert default == [c for c in DETECTOR_FEATURES if not c.startswith(("res_mag", "res_baro"))]
-    assert default[-1] == "res_vio_nis_mean"
+    new = columns(*PERSISTENT)
+    assert default[-len(new) - 1:] == ["res_vio_nis_mean", *new]
     nocam = input_features(pd.DataFrame(columns=columns(*(g.name for g in groups_for("gps+imu+mag+baro")))))
-    assert nocam[-4:] == ["res_mag_r_yaw", "res_mag_nis", "res_baro_r_z", "res_baro_nis"]
+    assert nocam[-len(new) - 4:] == ["res_mag_r_yaw", "res_mag_nis", "res_baro_r_z", "res_baro_nis", *new]
     assert not any("vio" in c for c in nocam)
 
 

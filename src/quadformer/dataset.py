@@ -23,7 +23,7 @@ from quadformer.config import SimConfig
 from quadformer.estimator.schema import RESIDUES, STATES
 from quadformer.io import atomic_dir, to_json
 
-FORMAT_VERSION = 2   # 2: res_gps_corr_* added
+FORMAT_VERSION = 3   # 2: res_gps_corr_* added; 3: the persistent residues (estimator/reference.py) added
 # Column groups of flights.parquet after the keys (flight_id, t, label, attack_type), in
 # order; a dataset holds those of its sensor configuration (``schema.groups_for``).
 COLUMN_ORDER = tuple(g.name for g in STATES + RESIDUES)

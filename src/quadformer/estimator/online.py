@@ -15,7 +15,8 @@ Two levels:
   samples up to its fix.
 
 ``OnlineFilter`` holds the state of the same error-state EKF as the closed loop (``predict``,
-the aiding updates, ``gps_update``, ``ResidueTracker``) for a batch of flights that share
+the aiding updates, ``gps_update``, ``ResidueTracker``, and the GPS-free reference beside it,
+``GpsFreeReference``, fed the same IMU, VIO and barometer samples) for a batch of flights that share
 timestamps (one flight for a log or a live vehicle). Samples arrive in time order per stream:
 ``imu(t, x)`` propagates, then applies the samples queued since with stamps at or before t,
 in the order VIO, magnetometer, barometer, GPS; each GPS fix applied yields one row of
@@ -47,6 +48,7 @@ from quadformer.estimator.eskf import (
     predict,
     vio_update,
 )
+from quadformer.estimator.reference import GpsFreeReference
 from quadformer.estimator.residues import ResidueTracker
 
 
@@ -76,10 +78,13 @@ class OnlineFilter:
         self.n = ekf0.p.shape[0]
         self.aiding = tuple(a for a in AIDING if a in aiding)
         self.tracker = ResidueTracker(self.n, gps_rate_hz, aiding=self.aiding)
+        self.reference = GpsFreeReference(ekf0, nm, gps_rate_hz, self.aiding)
         self.queues: dict[str, deque] = {name: deque() for name in (*self.aiding, "gps")}
         self._fuse = {"vio": lambda s, x: vio_update(s, x[:, 0:3], x[:, 3:7], self.nm),
                       "mag": lambda s, x: mag_update(s, x, self.nm), "baro": lambda s, x: baro_update(s, x, self.nm)}
         self._track = {"vio": self.tracker.on_vio, "mag": self.tracker.on_mag, "baro": self.tracker.on_baro}
+        self._refer = {"vio": lambda x: self.reference.vio(x[:, 0:3]), "mag": lambda x: None,
+                       "baro": self.reference.baro}
 
     # -- samples ------------------------------------------------------------------------
     def push(self, stream: str, t: float, x: torch.Tensor, std: torch.Tensor | None = None) -> None:
@@ -98,19 +103,24 @@ class OnlineFilter:
             raise GapError(f"imu: gap of {step:.3f} s before t = {t:.3f} s (more than {self.max_gap} s); "
                            f"split the log there")
         h = self.dt if abs(step - self.dt) < EPS else float(step)
+        self.reference.predict(self.ekf, x[:, 0:3], h)
         self.ekf = predict(self.ekf, x[:, 0:3], x[:, 3:6], h, self.nm)
         self.t = t
         for name in self.aiding:
             q = self.queues[name]
             while q and q[0][0] <= t + EPS:
-                self.ekf, inn = self._fuse[name](self.ekf, q.popleft()[1])
+                sample = q.popleft()[1]
+                self.ekf, inn = self._fuse[name](self.ekf, sample)
                 self._track[name](inn)
+                self._refer[name](sample)
         rows = []
         q = self.queues["gps"]
         while q and q[0][0] <= t + EPS:
             stamp, fix, std = q.popleft()
             self.ekf, inn = gps_update(self.ekf, fix[:, 0:3], fix[:, 3:6], self.nm, std=std)
-            rows.append((stamp, {"est_pos": self.ekf.p, "est_vel": self.ekf.v, **self.tracker.on_gps(inn)}))
+            res = {**self.tracker.on_gps(inn), **self.reference.on_gps(fix[:, 0:3], fix[:, 3:6], std)}
+            self.reference.anchor(self.ekf)
+            rows.append((stamp, {"est_pos": self.ekf.p, "est_vel": self.ekf.v, **res}))
         return rows
 
     @property

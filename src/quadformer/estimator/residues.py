@@ -6,7 +6,8 @@ so both produce the same ``res_*`` features from the same innovations:
 - GPS: raw innovation, whitened innovation (L^-1 r), sqrt(diag S), NIS;
 - the leaky integral (time constant ``corr_tau``) of the position corrections GPS updates
   applied: how far GPS has recently pulled the estimate; a spoof the filter absorbs keeps it
-  displaced until the spoof ends;
+  displaced until the spoof ends; the same at the time constants ``CORR_TAUS`` (5 s: a
+  recent pull, 120 s: a pull that lasts as long as the spoof);
 - VIO: the latest innovation and NIS, and the mean NIS since the previous GPS step;
 - magnetometer: the latest heading innovation and its NIS;
 - barometer: the latest height innovation and its NIS.
@@ -22,6 +23,7 @@ import torch
 from quadformer.estimator.eskf import Innovation
 
 CORR_TAU = 20.0   # s
+CORR_TAUS = {"res_gps_corr5": 5.0, "res_gps_corr120": 120.0}   # s, the further correction integrals
 AIDING = ("vio", "mag", "baro")
 
 
@@ -35,6 +37,8 @@ class ResidueTracker:
         self.aiding = tuple(a for a in AIDING if a in aiding)
         self.corr = z(n, 3)
         self.decay = float(np.exp(-1.0 / (gps_rate_hz * corr_tau)))
+        self.corrs = {name: z(n, 3) for name in CORR_TAUS}
+        self.decays = {name: float(np.exp(-1.0 / (gps_rate_hz * tau))) for name, tau in CORR_TAUS.items()}
         self.vio_r, self.vio_nis = z(n, 6), z(n)
         self._sum, self._count = z(n), 0
         self.mag_r, self.mag_nis = z(n, 1), z(n)
@@ -60,6 +64,9 @@ class ResidueTracker:
         self.corr = proposed
         out = {"res_gps_r": inn.r, "res_gps_w": inn.w, "res_gps_s": inn.s_std, "res_gps_nis": inn.nis[:, None],
                "res_gps_corr": proposed}
+        for name, decay in self.decays.items():
+            self.corrs[name] = decay * self.corrs[name] + inn.dx[:, 0:3]
+            out[name] = self.corrs[name]
         if "vio" in self.aiding:
             out.update(res_vio_r=self.vio_r, res_vio_nis=self.vio_nis[:, None],
                        res_vio_nis_mean=(self._sum / max(self._count, 1))[:, None])
@@ -75,5 +82,7 @@ class ResidueTracker:
         """After ``on_gps``: the position correction actually applied (n, 3) replaces the
         proposed one (n, 3) in the integral carried to later steps (resilient estimation
         excludes or rolls back GPS corrections). Flights where they are equal are unchanged."""
-        self.corr = torch.where((proposed == applied).all(-1, keepdim=True), self.corr,
-                                self.corr - proposed + applied)
+        same = (proposed == applied).all(-1, keepdim=True)
+        self.corr = torch.where(same, self.corr, self.corr - proposed + applied)
+        for name in self.corrs:
+            self.corrs[name] = torch.where(same, self.corrs[name], self.corrs[name] - proposed + applied)

@@ -72,7 +72,36 @@ RESIDUES = (
     Group("res_mag_nis", (), "1", "latest magnetometer heading NIS (chi-square, 1 dof, nominal)"),
     Group("res_baro_r", ("z",), "m", "latest barometric height innovation"),
     Group("res_baro_nis", (), "1", "latest barometric height NIS (chi-square, 1 dof, nominal)"),
+    # persistent residues (estimator/reference.py): evidence that lasts as long as the spoof
+    Group("res_gps_corr5", ("px", "py", "pz"), "m",
+          "leaky integral (5 s) of the position corrections GPS updates applied"),
+    Group("res_gps_corr120", ("px", "py", "pz"), "m",
+          "leaky integral (120 s) of the position corrections GPS updates applied"),
+    Group("res_ref_d", GPS_AXES, "m, m/s",
+          "GPS minus the GPS-free reference (IMU + VIO, or IMU + barometer without VIO), smoothed (1 s), "
+          "minus its anchor (its value 3 s earlier while GPS agrees, frozen while it disagrees)"),
+    Group("res_ref_w", GPS_AXES, "1",
+          "GPS minus the GPS-free reference (IMU + VIO, or IMU + barometer without VIO), smoothed (1 s), "
+          "minus its anchor (its value when GPS last agreed), whitened by the reference's covariance growth "
+          "since the anchor, the smoothed GPS noise and the GPS's slow error change; a spoof stays in it"),
+    Group("res_ref_h5", GPS_AXES, "1",
+          "change over the last 5 s of GPS minus the GPS-free reference (smoothed), whitened likewise"),
+    Group("res_ref_h30", GPS_AXES, "1",
+          "change over the last 30 s of GPS minus the GPS-free reference (smoothed), whitened likewise"),
+    Group("res_ref_vmean", XYZ, "1",
+          "GPS velocity minus the GPS-free reference's velocity averaged over 10 s, whitened by the "
+          "averaged GPS velocity noise and the reference's velocity variance; a spoofed drift stays in it"),
+    Group("res_ref_age", (), "s",
+          "seconds since the anchor's value: about 3 s while GPS agrees with the reference, growing while "
+          "it disagrees"),
+    Group("res_gps_pv", XYZ, "1",
+          "GPS velocity averaged over 5 s minus the change of GPS position over those 5 s per second, "
+          "whitened by the GPS noise; a spoofed position without the matching velocity stays in it"),
 )
+
+#: the persistent residues, in table order (after every other residue)
+PERSISTENT = ("res_gps_corr5", "res_gps_corr120", "res_ref_d", "res_ref_w", "res_ref_h5", "res_ref_h30",
+              "res_ref_vmean", "res_ref_age", "res_gps_pv")
 
 #: the groups of each aiding sensor: absent when the configuration leaves the sensor out
 SENSOR_GROUPS = {
@@ -110,10 +139,11 @@ WHITENED = columns("res_gps_w")
 #: default inputs of the learned detectors: every residue except the predicted innovation std
 #: (``res_gps_s_*``), which varies slowly with the flight's conditions and lets a network
 #: recognise flights instead of attacks. A detector reads those present in its data; the
-#: magnetometer and barometer come last, so the order of the others never changes.
+#: magnetometer and barometer come after them, then the persistent residues, so the order of
+#: the earlier ones never changes.
 DETECTOR_FEATURES = columns("res_gps_r", "res_gps_w", "res_gps_nis", "res_gps_corr", "res_vio_r",
                             "res_vio_nis", "res_vio_nis_mean", "res_mag_r", "res_mag_nis", "res_baro_r",
-                            "res_baro_nis")
+                            "res_baro_nis", *PERSISTENT)
 
 
 def axis_columns(axis: str) -> list[str]:
@@ -121,7 +151,9 @@ def axis_columns(axis: str) -> list[str]:
     order for every axis, and for 'z' the barometric height innovation after them: the
     columns that flip sign when the axis does."""
     cols = [f"res_gps_r_p{axis}", f"res_gps_r_v{axis}", f"res_gps_w_p{axis}", f"res_gps_w_v{axis}",
-            f"res_gps_corr_p{axis}", f"res_vio_r_v{axis}"]
+            f"res_gps_corr_p{axis}", f"res_vio_r_v{axis}", f"res_gps_corr5_p{axis}", f"res_gps_corr120_p{axis}",
+            *(f"{g}_{k}{axis}" for g in ("res_ref_d", "res_ref_w", "res_ref_h5", "res_ref_h30") for k in "pv"),
+            f"res_ref_vmean_{axis}", f"res_gps_pv_{axis}"]
     return cols + ["res_baro_r_z"] if axis == "z" else cols
 
 

@@ -4,8 +4,10 @@ At every 100 Hz step: the SE(3) controller flies on the EKF estimate, rotorpy in
 the vehicle in its wind, the IMU samples the motion and the EKF propagates. The configured
 aiding sensors update the EKF at their rates, in the order VIO (20 Hz), magnetometer heading
 (50 Hz), barometric height (25 Hz); at 10 Hz the GPS fix (honest, then attacked) updates it
-and the innovation statistics are recorded as residues. A spoofed fix therefore moves the
-real vehicle. A sensor the configuration leaves out draws nothing and records nothing.
+and the innovation statistics are recorded as residues. Beside the filter, the GPS-free
+reference (``estimator.reference``) propagates with the same IMU samples and takes the same VIO
+and barometer samples, never GPS; at each fix it gives the persistent residues. A spoofed fix
+therefore moves the real vehicle. A sensor the configuration leaves out draws nothing and records nothing.
 
 With an ``Admission`` (resilience), each GPS step first computes the innovation for every
 flight, lets an online detector score the residues, and fuses the fix only where the
@@ -34,6 +36,7 @@ from quadformer.estimator.eskf import (
     reset_to_gps,
     vio_update,
 )
+from quadformer.estimator.reference import GpsFreeReference
 from quadformer.estimator.residues import AIDING, ResidueTracker
 from quadformer.estimator.schema import as_columns, groups_for
 from quadformer.geometry import exp_quat
@@ -108,6 +111,7 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     rates_est = torch.zeros(B, 3, dtype=torch.float64)
     vio_pos = torch.zeros(B, 3, dtype=torch.float64)
     residues = ResidueTracker(B, cfg.gps.rate_hz, aiding=aiding)
+    reference = GpsFreeReference(ekf, nm, cfg.gps.rate_hz, aiding)
     sensors = {"ekf0": ekf, "imu": [], "gps": [], **{a: [] for a in aiding}} if record_sensors else None
     block = 100
     ref_block = None
@@ -134,6 +138,7 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
         accel, gyro = imu.measure(acc, rates, roma.unitquat_to_rotmat(q_mid))
         if sensors is not None:
             sensors["imu"].append(torch.cat([accel, gyro], -1))
+        reference.predict(ekf, accel, dt)
         ekf = predict(ekf, accel, gyro, dt, nm)
         rates_est = gyro - ekf.bg
 
@@ -143,6 +148,7 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
                 sensors["vio"].append(torch.cat([v_m, q_m], -1))
             ekf, inn = vio_update(ekf, v_m, q_m, nm)
             residues.on_vio(inn)
+            reference.vio(v_m)
 
         if mag is not None and (k + 1) % spm == 0:
             field = mag.measure(roma.unitquat_to_rotmat(state["q"]))
@@ -157,6 +163,7 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
                 sensors["baro"].append(height)
             ekf, inn = baro_update(ekf, height, nm)
             residues.on_baro(inn)
+            reference.baro(height)
 
         if (k + 1) % spg == 0:
             j = (k + 1) // spg - 1
@@ -167,12 +174,13 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
             if sensors is not None:
                 sensors["gps"].append(torch.cat([pos_g, vel_g], -1))
             proposed, inn = gps_update(ekf, pos_g, vel_g, nm)
-            res = residues.on_gps(inn)
+            res = {**residues.on_gps(inn), **reference.on_gps(pos_g, vel_g)}
             if admission is None:
                 ekf = proposed
             else:
                 ekf = _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, torch.from_numpy(np.asarray(active)),
                              admission, stream, residues, adm_rec, j)
+            reference.anchor(ekf)
             label[:, j] = active
             for name, val in (
                 ("true_pos", state["x"]), ("true_vel", state["v"]), ("est_pos", ekf.p), ("est_vel", ekf.v),
