@@ -90,7 +90,7 @@ def _fail(msg: str) -> None:
 
 
 _BACKEND_HELP = ("Where work units run: local (processes of this machine) or ray (tasks on a Ray cluster; "
-                 "pip install 'quadformer[ray]').")
+                 "pip install 'quadformer\\[ray]').")
 _ADDRESS_HELP = ("With --backend ray: auto (the cluster `ray start` started here) or ray://host:port; default: a "
                  "Ray runtime started on this machine.")
 _DEVICE_HELP = "Where network detectors train: auto (a GPU when there is one), cpu or cuda."
