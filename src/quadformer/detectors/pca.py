@@ -17,7 +17,7 @@ import pandas as pd
 
 from quadformer.detectors.base import Detector, check_residues
 from quadformer.detectors.registry import register
-from quadformer.detectors.windows import Normalizer, Windows, WindowStream, input_features
+from quadformer.detectors.windows import Normalizer, Windows, WindowStream, input_features, window_scores
 
 
 @register("pca")
@@ -49,12 +49,7 @@ class PCADetector(Detector):
 
     def decision_function(self, X: pd.DataFrame) -> np.ndarray:
         self.check_fitted()
-        win = Windows(X, self.features_, self.normalizer_, self.window)
-        out = np.empty(len(win))
-        for i in range(0, len(win), 4096):
-            idx = np.arange(i, min(i + 4096, len(win)))
-            out[idx] = self.score_windows(win[idx])[0]
-        return out
+        return window_scores(self, X)
 
     def score_windows(self, windows: np.ndarray) -> tuple[np.ndarray, None]:
         """Mean squared reconstruction residual of normalised windows (n, W, features)."""

@@ -14,7 +14,7 @@ from sklearn.svm import SVC
 
 from quadformer.detectors.base import Detector, check_residues, labelled_split
 from quadformer.detectors.registry import register
-from quadformer.detectors.windows import Normalizer, Windows, WindowStream, input_features
+from quadformer.detectors.windows import Normalizer, Windows, WindowStream, input_features, window_scores
 
 
 def _window_features(w: np.ndarray) -> np.ndarray:
@@ -56,12 +56,7 @@ class SVMDetector(Detector):
 
     def decision_function(self, X: pd.DataFrame) -> np.ndarray:
         self.check_fitted()
-        win = Windows(X, self.features_, self.normalizer_, self.window)
-        out = np.empty(len(win))
-        for i in range(0, len(win), 4096):
-            idx = np.arange(i, min(i + 4096, len(win)))
-            out[idx] = self.score_windows(win[idx])[0]
-        return out
+        return window_scores(self, X)
 
     def score_windows(self, windows: np.ndarray) -> tuple[np.ndarray, None]:
         """SVM decision values of normalised windows (n, W, features)."""

@@ -108,6 +108,20 @@ class Windows:
         return self._rows[self._offsets(idx)]
 
 
+CHUNK = 4096   # windows scored per call
+
+
+def window_scores(detector, X: pd.DataFrame) -> np.ndarray:
+    """Score of every row of X by a window detector: its ``score_windows`` over the causal
+    windows of its features (``features_``, ``normalizer_``, ``window``), ``CHUNK`` at a time."""
+    win = Windows(X, detector.features_, detector.normalizer_, detector.window)
+    out = np.empty(len(win), dtype=np.float64)
+    for i in range(0, len(win), CHUNK):
+        idx = np.arange(i, min(i + CHUNK, len(win)))
+        out[idx] = detector.score_windows(win[idx])[0]
+    return out
+
+
 class AxisSymmetry:
     """Training augmentation: a spoof's direction is random, so a detector should not care
     which way an innovation points. Each training window gets a random sign per axis (applied

@@ -23,7 +23,7 @@ from quadformer.detectors.neural.cnn import CNN1d
 from quadformer.detectors.neural.lstm import LSTMNet
 from quadformer.detectors.neural.training import TrainConfig, train
 from quadformer.detectors.registry import register
-from quadformer.detectors.windows import AxisSymmetry, Normalizer, Windows, WindowStream, input_features
+from quadformer.detectors.windows import AxisSymmetry, Normalizer, Windows, WindowStream, input_features, window_scores
 from quadformer.io import atomic_path
 
 
@@ -120,12 +120,7 @@ class WindowClassifier(TorchCheckpoint, Detector):
 
     def decision_function(self, X: pd.DataFrame) -> np.ndarray:
         self.check_fitted()
-        win = Windows(X, self.features_, self.normalizer_, self.window)
-        out = np.empty(len(win), dtype=np.float64)
-        for i in range(0, len(win), 4096):
-            idx = np.arange(i, min(i + 4096, len(win)))
-            out[idx] = self.score_windows(win[idx])[0]
-        return out
+        return window_scores(self, X)
 
     def score_windows(self, windows: np.ndarray) -> tuple[np.ndarray, None]:
         """Logits of normalised windows (n, W, features)."""
