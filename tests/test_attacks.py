@@ -234,11 +234,13 @@ def _pin_script():
 
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")
-def test_single_kind_data_unchanged_bit_for_bit_by_mixed_attacks():
+def test_single_kind_data_unchanged_by_mixed_attacks():
     """A small dataset of every single kind equals the one recorded before mixed attacks
     existed (tests/fixtures/pins/make_attack_kinds.py): drawing a mixed flight's kind shifts no
-    draw of a single-kind configuration. The persistent residues, added later, are appended
-    after the pinned columns and leave them unchanged."""
+    draw of a single-kind configuration. Labels, scenarios and attack types exactly; attack
+    offsets, sensors and estimates to 1e-6 (another platform's floating point moves the closed
+    loop by 1e-14 to 1e-9; a shifted draw moves it by the noise, 1e-3 and more). The persistent
+    residues, added later, are appended after the pinned columns and leave them unchanged."""
     from quadformer.simulation import simulate
 
     from types import SimpleNamespace
@@ -253,14 +255,15 @@ def test_single_kind_data_unchanged_bit_for_bit_by_mixed_attacks():
         assert list(ds.flights.columns[-len(new):]) == new
         ds = SimpleNamespace(flights=ds.flights.drop(columns=new), scenarios=ds.scenarios)
         assert np.array_equal(ds.flights["label"].to_numpy(np.int8), pin[f"{kind}_label"]), kind
-        assert np.array_equal(ds.flights[["atk_d_x", "atk_d_y", "atk_d_z"]].to_numpy(np.float64),
-                              pin[f"{kind}_atk_d"]), kind
+        np.testing.assert_allclose(ds.flights[["atk_d_x", "atk_d_y", "atk_d_z"]].to_numpy(np.float64),
+                                   pin[f"{kind}_atk_d"], rtol=1e-6, atol=1e-6, err_msg=kind)
         assert np.array_equal(ds.flights["attack_type"].to_numpy(str), pin[f"{kind}_attack_type"]), kind
         sc = ds.scenarios[list(mod.SCENARIO_COLUMNS)].to_numpy(np.float64)
         assert np.array_equal(sc, pin[f"{kind}_scenarios"], equal_nan=True), kind
         assert np.array_equal(ds.scenarios["attack_type"].to_numpy(str), pin[f"{kind}_scenario_type"]), kind
         assert np.array_equal(ds.scenarios["attack_axes"].to_numpy(str), pin[f"{kind}_axes"]), kind
-        assert mod.digest(ds) == str(pin[f"{kind}_digest"]), kind
+        np.testing.assert_allclose(ds.flights[list(mod.VALUE_COLUMNS)].to_numpy(np.float64), pin[f"{kind}_values"],
+                                   rtol=1e-6, atol=1e-6, err_msg=kind)
 
 
 def test_simulate_mix_cli_labels_each_flight_with_its_own_kind(tmp_path):

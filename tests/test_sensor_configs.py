@@ -1,4 +1,4 @@
-"""Sensor configurations: the default (gps+imu+vio) data is unchanged, bit for bit; settings
+"""Sensor configurations: the default (gps+imu+vio) data is unchanged; settings
 are validated; the columns and the command line follow the configuration."""
 
 import re
@@ -26,8 +26,11 @@ PIN_CFG = SimConfig(model="II", noise="laplace", flights=2, duration=6.0, seed=2
 
 def test_default_configuration_reproduces_the_recorded_dataset():
     """Recorded before magnetometer and barometer existed: every column, same names, same order,
-    same values bit for bit, the persistent residues (added later) appended after them. (A tolerance would not do: one ulp on one filter noise std moves
-    this dataset by under 1e-13.) The recording holds this platform's floating-point results;
+    the persistent residues (added later) appended after them, and the same values to 1e-9
+    relative (and absolute). The recording holds one platform's floating-point results: another
+    CPU's vector maths moves them by about 1e-14, which the tolerance admits; a shifted random
+    draw or a changed model moves them by the noise, 1e-3 and more. (Below the tolerance: a
+    change of one ulp in one filter constant, which moves this dataset by under 1e-13.)
     tests/fixtures/pins/make_default_sensors.py says how it was made."""
     pin = np.load(PIN)
     f = simulate(PIN_CFG).flights
@@ -36,8 +39,9 @@ def test_default_configuration_reproduces_the_recorded_dataset():
     f = f.drop(columns=new)
     got = f.drop(columns=["attack_type"]).to_numpy(dtype=np.float64)
     diff = np.abs(got - pin["values"])
-    assert np.array_equal(got, pin["values"]), \
-        f"{int((diff > 0).sum())} values differ, most in {f.columns.drop('attack_type')[diff.max(0).argmax()]} " \
+    bad = diff > 1e-9 * (1 + np.abs(pin["values"]))
+    assert not bad.any(), \
+        f"{int(bad.sum())} values differ, most in {f.columns.drop('attack_type')[diff.max(0).argmax()]} " \
         f"(max {diff.max():.3g})"
     assert np.array_equal(f["attack_type"].to_numpy(dtype=str), pin["attack_type"])
     # a few values written out, to 1e-12
