@@ -11,9 +11,10 @@ pytest.importorskip("onnxruntime")
 
 from quadformer.detectors import NotFittedError, OnnxDetector, export_onnx, load_model, make  # noqa: E402
 
-_TINY_QF = {"window": 16, "d_model": 16, "heads": 2, "layers": 2, "epochs": 1, "steps_per_epoch": 3,
+SHORT = {"window": 48, "fine": 16, "patch": 8}
+_TINY_QF = {**SHORT, "d_model": 16, "heads": 2, "layers": 2, "epochs": 1, "steps_per_epoch": 3,
             "batch_size": 32}
-TINY = {"cnn": {"window": 16, "hidden": 8, "epochs": 1}, "lstm": {"window": 16, "hidden": 8, "epochs": 1},
+TINY = {"cnn": {**SHORT, "hidden": 8, "epochs": 1}, "lstm": {**SHORT, "hidden": 8, "epochs": 1},
         "quadformer": _TINY_QF, "quadformer-nosup": _TINY_QF, "quadformer-noprior": _TINY_QF}
 NETWORKS = ["cnn", "lstm", "quadformer"]
 TOL = 1e-5      # float32 graph (onnxruntime kernels, float32 raw inputs) vs float32 network (PyTorch)

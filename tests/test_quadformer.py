@@ -8,11 +8,12 @@ import pytest
 import torch
 
 from quadformer.detectors import load, make
+from quadformer.detectors.context import Context
 from quadformer.detectors.neural.quadformer import CLASSES, kth_of_last_n
 from quadformer.detectors.neural.quadformer_net import QUADFormerNet, TwoBranchAttention, discrepancy, symmetric_kl
 from quadformer.detectors.windows import Windows
 
-TINY = {"window": 16, "d_model": 16, "heads": 2, "layers": 2, "epochs": 2, "steps_per_epoch": 5, "batch_size": 32}
+TINY = {"window": 48, "fine": 16, "patch": 8, "d_model": 16, "heads": 2, "layers": 2, "epochs": 2, "steps_per_epoch": 5, "batch_size": 32}
 
 
 def test_symmetric_kl_hand_case():
@@ -25,7 +26,7 @@ def test_symmetric_kl_hand_case():
 
 def test_prior_is_a_normalised_gaussian_of_distance():
     torch.manual_seed(0)
-    att = TwoBranchAttention(d_model=8, heads=2, window=6)
+    att = TwoBranchAttention(d_model=8, heads=2, positions=torch.arange(6.0))
     _, series, prior = att(torch.randn(3, 6, 8))
     assert torch.allclose(prior.sum(-1), torch.ones(3, 2, 6))
     assert torch.allclose(series.sum(-1), torch.ones(3, 2, 6))
@@ -48,8 +49,8 @@ def test_minimax_gradients_descend_for_prior_and_ascend_for_series():
 
 def test_last_position_scoring_equals_full_forward():
     torch.manual_seed(1)
-    net = QUADFormerNet(5, len(CLASSES), 12, d_model=16, heads=2, layers=2).eval()
-    x = torch.randn(4, 12, 5)
+    net = QUADFormerNet(5, len(CLASSES), Context(28, fine=12, patch=4), d_model=16, heads=2, layers=2).eval()
+    x = torch.randn(4, 28, 5)
     with torch.no_grad():
         full, last = net(x), net(x, last_only=True)
     for k in ("recon", "logits"):
@@ -154,7 +155,7 @@ def test_checkpoint_round_trip_and_variants(fitted, tmp_path):
 def test_fixed_prior_is_a_gaussian_of_fixed_width():
     """quadformer-noprior's prior: a Gaussian kernel of width 2 steps, whatever the input."""
     torch.manual_seed(0)
-    att = TwoBranchAttention(d_model=8, heads=2, window=6, prior_sigma=2.0)
+    att = TwoBranchAttention(d_model=8, heads=2, positions=torch.arange(6.0), prior_sigma=2.0)
     assert att.sigma is None
     _, _, prior = att(torch.randn(3, 6, 8))
     d = torch.arange(6.0)

@@ -6,7 +6,8 @@
   (dynamic batch; columns in the order of ``features``, oldest step first) to
   ``score`` (batch,) float64 and, for QUADFormer, ``attack_class`` (batch,) int64. Inside:
   the feature normalisation (``windows.Normalizer``: ``asinh((x - centre) / scale)``, in
-  float32) and the network; for CNN and LSTM the score is the logit of the window, for
+  float32), the window's tokens (``detectors.context``: patch means of the older steps, the
+  last ``fine`` steps as they are) and the network; for CNN and LSTM the score is the logit of the window, for
   QUADFormer it is the raw score of the window's last step (classifier log-odds plus
   ``w_anomaly`` times the discrepancy-weighted reconstruction term relative to its training
   reference, ``QUADFormer._raw``, in float64) and ``attack_class`` the index of the most
@@ -185,6 +186,9 @@ def _metadata(detector: Detector, graph_sha256: str, opset: int = OPSET) -> dict
         "format": FORMAT, "format_version": FORMAT_VERSION, "method": detector.name,
         "graph_sha256": graph_sha256, "opset": opset,
         "features": list(detector.features_), "window": int(detector.window),
+        "context": {"window": int(detector.window), "fine": int(detector.context.fine),
+                    "patch": int(detector.context.patch),
+                    "tokens": "inside the graph: means of patch steps, then the last fine steps"},
         "input": {"name": INPUT, "shape": ["batch", int(detector.window), n_feat], "dtype": "float32",
                   "values": "raw residues, columns in the order of features, oldest step first"},
         "outputs": {"score": {"shape": ["batch"], "dtype": "float64",

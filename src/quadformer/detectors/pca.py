@@ -1,7 +1,8 @@
 """PCA reconstruction error on causal residue windows: a simple unsupervised anchor.
 
 Each step's causal window of normalised residues (``detectors.windows``; the same features,
-window and normalisation as the learned detectors) is flattened into one vector. A PCA is
+window, normalisation and tokens (``detectors.context``) as the learned detectors) is
+flattened into one vector of its tokens. A PCA is
 fitted on training windows not known to be attacked (unlabelled ones and those of labelled
 clean steps; at most ``max_windows`` of them, drawn with the seed): their mean and the top
 ``n_components`` principal directions (SVD of the centred windows). Score of a step: the mean
@@ -16,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from quadformer.detectors.base import Detector, check_residues
+from quadformer.detectors.context import FINE, PATCH, WINDOW, Context
 from quadformer.detectors.registry import register
 from quadformer.detectors.windows import Normalizer, Windows, WindowStream, input_features, window_scores
 
@@ -24,13 +26,21 @@ from quadformer.detectors.windows import Normalizer, Windows, WindowStream, inpu
 class PCADetector(Detector):
     param_grid = {"n_components": [2, 4, 8, 16, 32]}
 
-    def __init__(self, window: int = 32, n_components: int = 8, max_windows: int = 6000, seed: int = 0) -> None:
+    def __init__(self, window: int = WINDOW, n_components: int = 8, max_windows: int = 6000, seed: int = 0,
+                 fine: int = FINE, patch: int = PATCH) -> None:
         self.window = window
+        self.fine = fine
+        self.patch = patch
         self.n_components = n_components
         self.max_windows = max_windows
         self.seed = seed
 
+    @property
+    def context(self) -> Context:
+        return Context(self.window, self.fine, self.patch)
+
     def fit(self, X: pd.DataFrame, y: np.ndarray | None = None) -> "PCADetector":
+        context = self.context     # checks window, fine and patch before any work
         self.features_ = input_features(X)
         self.normalizer_ = Normalizer().fit(check_residues(X, self.features_))
         win = Windows(X, self.features_, self.normalizer_, self.window)
@@ -39,7 +49,7 @@ class PCADetector(Detector):
             raise ValueError("pca needs training steps not known to be attacked")
         rng = np.random.default_rng(self.seed)
         pick = np.sort(rng.choice(normal, min(len(normal), self.max_windows), replace=False))
-        Z = win[pick].reshape(len(pick), -1).astype(np.float64)
+        Z = win.gather(pick, context.tokens).reshape(len(pick), -1).astype(np.float64)
         self.mean_ = Z.mean(axis=0)
         _, _, vt = np.linalg.svd(Z - self.mean_, full_matrices=False)
         k = int(min(self.n_components, vt.shape[0]))
@@ -53,7 +63,7 @@ class PCADetector(Detector):
 
     def score_windows(self, windows: np.ndarray) -> tuple[np.ndarray, None]:
         """Mean squared reconstruction residual of normalised windows (n, W, features)."""
-        z = windows.reshape(len(windows), -1).astype(np.float64) - self.mean_
+        z = self.context.tokens(windows).reshape(len(windows), -1).astype(np.float64) - self.mean_
         coef = z @ self.components_.T
         resid = z - coef @ self.components_
         return np.mean(resid * resid, axis=1), None

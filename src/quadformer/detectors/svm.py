@@ -1,7 +1,8 @@
 """RBF support vector machine on causal residue windows.
 
-Features of a step: its normalised window flattened, plus per-feature mean, std, min and
-max over the window. Trained on the labelled training flights, with at most
+Features of a step: the tokens of its normalised window (``detectors.context``: the last
+steps one by one, earlier ones in patch means) flattened, plus per-feature mean, std, min and
+max over the whole window. Trained on the labelled training flights, with at most
 ``max_windows`` windows (all attacked ones up to half of that, the rest clean), drawn with
 the seed. Score: the SVM decision value.
 """
@@ -13,27 +14,36 @@ import pandas as pd
 from sklearn.svm import SVC
 
 from quadformer.detectors.base import Detector, check_residues, labelled_split
+from quadformer.detectors.context import FINE, PATCH, WINDOW, Context
 from quadformer.detectors.registry import register
 from quadformer.detectors.windows import Normalizer, Windows, WindowStream, input_features, window_scores
 
 
-def _window_features(w: np.ndarray) -> np.ndarray:
-    return np.concatenate([w.reshape(len(w), -1), w.mean(1), w.std(1), w.min(1), w.max(1)], axis=1)
+def _window_features(w: np.ndarray, context: Context) -> np.ndarray:
+    tokens = context.tokens(w)
+    return np.concatenate([tokens.reshape(len(w), -1), w.mean(1), w.std(1), w.min(1), w.max(1)], axis=1)
 
 
 @register("svm")
 class SVMDetector(Detector):
     param_grid = {"C": [1.0, 10.0]}
 
-    def __init__(self, window: int = 32, C: float = 1.0, gamma: str | float = "scale",
-                 max_windows: int = 3000, seed: int = 0) -> None:
+    def __init__(self, window: int = WINDOW, C: float = 1.0, gamma: str | float = "scale",
+                 max_windows: int = 3000, seed: int = 0, fine: int = FINE, patch: int = PATCH) -> None:
         self.window = window
+        self.fine = fine
+        self.patch = patch
         self.C = C
         self.gamma = gamma
         self.max_windows = max_windows
         self.seed = seed
 
+    @property
+    def context(self) -> Context:
+        return Context(self.window, self.fine, self.patch)
+
     def fit(self, X: pd.DataFrame, y: np.ndarray | None = None) -> "SVMDetector":
+        context = self.context     # checks window, fine and patch before any work
         tr, ho = labelled_split(X, y, self.seed)
         rows = np.concatenate([tr, ho])          # no early stopping: use every labelled flight
         self.features_ = input_features(X)
@@ -48,7 +58,7 @@ class SVMDetector(Detector):
         target = np.isin(pick, pos)
         if target.all() or not target.any():
             raise ValueError("svm needs attacked and clean steps among the labelled training flights")
-        svc = SVC(kernel="rbf", C=self.C, gamma=self.gamma).fit(_window_features(win[pick]), target)
+        svc = SVC(kernel="rbf", C=self.C, gamma=self.gamma).fit(win.gather(pick, lambda w: _window_features(w, context)), target)
         # score with the decision function rebuilt from plain numbers, as after loading
         self.svc_ = _RBFDecision(svc.support_vectors_, svc.dual_coef_, svc.intercept_, svc._gamma)
         self.fitted_ = True
@@ -60,7 +70,7 @@ class SVMDetector(Detector):
 
     def score_windows(self, windows: np.ndarray) -> tuple[np.ndarray, None]:
         """SVM decision values of normalised windows (n, W, features)."""
-        return self.svc_.decision_function(_window_features(windows)), None
+        return self.svc_.decision_function(_window_features(windows, self.context)), None
 
     def stream(self, n_flights: int = 1) -> WindowStream:
         return WindowStream(self, n_flights)

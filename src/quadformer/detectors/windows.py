@@ -103,21 +103,35 @@ class Windows:
     def __getitem__(self, idx: np.ndarray) -> np.ndarray:
         return self._data[self._offsets(idx)]
 
+    def gather(self, idx: np.ndarray, fn) -> np.ndarray:
+        """``fn(windows)`` of the windows idx, concatenated: gathered a chunk at a time, so long
+        windows never sit in memory all at once (e.g. ``fn = context.tokens``)."""
+        idx = np.asarray(idx)
+        step = chunk_size(self.width, self._data.shape[1])
+        parts = [fn(self[idx[i:i + step]]) for i in range(0, len(idx), step)]
+        return np.concatenate(parts) if parts else fn(self[idx[:0]])
+
     def rows(self, idx: np.ndarray) -> np.ndarray:
         """Row indices of X in each window (len(idx), W); -1 for the padding."""
         return self._rows[self._offsets(idx)]
 
 
-CHUNK = 4096   # windows scored per call
+CHUNK_BYTES = 32 << 20   # windows gathered per scoring call: about this many bytes
+
+
+def chunk_size(window: int, n_features: int) -> int:
+    """Windows per scoring call: ``CHUNK_BYTES`` of float32 windows, between 64 and 4096."""
+    return int(np.clip(CHUNK_BYTES // (4 * window * max(1, n_features)), 64, 4096))
 
 
 def window_scores(detector, X: pd.DataFrame) -> np.ndarray:
     """Score of every row of X by a window detector: its ``score_windows`` over the causal
-    windows of its features (``features_``, ``normalizer_``, ``window``), ``CHUNK`` at a time."""
+    windows of its features (``features_``, ``normalizer_``, ``window``), a chunk at a time."""
     win = Windows(X, detector.features_, detector.normalizer_, detector.window)
     out = np.empty(len(win), dtype=np.float64)
-    for i in range(0, len(win), CHUNK):
-        idx = np.arange(i, min(i + CHUNK, len(win)))
+    step = chunk_size(detector.window, len(detector.features_))
+    for i in range(0, len(win), step):
+        idx = np.arange(i, min(i + step, len(win)))
         out[idx] = detector.score_windows(win[idx])[0]
     return out
 

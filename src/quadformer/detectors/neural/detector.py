@@ -3,7 +3,8 @@
 They learn from the labelled training flights only (label >= 0; the benchmark's budget,
 ``--label-fraction 1`` for all labels). A fifth of those flights (at least one, when there
 are three or more) is held out for early stopping, so validation flights stay reserved for
-hyper-parameters and thresholds. The score of a step is the logit of its causal window.
+hyper-parameters and thresholds. The score of a step is the logit of its causal window
+(``window`` steps, summarised into tokens: ``detectors.context``).
 Checkpoints: a JSON document (method, parameters, normaliser, threshold) plus a state dict
 beside it (``.pt``), loaded with ``torch.load(..., weights_only=True)``.
 """
@@ -19,6 +20,7 @@ import torch
 from torch import nn
 
 from quadformer.detectors.base import Detector, check_residues, labelled_split
+from quadformer.detectors.context import FINE, PATCH, WINDOW, Context
 from quadformer.detectors.neural.cnn import CNN1d
 from quadformer.detectors.neural.lstm import LSTMNet
 from quadformer.detectors.neural.training import TrainConfig, train
@@ -74,10 +76,12 @@ class TorchCheckpoint:
 class WindowClassifier(TorchCheckpoint, Detector):
     network: ClassVar[type[nn.Module]]
 
-    def __init__(self, window: int = 32, epochs: int = 30, batch_size: int = 256, lr: float = 1e-3,
+    def __init__(self, window: int = WINDOW, epochs: int = 30, batch_size: int = 256, lr: float = 1e-3,
                  hidden: int = 32, augment: bool = True, seed: int = 0, device: str = "cpu",
-                 progress: bool = False) -> None:
+                 progress: bool = False, fine: int = FINE, patch: int = PATCH) -> None:
         self.window = window
+        self.fine = fine
+        self.patch = patch
         self.augment = augment
         self.epochs = epochs
         self.batch_size = batch_size
@@ -90,7 +94,12 @@ class WindowClassifier(TorchCheckpoint, Detector):
     def _build(self) -> nn.Module:
         raise NotImplementedError
 
+    @property
+    def context(self) -> Context:
+        return Context(self.window, self.fine, self.patch)
+
     def fit(self, X: pd.DataFrame, y: np.ndarray | None = None) -> "WindowClassifier":
+        self.context     # checks window, fine and patch before any work
         tr, ho = labelled_split(X, y, self.seed)
         self.features_ = input_features(X)
         self.normalizer_ = Normalizer().fit(check_residues(X, self.features_))   # all training rows
@@ -138,7 +147,7 @@ class CNNDetector(WindowClassifier):
     param_grid = {"lr": [1e-3, 3e-3]}
 
     def _build(self) -> nn.Module:
-        return CNN1d(len(self.features_), channels=self.hidden)
+        return CNN1d(len(self.features_), self.context, channels=self.hidden)
 
 
 @register("lstm")
@@ -146,10 +155,10 @@ class LSTMDetector(WindowClassifier):
     """LSTM over the causal residue window."""
     param_grid = {"lr": [1e-3, 3e-3]}
 
-    def __init__(self, window: int = 32, epochs: int = 30, batch_size: int = 256, lr: float = 1e-3,
+    def __init__(self, window: int = WINDOW, epochs: int = 30, batch_size: int = 256, lr: float = 1e-3,
                  hidden: int = 64, augment: bool = True, seed: int = 0, device: str = "cpu",
-                 progress: bool = False) -> None:
-        super().__init__(window, epochs, batch_size, lr, hidden, augment, seed, device, progress)
+                 progress: bool = False, fine: int = FINE, patch: int = PATCH) -> None:
+        super().__init__(window, epochs, batch_size, lr, hidden, augment, seed, device, progress, fine, patch)
 
     def _build(self) -> nn.Module:
-        return LSTMNet(len(self.features_), hidden=self.hidden)
+        return LSTMNet(len(self.features_), self.context, hidden=self.hidden)

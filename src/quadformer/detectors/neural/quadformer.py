@@ -21,6 +21,12 @@ the former without supervision):
   attacked steps below that of normal ones by ``margin``; small, because the classifier
   already carries the labels and the term only shapes the unsupervised statistic.
 
+Windows are long (``window`` = 320 steps, 32 s) and enter the network as tokens
+(``detectors.context``: the last ``fine`` steps one by one, earlier ones as patch means), so
+the evidence of a spoof's onset stays in view while the filter absorbs it. The reconstruction
+is that of the tokens; the classifier's cross-entropy and the margin apply to the last
+``fine`` tokens, the only ones that carry one step's label each.
+
 Score of step k (from the window ending at k, so causal): the classifier's attack log-odds
 plus ``w_anomaly`` times the log of the discrepancy-weighted reconstruction error at k,
 ``err[k] * exp(-Dis[k] / tau)`` (tau: training median of Dis), relative to its training
@@ -46,12 +52,14 @@ from torch import nn
 
 from quadformer.detectors.alarms import runs
 from quadformer.detectors.base import Detector, check_residues, flight_slices, labelled_split
+from quadformer.detectors.context import FINE, PATCH, WINDOW, Context
 from quadformer.detectors.neural.detector import TorchCheckpoint
 from quadformer.detectors.neural.quadformer_net import QUADFormerNet, discrepancy
 from quadformer.detectors.neural.training import TrainConfig, train
 from quadformer.detectors.registry import register
 from quadformer.detectors.streams import RingBuffer
-from quadformer.detectors.windows import AxisSymmetry, Normalizer, RawInputs, Windows, WindowStream, input_features
+from quadformer.detectors.windows import (AxisSymmetry, Normalizer, RawInputs, Windows, WindowStream, chunk_size,
+                                          input_features)
 from quadformer.estimator.schema import ATTACK_TYPES
 
 CLASSES = ("none", *ATTACK_TYPES)   # the classifier's classes; a fitted model keeps its own (classes_)
@@ -62,7 +70,8 @@ class QUADFormer(TorchCheckpoint, Detector):
     param_grid: dict[str, list[Any]] = {}
     post_grid = {"k": [1, 2, 3], "n": [3, 5], "w_anomaly": list(W_ANOMALY)}
 
-    def __init__(self, window: int = 32, d_model: int = 64, heads: int = 4, layers: int = 2,
+    def __init__(self, window: int = WINDOW, fine: int = FINE, patch: int = PATCH, d_model: int = 64,
+                 heads: int = 4, layers: int = 2,
                  epochs: int = 15, batch_size: int = 64, lr: float = 1e-3, lambda_dis: float = 0.1,
                  lambda_ce: float = 1.0, lambda_margin: float = 0.1, margin: float = 0.5,
                  use_prior: bool = True, supervised: bool = True, use_discrepancy: bool = True,
@@ -70,6 +79,8 @@ class QUADFormer(TorchCheckpoint, Detector):
                  k: int = 2, n: int = 3, w_anomaly: float = 1.0, augment: bool = True, steps_per_epoch: int = 60,
                  seed: int = 0, device: str = "cpu", progress: bool = False) -> None:
         self.window = window
+        self.fine = fine
+        self.patch = patch
         self.d_model = d_model
         self.heads = heads
         self.layers = layers
@@ -98,8 +109,12 @@ class QUADFormer(TorchCheckpoint, Detector):
     def _disc(self) -> bool:
         return self.use_prior and self.use_discrepancy
 
+    @property
+    def context(self) -> Context:
+        return Context(self.window, self.fine, self.patch)
+
     def _build(self) -> nn.Module:
-        return QUADFormerNet(len(self.features_), len(self.classes_), self.window, self.d_model, self.heads,
+        return QUADFormerNet(len(self.features_), len(self.classes_), self.context, self.d_model, self.heads,
                              self.layers, use_prior=self.use_prior, prior_sigma=self.prior_sigma)
 
     def get_params(self) -> dict[str, Any]:
@@ -114,6 +129,7 @@ class QUADFormer(TorchCheckpoint, Detector):
             raise ValueError(f"prior_sigma must be a positive number of steps or None, got {self.prior_sigma!r}")
         if float(self.w_anomaly) not in W_ANOMALY:
             raise ValueError(f"w_anomaly must be one of {W_ANOMALY}, got {self.w_anomaly!r}")
+        fine = self.context.fine     # checks window, fine and patch
         self.features_ = input_features(X)
         self.classes_ = list(CLASSES)
         self.normalizer_ = Normalizer().fit(check_residues(X, self.features_))
@@ -155,19 +171,19 @@ class QUADFormer(TorchCheckpoint, Detector):
             xb = xb.to(dev)
             out = model(xb)
             nu = len(u)
-            loss = ((out["recon"][:nu] - xb[:nu]) ** 2).mean()
+            loss = ((out["recon"][:nu] - out["tokens"][:nu]) ** 2).mean()
             # minimax: the prior descends the discrepancy, the series ascends it (one pass with
             # a gradient-reversed series). Its value is the discrepancy itself; the held-out
             # loss watched by early stopping leaves it out (reconstruction + CE + margin).
             if self._disc and training:
                 loss = loss + self.lambda_dis * discrepancy(out["series"], out["priors"], "minimax")[:nu].mean()
             if self.supervised and len(lab):
-                wr = win.rows(lab)
+                wr = win.rows(lab)[:, -fine:]      # the full-resolution tokens have one step each
                 target = cls_t[torch.from_numpy(np.where(wr >= 0, wr, n_rows))].to(dev)
-                logits = out["logits"][nu:]
+                logits = out["logits"][nu:, -fine:]
                 loss = loss + self.lambda_ce * ce(logits.reshape(-1, logits.shape[-1]), target.reshape(-1))
                 if self._disc and self.lambda_margin > 0:
-                    d = discrepancy(out["series"], out["priors"])[nu:]
+                    d = discrepancy(out["series"], out["priors"])[nu:, -fine:]
                     att, nor = target > 0, target == 0
                     if att.any() and nor.any():
                         loss = loss + self.lambda_margin * torch.relu(self.margin + d[att].mean() - d[nor].mean())
@@ -191,7 +207,8 @@ class QUADFormer(TorchCheckpoint, Detector):
     # -- scoring ----------------------------------------------------------------------------
     def _parts(self, win: Windows, idx: np.ndarray) -> dict[str, np.ndarray]:
         """Per-step ingredients of the score for windows idx (their last position)."""
-        chunks = [self._window_parts(win[idx[i:i + 1024]]) for i in range(0, len(idx), 1024)]
+        step = chunk_size(self.window, len(self.features_))
+        chunks = [self._window_parts(win[idx[i:i + step]]) for i in range(0, len(idx), step)]
         return {k: np.concatenate([c[k] for c in chunks]) if chunks else np.zeros(0)
                 for k in ("err", "dis", "p_attack", "type")}
 
@@ -275,7 +292,7 @@ def last_step_parts(model: nn.Module, xb: torch.Tensor, disc: bool) -> dict[str,
     without it), attack probability and the most likely attack class. Shared by scoring and
     the exported graph (``detectors.export``)."""
     o = model(xb, last_only=True)
-    err = ((o["recon"][:, -1] - xb[:, -1]) ** 2).mean(-1)
+    err = ((o["recon"][:, -1] - o["tokens"][:, -1]) ** 2).mean(-1)
     d = discrepancy(o["series"], o["priors"])[:, -1] if disc else torch.zeros_like(err)
     prob = torch.softmax(o["logits"][:, -1], dim=-1)
     return {"err": err, "dis": d, "p_attack": 1 - prob[:, 0], "type": prob[:, 1:].argmax(-1) + 1}

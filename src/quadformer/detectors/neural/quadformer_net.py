@@ -1,5 +1,9 @@
 """QUADFormer network: a transformer over residue windows with a two-branch attention.
 
+A window is first summarised into tokens (``detectors.context``: the last steps one by one,
+earlier ones in patch means); the attention runs over the tokens, and "position" and
+"distance" below are in GPS steps between the tokens' centres.
+
 Each attention head computes
 - a series association S = softmax(Q K^T / sqrt(d)), learned from the data, and
 - a prior association P: a Gaussian kernel over the temporal distance |i - j| whose width
@@ -19,6 +23,8 @@ import math
 import torch
 from torch import nn
 
+from quadformer.detectors.context import Context
+
 
 def symmetric_kl(p: torch.Tensor, q: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
     """KL(p||q) + KL(q||p) over the last axis."""
@@ -28,7 +34,7 @@ def symmetric_kl(p: torch.Tensor, q: torch.Tensor, eps: float = 1e-8) -> torch.T
 
 
 class TwoBranchAttention(nn.Module):
-    def __init__(self, d_model: int, heads: int, window: int, use_prior: bool = True,
+    def __init__(self, d_model: int, heads: int, positions: torch.Tensor, use_prior: bool = True,
                  prior_sigma: float | None = None):
         super().__init__()
         self.h, self.dk = heads, d_model // heads
@@ -38,8 +44,8 @@ class TwoBranchAttention(nn.Module):
         self.prior_sigma = prior_sigma
         self.out = nn.Linear(d_model, d_model)
         self.use_prior = use_prior
-        idx = torch.arange(window, dtype=torch.float32)
-        self.register_buffer("dist2", (idx[:, None] - idx[None, :]) ** 2, persistent=False)
+        pos = torch.as_tensor(positions, dtype=torch.float32)
+        self.register_buffer("dist2", (pos[:, None] - pos[None, :]) ** 2, persistent=False)
 
     def forward(self, x: torch.Tensor, last_query: bool = False, last_row: bool = False):
         """last_query: output only the last position (the final layer at scoring time);
@@ -66,10 +72,10 @@ class TwoBranchAttention(nn.Module):
 
 
 class Layer(nn.Module):
-    def __init__(self, d_model: int, heads: int, window: int, use_prior: bool, dropout: float,
+    def __init__(self, d_model: int, heads: int, positions: torch.Tensor, use_prior: bool, dropout: float,
                  prior_sigma: float | None = None):
         super().__init__()
-        self.attn = TwoBranchAttention(d_model, heads, window, use_prior, prior_sigma)
+        self.attn = TwoBranchAttention(d_model, heads, positions, use_prior, prior_sigma)
         self.n1 = nn.LayerNorm(d_model)
         self.ff = nn.Sequential(nn.Linear(d_model, 2 * d_model), nn.GELU(), nn.Dropout(dropout),
                                 nn.Linear(2 * d_model, d_model))
@@ -86,36 +92,41 @@ class Layer(nn.Module):
 
 
 class QUADFormerNet(nn.Module):
-    def __init__(self, n_features: int, n_classes: int, window: int, d_model: int = 64, heads: int = 4,
+    def __init__(self, n_features: int, n_classes: int, context: Context, d_model: int = 64, heads: int = 4,
                  layers: int = 2, dropout: float = 0.1, use_prior: bool = True, prior_sigma: float | None = None):
         super().__init__()
+        self.context = context
         self.embed = nn.Linear(n_features, d_model)
-        pos = torch.arange(window, dtype=torch.float32)[:, None]
+        positions = torch.from_numpy(context.positions())
+        pos = positions[:, None]
         div = torch.exp(torch.arange(0, d_model, 2, dtype=torch.float32) * (-math.log(10000.0) / d_model))
-        pe = torch.zeros(window, d_model)
+        pe = torch.zeros(len(positions), d_model)
         pe[:, 0::2] = torch.sin(pos * div)
         pe[:, 1::2] = torch.cos(pos * div)
         self.register_buffer("pe", pe, persistent=False)
-        self.layers = nn.ModuleList([Layer(d_model, heads, window, use_prior, dropout, prior_sigma)
+        self.layers = nn.ModuleList([Layer(d_model, heads, positions, use_prior, dropout, prior_sigma)
                                      for _ in range(layers)])
         self.recon = nn.Linear(d_model, n_features)
         self.classify = nn.Linear(d_model, n_classes)
         self.use_prior = use_prior
 
     def forward(self, x: torch.Tensor, last_only: bool = False) -> dict[str, torch.Tensor]:
-        """x: (B, W, features). Returns reconstruction (B,W,F), class logits (B,W,C), and the
-        per-layer series and prior associations (lists of (B,H,W,W); priors None without prior).
+        """x: (B, W, features) windows. Returns their tokens (B,T,F) (``context.tokens``), the
+        reconstruction of the tokens (B,T,F), class logits (B,T,C), and the per-layer series and
+        prior associations (lists of (B,H,T,T); priors None without prior).
 
-        last_only: outputs and associations of the last position only (W replaced by 1), all a
-        causal score needs, at a fraction of the cost."""
-        h = self.embed(x) + self.pe[: x.shape[1]]
+        last_only: outputs and associations of the last token only (T replaced by 1), all a
+        causal score needs, at a fraction of the cost. The last token is the window's last step."""
+        tokens = self.context.tokens(x)
+        h = self.embed(tokens) + self.pe
         series, priors = [], []
         for i, layer in enumerate(self.layers):
             final = i == len(self.layers) - 1
             h, s, p = layer(h, last_query=last_only and final, last_row=last_only)
             series.append(s)
             priors.append(p)
-        return {"recon": self.recon(h), "logits": self.classify(h), "series": series, "priors": priors}
+        return {"tokens": tokens, "recon": self.recon(h), "logits": self.classify(h), "series": series,
+                "priors": priors}
 
 
 class _ReverseGrad(torch.autograd.Function):
