@@ -105,6 +105,104 @@ def test_naive_always_fuses_and_bad_settings_are_named():
         AdmissionConfig(hold_s=float("nan"))
 
 
+def _drive_rules(alarm, nis, cfg=None):
+    """Like ``_drive`` for the resilient policy, also returning the rule codes of each step."""
+    adm = Admission(["resilient"], 10.0, cfg)
+    fused, readmit, exclude = [], [], []
+    for k in range(len(alarm)):
+        d = adm.decide(torch.tensor([nis[k]]), torch.zeros(1, 6), torch.tensor([bool(alarm[k])]),
+                       torch.tensor([False]))
+        fused.append(bool(d.fuse[0]))
+        readmit.append(int(d.readmit[0]))
+        exclude.append(int(d.exclude[0]))
+        adm.record(torch.zeros(1, 3))
+    return np.array(fused), np.array(readmit), np.array(exclude)
+
+
+def test_stale_alarm_readmits_after_stale_hold_and_only_a_new_alarm_excludes_again():
+    from quadformer.resilience.admission import EXCLUDE_ALARM, EXCLUDE_NIS, READMIT_CLEAR, READMIT_STALE
+
+    n = 200
+    alarm = np.ones(n, bool)               # the detector alarms from the start: its memory never fades
+    nis = np.full(n, 3.0)
+    nis[:30] = 80.0                        # the fixes disagree with the estimate until step 30
+    fused, readmit, exclude = _drive_rules(alarm, nis)
+    # agreeing from step 30: the 50th agreeing fix (stale_hold_s = 5 s at 10 Hz), step 79, re-admits
+    k = 30 + 50 - 1
+    assert not fused[:k].any() and fused[k:].all()
+    assert np.nonzero(readmit)[0].tolist() == [k] and readmit[k] == READMIT_STALE
+    assert np.nonzero(exclude)[0].tolist() == [0] and exclude[0] == EXCLUDE_ALARM
+    # the same with the stale path off: never re-admitted
+    fused_off, _, _ = _drive_rules(alarm, nis, AdmissionConfig(stale_hold_s=float("inf")))
+    assert not fused_off.any()
+
+    # after the stale re-admission the alarm goes clear at 120 and rises again at 125: excluded
+    # again at once, and the normal rule re-admits after the alarm clears for good (clear from
+    # 150: 20 steps, hold_s = 2 s -> step 169)
+    alarm2 = alarm.copy()
+    alarm2[120:125] = False
+    alarm2[150:] = False
+    fused, readmit, exclude = _drive_rules(alarm2, nis)
+    assert fused[k:125].all() and not fused[125:169].any() and fused[169:].all()
+    assert exclude[125] == EXCLUDE_ALARM and readmit[169] == READMIT_CLEAR
+    assert np.count_nonzero(exclude) == 2 and np.count_nonzero(readmit) == 2
+    # the alarm that rose at 125 stood for 25 steps only: less than stale_hold_s, no stale path
+
+    # a fix outside the gate while the stale alarm stands: excluded again; 5 s more of agreement
+    nis3 = nis.copy()
+    nis3[100] = 80.0
+    fused, readmit, exclude = _drive_rules(alarm, nis3)
+    assert fused[k:100].all() and not fused[100:150].any() and fused[150:].all()
+    assert exclude[100] == EXCLUDE_NIS and readmit[150] == READMIT_STALE
+
+    # the fixes never agree: never re-admitted, whatever the alarm's age
+    fused, readmit, _ = _drive_rules(alarm, np.full(n, 80.0))
+    assert not fused.any() and not readmit.any()
+    # agreement broken every 4 s: never 5 s without a break
+    nis4 = np.full(n, 3.0)
+    nis4[::40] = 80.0
+    fused, _, _ = _drive_rules(alarm, nis4)
+    assert not fused.any()
+
+
+def test_a_new_alarm_onset_restarts_the_stale_hold():
+    alarm = np.ones(150, bool)
+    alarm[40] = False                      # clear for one step, then a new alarm at 41
+    fused, readmit, _ = _drive_rules(alarm, np.full(150, 3.0))
+    # agreeing from step 1 (after the exclusion at 0); the onset at 41 restarts the count:
+    # 50 agreeing fixes from step 42 -> step 91
+    assert not fused[:91].any() and fused[91:].all()
+    # stale_hold_s = 0: re-admitted at the first agreeing fix after the exclusion step
+    fused, _, _ = _drive_rules(np.ones(20, bool), np.full(20, 3.0), AdmissionConfig(stale_hold_s=0.0))
+    assert not fused[0] and fused[1:].all()
+
+
+def test_stale_path_leaves_the_normal_path_and_the_other_policies_alone():
+    # a short alarm: the normal rule re-admits after hold_s whatever stale_hold_s
+    alarm = np.zeros(100, bool)
+    alarm[10:30] = True
+    for cfg in (AdmissionConfig(), AdmissionConfig(stale_hold_s=float("inf")), AdmissionConfig(stale_hold_s=3.0)):
+        fused, readmit, _ = _drive_rules(alarm, np.full(100, 3.0), cfg)
+        assert not fused[10:49].any() and fused[49:].all(), cfg
+        assert readmit.tolist().count(1) == 1 and readmit[49] == 1, cfg       # READMIT_CLEAR
+    # a stale hold shorter than the alarm: the stale path re-admits first (the 5th agreeing fix
+    # after the exclusion at 10), and the alarm standing until 30 does not exclude again
+    fused, readmit, _ = _drive_rules(alarm, np.full(100, 3.0), AdmissionConfig(stale_hold_s=0.5))
+    assert not fused[10:15].any() and fused[15:].all() and readmit[15] == 2 and np.count_nonzero(readmit) == 1
+    # oracle: the detector's standing alarm means nothing; px4, naive: unchanged
+    att = np.zeros(120, bool)
+    att[10:30] = True
+    r = _drive("oracle", np.ones(120, bool), attacked=att, cfg=AdmissionConfig(stale_hold_s=0.0))
+    assert np.array_equal(r["fused"], ~att)
+    assert _drive("naive", np.ones(120, bool), cfg=AdmissionConfig(stale_hold_s=0.0))["fused"].all()
+
+
+def test_bad_stale_hold_is_named():
+    for bad in (float("nan"), -1.0):
+        with pytest.raises(ValueError, match="stale_hold_s"):
+            AdmissionConfig(stale_hold_s=bad)
+    assert AdmissionConfig(stale_hold_s=float("inf")).stale_hold_s == float("inf")
+
 def test_alerts_from_hand_made_scores():
     X = pd.DataFrame({"flight_id": [7] * 10 + [8] * 5, "t": np.r_[np.arange(10), np.arange(5)] * 0.1})
     s = np.array([0, 0, 5, 6, 0, 0, 0, 9, 9, 9, 0, 0, 0, 0, 0], dtype=float)
