@@ -377,6 +377,46 @@ def test_readmission_blends_the_gps_correction_in_the_loop(jump):
     assert total_b == pytest.approx(total_n, rel=0.5, abs=0.1)
 
 
+# Two flights of 15 s flown by the resilient policy with a CUSUM detector, whose statistic
+# keeps the attack's memory for minutes after a spoof: flight 25 draws a 4.3 m bias on x from
+# 2.5 s to 8 s, flight 7 a 0.27 m/s drift on x from 2.5 s to the end.
+_STALE = SimConfig(model="I", noise="gaussian", flights=1, duration=15.0, seed=2,
+                   attack=AttackConfig(kind="mix", mix=("bias", "ramp"), fraction=1.0, onset=(2.5, 2.5),
+                                       duration=(3.0, 30.0), magnitude=(3.0, 5.0), rate=(0.2, 0.4)))
+
+
+def test_stale_cusum_alarm_readmits_after_a_bias_but_never_during_a_drift(bias_dataset):
+    from quadformer.resilience.admission import EXCLUDE_ALARM, READMIT_STALE
+
+    f = bias_dataset.flights
+    det = make("cusum").fit(f, f.label.to_numpy())
+    det.calibrate(best_f1_threshold(det.decision_function(f), f.label.to_numpy())[0])
+    r = simulate_batch(_STALE, np.array([25, 7]), np.ones(2, bool), admission=Admission(["resilient"] * 2, 10.0),
+                       stream=det.stream(2))
+    a, t, att = r["admission"], r["t"], r["attacks"]
+    assert list(att.kind) == ["bias", "ramp"] and att.end[0] < 8.5 and att.end[1] > 15.0, (att.kind, att.end)
+    stale = AdmissionConfig().stale_hold_s
+    for b in (0, 1):
+        first = np.nonzero(r["label"][b])[0][0]
+        excl = np.nonzero(a["exclude"][b])[0]
+        # excluded once, on the alarm, within 1.5 s of the onset; the alarm stands from then to the end
+        assert len(excl) == 1 and a["exclude"][b, excl[0]] == EXCLUDE_ALARM and t[excl[0]] - t[first] <= 1.5
+        assert a["alarm"][b, excl[0] + 20:].all()
+    # the bias: once it ends, the fixes agree with the VIO-propagated estimate again and GPS is
+    # re-admitted by the stale rule, stale_hold_s after the first honest fix, and stays admitted
+    # under the standing alarm
+    end = np.nonzero(r["label"][0])[0][-1] + 1
+    back = np.nonzero(a["readmit"][0])[0]
+    assert len(back) == 1 and a["readmit"][0, back[0]] == READMIT_STALE
+    assert stale - 0.15 <= t[back[0]] - t[end] <= stale + 2.0, (t[end], t[back[0]])
+    assert a["fused"][0, back[0]:].all() and not a["fused"][0, excl[0]:back[0]].any()
+    err = np.linalg.norm(r["est_pos"][0] - r["true_pos"][0], axis=1)
+    assert err.max() < 1.5, err.max()
+    # the drift: the fixes keep moving away from the estimate; GPS is never re-admitted
+    excl = np.nonzero(a["exclude"][1])[0][0]
+    assert not a["readmit"][1].any() and not a["fused"][1, excl:].any()
+    assert np.linalg.norm(r["gps_pos"][1, -1] - r["true_pos"][1, -1]) > 2.5
+
 def test_resilience_cli_names_bad_input(tmp_path):
     runner = CliRunner()
     res = runner.invoke(app, ["resilience", "--detector", "nope", "--out", str(tmp_path)])
