@@ -423,6 +423,8 @@ def test_resilience_cli_names_bad_input(tmp_path):
     assert res.exit_code == 2 and "unknown detector 'nope'" in res.output
     res = runner.invoke(app, ["resilience", "--hold", "-1", "--out", str(tmp_path)])
     assert res.exit_code == 2 and "hold_s" in res.output
+    res = runner.invoke(app, ["resilience", "--stale-hold", "nan", "--out", str(tmp_path)])
+    assert res.exit_code == 2 and "stale_hold_s" in res.output
     res = runner.invoke(app, ["resilience", "--profile", "huge", "--out", str(tmp_path)])
     assert res.exit_code == 2 and "unknown profile 'huge'" in res.output
 
