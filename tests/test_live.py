@@ -320,6 +320,32 @@ def test_d_act_switches_the_ekf_source_set_and_back_and_alerts_arrive(detector, 
     assert alerts and all(len(t) <= 50 for _, t in report.statustexts)
     assert "GPS SPOOF ALERT" in alerts[0] and "GPS excluded" in alerts[0]
     assert any("act: EKF source set 2" in line for line in lines)
+    # the re-admission line says which rule re-admitted
+    assert any(re.search(r"GPS re-admitted \((clear and agreeing for 2 s|agreeing for 5 s despite a standing alarm)\)",
+                         line) for line in lines), lines
+
+
+def test_d_console_names_the_readmission_rule(detector):
+    """The monitor's admission under a standing alarm (the detector's memory) and fixes that
+    agree: the stale rule re-admits and the console says so; a fix outside the gate under the
+    same alarm excludes GPS again, with its reason."""
+    lines = []
+    mon = Monitor(detector, MonitorConfig(connect=f"udpin:{LOCAL}:0", filter=FILTER), echo=lines.append)
+    seg = mon._new_segment("start")
+    nis = np.full(80, 3.0)
+    nis[:5] = 80.0
+    nis[70] = 80.0
+    for k in range(80):
+        before = seg.state
+        dec = seg.admission.decide(torch.tensor([nis[k]]), torch.zeros(1, 6), torch.tensor([True]),
+                                   torch.tensor([False]))
+        mon._alarm(seg, k / 10.0, 50.0, True, "bias", before, seg.state, int(dec.readmit[0]), int(dec.exclude[0]))
+    text = "\n".join(lines)
+    assert "[t 0.0 s] GPS excluded (detector alarm)" in text
+    # agreeing from 0.5 s: the 50th agreeing fix, at 5.4 s, re-admits
+    assert "[t 5.4 s] GPS re-admitted (agreeing for 5 s despite a standing alarm)" in text
+    assert "[t 7.0 s] GPS excluded (fix outside the agreement gate under the standing alarm)" in text
+    assert text.count("] GPS excluded (") == 2 and text.count("] GPS re-admitted (") == 1
 
 
 # -- the CLI ---------------------------------------------------------------------------------------
@@ -358,5 +384,7 @@ def test_e_cli_monitor_demo(tmp_path):
 def test_cli_monitor_refuses_bad_input(tmp_path):
     r = CliRunner().invoke(app, ["monitor", "--connect", f"udpin:{LOCAL}:0"])
     assert r.exit_code == 2 and "--model" in r.output
+    r = CliRunner().invoke(app, ["monitor", "--stale-hold", "-1", "--connect", f"udpin:{LOCAL}:0"])
+    assert r.exit_code == 2 and "stale_hold_s" in r.output
     r = CliRunner().invoke(app, ["monitor", "--model", str(tmp_path / "none.json"), "--connect", f"udpin:{LOCAL}:0"])
     assert r.exit_code == 2 and "no such model file" in r.output

@@ -105,6 +105,104 @@ def test_naive_always_fuses_and_bad_settings_are_named():
         AdmissionConfig(hold_s=float("nan"))
 
 
+def _drive_rules(alarm, nis, cfg=None):
+    """Like ``_drive`` for the resilient policy, also returning the rule codes of each step."""
+    adm = Admission(["resilient"], 10.0, cfg)
+    fused, readmit, exclude = [], [], []
+    for k in range(len(alarm)):
+        d = adm.decide(torch.tensor([nis[k]]), torch.zeros(1, 6), torch.tensor([bool(alarm[k])]),
+                       torch.tensor([False]))
+        fused.append(bool(d.fuse[0]))
+        readmit.append(int(d.readmit[0]))
+        exclude.append(int(d.exclude[0]))
+        adm.record(torch.zeros(1, 3))
+    return np.array(fused), np.array(readmit), np.array(exclude)
+
+
+def test_stale_alarm_readmits_after_stale_hold_and_only_a_new_alarm_excludes_again():
+    from quadformer.resilience.admission import EXCLUDE_ALARM, EXCLUDE_NIS, READMIT_CLEAR, READMIT_STALE
+
+    n = 200
+    alarm = np.ones(n, bool)               # the detector alarms from the start: its memory never fades
+    nis = np.full(n, 3.0)
+    nis[:30] = 80.0                        # the fixes disagree with the estimate until step 30
+    fused, readmit, exclude = _drive_rules(alarm, nis)
+    # agreeing from step 30: the 50th agreeing fix (stale_hold_s = 5 s at 10 Hz), step 79, re-admits
+    k = 30 + 50 - 1
+    assert not fused[:k].any() and fused[k:].all()
+    assert np.nonzero(readmit)[0].tolist() == [k] and readmit[k] == READMIT_STALE
+    assert np.nonzero(exclude)[0].tolist() == [0] and exclude[0] == EXCLUDE_ALARM
+    # the same with the stale path off: never re-admitted
+    fused_off, _, _ = _drive_rules(alarm, nis, AdmissionConfig(stale_hold_s=float("inf")))
+    assert not fused_off.any()
+
+    # after the stale re-admission the alarm goes clear at 120 and rises again at 125: excluded
+    # again at once, and the normal rule re-admits after the alarm clears for good (clear from
+    # 150: 20 steps, hold_s = 2 s -> step 169)
+    alarm2 = alarm.copy()
+    alarm2[120:125] = False
+    alarm2[150:] = False
+    fused, readmit, exclude = _drive_rules(alarm2, nis)
+    assert fused[k:125].all() and not fused[125:169].any() and fused[169:].all()
+    assert exclude[125] == EXCLUDE_ALARM and readmit[169] == READMIT_CLEAR
+    assert np.count_nonzero(exclude) == 2 and np.count_nonzero(readmit) == 2
+    # the alarm that rose at 125 stood for 25 steps only: less than stale_hold_s, no stale path
+
+    # a fix outside the gate while the stale alarm stands: excluded again; 5 s more of agreement
+    nis3 = nis.copy()
+    nis3[100] = 80.0
+    fused, readmit, exclude = _drive_rules(alarm, nis3)
+    assert fused[k:100].all() and not fused[100:150].any() and fused[150:].all()
+    assert exclude[100] == EXCLUDE_NIS and readmit[150] == READMIT_STALE
+
+    # the fixes never agree: never re-admitted, whatever the alarm's age
+    fused, readmit, _ = _drive_rules(alarm, np.full(n, 80.0))
+    assert not fused.any() and not readmit.any()
+    # agreement broken every 4 s: never 5 s without a break
+    nis4 = np.full(n, 3.0)
+    nis4[::40] = 80.0
+    fused, _, _ = _drive_rules(alarm, nis4)
+    assert not fused.any()
+
+
+def test_a_new_alarm_onset_restarts_the_stale_hold():
+    alarm = np.ones(150, bool)
+    alarm[40] = False                      # clear for one step, then a new alarm at 41
+    fused, readmit, _ = _drive_rules(alarm, np.full(150, 3.0))
+    # agreeing from step 1 (after the exclusion at 0); the onset at 41 restarts the count:
+    # 50 agreeing fixes from step 42 -> step 91
+    assert not fused[:91].any() and fused[91:].all()
+    # stale_hold_s = 0: re-admitted at the first agreeing fix after the exclusion step
+    fused, _, _ = _drive_rules(np.ones(20, bool), np.full(20, 3.0), AdmissionConfig(stale_hold_s=0.0))
+    assert not fused[0] and fused[1:].all()
+
+
+def test_stale_path_leaves_the_normal_path_and_the_other_policies_alone():
+    # a short alarm: the normal rule re-admits after hold_s whatever stale_hold_s
+    alarm = np.zeros(100, bool)
+    alarm[10:30] = True
+    for cfg in (AdmissionConfig(), AdmissionConfig(stale_hold_s=float("inf")), AdmissionConfig(stale_hold_s=3.0)):
+        fused, readmit, _ = _drive_rules(alarm, np.full(100, 3.0), cfg)
+        assert not fused[10:49].any() and fused[49:].all(), cfg
+        assert readmit.tolist().count(1) == 1 and readmit[49] == 1, cfg       # READMIT_CLEAR
+    # a stale hold shorter than the alarm: the stale path re-admits first (the 5th agreeing fix
+    # after the exclusion at 10), and the alarm standing until 30 does not exclude again
+    fused, readmit, _ = _drive_rules(alarm, np.full(100, 3.0), AdmissionConfig(stale_hold_s=0.5))
+    assert not fused[10:15].any() and fused[15:].all() and readmit[15] == 2 and np.count_nonzero(readmit) == 1
+    # oracle: the detector's standing alarm means nothing; px4, naive: unchanged
+    att = np.zeros(120, bool)
+    att[10:30] = True
+    r = _drive("oracle", np.ones(120, bool), attacked=att, cfg=AdmissionConfig(stale_hold_s=0.0))
+    assert np.array_equal(r["fused"], ~att)
+    assert _drive("naive", np.ones(120, bool), cfg=AdmissionConfig(stale_hold_s=0.0))["fused"].all()
+
+
+def test_bad_stale_hold_is_named():
+    for bad in (float("nan"), -1.0):
+        with pytest.raises(ValueError, match="stale_hold_s"):
+            AdmissionConfig(stale_hold_s=bad)
+    assert AdmissionConfig(stale_hold_s=float("inf")).stale_hold_s == float("inf")
+
 def test_alerts_from_hand_made_scores():
     X = pd.DataFrame({"flight_id": [7] * 10 + [8] * 5, "t": np.r_[np.arange(10), np.arange(5)] * 0.1})
     s = np.array([0, 0, 5, 6, 0, 0, 0, 9, 9, 9, 0, 0, 0, 0, 0], dtype=float)
@@ -279,12 +377,54 @@ def test_readmission_blends_the_gps_correction_in_the_loop(jump):
     assert total_b == pytest.approx(total_n, rel=0.5, abs=0.1)
 
 
+# Two flights of 15 s flown by the resilient policy with a CUSUM detector, whose statistic
+# keeps the attack's memory for minutes after a spoof: flight 25 draws a 4.3 m bias on x from
+# 2.5 s to 8 s, flight 7 a 0.27 m/s drift on x from 2.5 s to the end.
+_STALE = SimConfig(model="I", noise="gaussian", flights=1, duration=15.0, seed=2,
+                   attack=AttackConfig(kind="mix", mix=("bias", "ramp"), fraction=1.0, onset=(2.5, 2.5),
+                                       duration=(3.0, 30.0), magnitude=(3.0, 5.0), rate=(0.2, 0.4)))
+
+
+def test_stale_cusum_alarm_readmits_after_a_bias_but_never_during_a_drift(bias_dataset):
+    from quadformer.resilience.admission import EXCLUDE_ALARM, READMIT_STALE
+
+    f = bias_dataset.flights
+    det = make("cusum").fit(f, f.label.to_numpy())
+    det.calibrate(best_f1_threshold(det.decision_function(f), f.label.to_numpy())[0])
+    r = simulate_batch(_STALE, np.array([25, 7]), np.ones(2, bool), admission=Admission(["resilient"] * 2, 10.0),
+                       stream=det.stream(2))
+    a, t, att = r["admission"], r["t"], r["attacks"]
+    assert list(att.kind) == ["bias", "ramp"] and att.end[0] < 8.5 and att.end[1] > 15.0, (att.kind, att.end)
+    stale = AdmissionConfig().stale_hold_s
+    for b in (0, 1):
+        first = np.nonzero(r["label"][b])[0][0]
+        excl = np.nonzero(a["exclude"][b])[0]
+        # excluded once, on the alarm, within 1.5 s of the onset; the alarm stands from then to the end
+        assert len(excl) == 1 and a["exclude"][b, excl[0]] == EXCLUDE_ALARM and t[excl[0]] - t[first] <= 1.5
+        assert a["alarm"][b, excl[0] + 20:].all()
+    # the bias: once it ends, the fixes agree with the VIO-propagated estimate again and GPS is
+    # re-admitted by the stale rule, stale_hold_s after the first honest fix, and stays admitted
+    # under the standing alarm
+    end = np.nonzero(r["label"][0])[0][-1] + 1
+    back = np.nonzero(a["readmit"][0])[0]
+    assert len(back) == 1 and a["readmit"][0, back[0]] == READMIT_STALE
+    assert stale - 0.15 <= t[back[0]] - t[end] <= stale + 2.0, (t[end], t[back[0]])
+    assert a["fused"][0, back[0]:].all() and not a["fused"][0, excl[0]:back[0]].any()
+    err = np.linalg.norm(r["est_pos"][0] - r["true_pos"][0], axis=1)
+    assert err.max() < 1.5, err.max()
+    # the drift: the fixes keep moving away from the estimate; GPS is never re-admitted
+    excl = np.nonzero(a["exclude"][1])[0][0]
+    assert not a["readmit"][1].any() and not a["fused"][1, excl:].any()
+    assert np.linalg.norm(r["gps_pos"][1, -1] - r["true_pos"][1, -1]) > 2.5
+
 def test_resilience_cli_names_bad_input(tmp_path):
     runner = CliRunner()
     res = runner.invoke(app, ["resilience", "--detector", "nope", "--out", str(tmp_path)])
     assert res.exit_code == 2 and "unknown detector 'nope'" in res.output
     res = runner.invoke(app, ["resilience", "--hold", "-1", "--out", str(tmp_path)])
     assert res.exit_code == 2 and "hold_s" in res.output
+    res = runner.invoke(app, ["resilience", "--stale-hold", "nan", "--out", str(tmp_path)])
+    assert res.exit_code == 2 and "stale_hold_s" in res.output
     res = runner.invoke(app, ["resilience", "--profile", "huge", "--out", str(tmp_path)])
     assert res.exit_code == 2 and "unknown profile 'huge'" in res.output
 

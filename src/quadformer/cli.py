@@ -94,6 +94,10 @@ _BACKEND_HELP = ("Where work units run: local (processes of this machine) or ray
 _ADDRESS_HELP = ("With --backend ray: auto (the cluster `ray start` started here) or ray://host:port; default: a "
                  "Ray runtime started on this machine.")
 _DEVICE_HELP = "Where network detectors train: auto (a GPU when there is one), cpu or cuda."
+_STALE_HOLD_HELP = ("Seconds the GPS fixes must agree with the estimate (NIS inside the gate) to re-admit GPS "
+                    "while the detector's alarm still stands (a stale alarm: the detector's memory of an attack that "
+                    "has ended, not a new onset). The standing alarm then no longer excludes GPS; a new alarm onset "
+                    "or a fix outside the gate does. inf: off (only a clear detector re-admits).")
 
 
 def _backend(kind: str, address: Optional[str], device: str, workers: Optional[int] = None):
@@ -474,6 +478,7 @@ def resilience(
     seed: int = typer.Option(0, help="Split seed (the detection benchmark's)."),
     label_fraction: float = typer.Option(0.2, help="Share of training flights whose labels the detector may use."),
     hold: float = typer.Option(2.0, help="Seconds clear and agreeing before GPS is re-admitted."),
+    stale_hold: float = typer.Option(5.0, "--stale-hold", help=_STALE_HOLD_HELP),
     blend: float = typer.Option(2.0, help="Seconds over which re-admitted GPS goes from inflated to nominal noise."),
     threshold: str = typer.Option("f1", help="Alarm threshold chosen on validation flights: f1 (max F1) or budget "
                                   "(1 alarm per flight-hour on clean flights)."),
@@ -497,7 +502,7 @@ def resilience(
     if not 0.0 <= label_fraction <= 1.0:
         _fail(f"label-fraction: must be in [0, 1], got {label_fraction}")
     try:
-        adm = AdmissionConfig(hold_s=hold, blend_s=blend)
+        adm = AdmissionConfig(hold_s=hold, stale_hold_s=stale_hold, blend_s=blend)
     except ValueError as e:
         _fail(str(e))
     if "," in detector:
@@ -710,6 +715,7 @@ def monitor(
     act: bool = typer.Option(False, "--act", help=_ACT_HELP),
     act_source_set: int = typer.Option(2, help="The vehicle's EKF source set without GPS (1..3), for --act."),
     hold: float = typer.Option(2.0, help="Seconds clear and agreeing before GPS is re-admitted."),
+    stale_hold: float = typer.Option(5.0, "--stale-hold", help=_STALE_HOLD_HELP),
     blend: float = typer.Option(2.0, help="Seconds of inflated GPS noise after re-admission (reported)."),
     statustext: bool = typer.Option(True, help="Send STATUSTEXT alerts to the vehicle."),
     request_rates: bool = typer.Option(False, help="Ask the vehicle for the streams the monitor needs "
@@ -729,7 +735,7 @@ def monitor(
 
     set_threads(1)
     try:
-        adm = AdmissionConfig(hold_s=hold, blend_s=blend)
+        adm = AdmissionConfig(hold_s=hold, stale_hold_s=stale_hold, blend_s=blend)
     except ValueError as e:
         _fail(str(e))
     det = _load_model(model, runtime) if model is not None else None

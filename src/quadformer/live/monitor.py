@@ -11,8 +11,12 @@ fixed-size counters and a fixed-size latency histogram: memory does not grow wit
 The monitor's own filter always fuses GPS (it is the filter of ``detect``, so that its scores
 equal offline scoring of the same data); the admission decision is what the monitor asks of
 the vehicle: exclude GPS at the alarm, re-admit it after the detector has been clear and the
-fixes have agreed with the estimate (NIS inside the gate) for ``hold_s``, then blend (its
-noise inflation is reported; the vehicle's own EKF does its blending).
+fixes have agreed with the estimate (NIS inside the gate) for ``hold_s``, or, under an alarm
+that stands without a new onset (a detector's memory of an attack that has ended), after the
+fixes have agreed for ``stale_hold_s``; then blend (its noise inflation is reported; the
+vehicle's own EKF does its blending). After a stale re-admission the standing alarm does not
+exclude GPS again; a new alarm onset or a fix outside the gate under it does. The rules are
+``resilience.admission``'s, and the console says which one acted.
 
 What the vehicle must send (``actions.RATES``; ``request_rates`` asks with SET_MESSAGE_INTERVAL):
 an IMU (HIGHRES_IMU, or RAW_IMU / SCALED_IMU*) at 50-100 Hz or more, GPS_RAW_INT (or GPS2_RAW)
@@ -72,7 +76,15 @@ from quadformer.live.mavlink import (
     mavlink2,
     open_link,
 )
-from quadformer.resilience.admission import BLENDING, EXCLUDED, FUSING, Admission, AdmissionConfig
+from quadformer.resilience.admission import (
+    BLENDING,
+    EXCLUDE_NIS,
+    EXCLUDED,
+    FUSING,
+    READMIT_STALE,
+    Admission,
+    AdmissionConfig,
+)
 
 STATES = {FUSING: "fusing", EXCLUDED: "GPS excluded", BLENDING: "re-admitting GPS"}
 STREAMS = ("imu", "gps", "mag", "baro", "vio", "attitude")
@@ -649,7 +661,7 @@ class Monitor:
             seg.fixes += 1
             self.fixes += 1
             seg.last_score = score
-            self._alarm(seg, t, score, alarm, kind, before, after)
+            self._alarm(seg, t, score, alarm, kind, before, after, int(dec.readmit[0]), int(dec.exclude[0]))
             rec = FixRecord(seg.index, t, score, alarm, kind, STATES[after], float(dec.std_scale[0]),
                             cols["res_gps_nis"], row["gps_pos"][0].copy(), row["est_pos"][0].copy(),
                             self.ap_pos.copy(), latency, cols)
@@ -661,7 +673,9 @@ class Monitor:
                 self.on_fix(rec)
 
     def _alarm(self, seg: _Segment, t: float, score: float, alarm: bool, kind: str | None, before: int,
-               after: int) -> None:
+               after: int, readmit: int = 0, exclude: int = 0) -> None:
+        """Alerts and admission messages of one fix; ``readmit`` / ``exclude``: the admission
+        rule that acted at this fix (``Decision.readmit`` / ``Decision.exclude``)."""
         c = self.config
         if alarm and seg.alert is None:
             seg.alert = Alert(seg.index, t, t, kind or "attack", score, None)
@@ -677,14 +691,25 @@ class Monitor:
         elif seg.alert is not None:
             self._close_alert(seg, t, after)
         if after == EXCLUDED and before != EXCLUDED:
-            self.echo(f"[t {t:.1f} s] GPS excluded (detector alarm)")
+            if exclude == EXCLUDE_NIS:
+                self.echo(f"[t {t:.1f} s] GPS excluded (fix outside the agreement gate under the standing alarm)")
+                if self.link is not None:
+                    self.link.statustext("GPS excluded: fix disagrees, alert standing", mavlink2.MAV_SEVERITY_ALERT)
+            else:
+                self.echo(f"[t {t:.1f} s] GPS excluded (detector alarm)")
             if c.act and self.link is not None:
                 self.link.set_source(c.act_source_set)
                 self.echo(f"[t {t:.1f} s] act: EKF source set {c.act_source_set} (non-GPS) requested")
         elif after == BLENDING and before == EXCLUDED:
-            self.echo(f"[t {t:.1f} s] GPS re-admitted (clear and agreeing for {c.admission.hold_s:g} s)")
-            if self.link is not None:
-                self.link.statustext("GPS re-admitted: spoof alert cleared", mavlink2.MAV_SEVERITY_NOTICE)
+            if readmit == READMIT_STALE:
+                self.echo(f"[t {t:.1f} s] GPS re-admitted (agreeing for {c.admission.stale_hold_s:g} s "
+                          "despite a standing alarm)")
+                if self.link is not None:
+                    self.link.statustext("GPS re-admitted: fixes agree, alert stale", mavlink2.MAV_SEVERITY_NOTICE)
+            else:
+                self.echo(f"[t {t:.1f} s] GPS re-admitted (clear and agreeing for {c.admission.hold_s:g} s)")
+                if self.link is not None:
+                    self.link.statustext("GPS re-admitted: spoof alert cleared", mavlink2.MAV_SEVERITY_NOTICE)
             if c.act and self.link is not None:
                 self.link.set_source(1)
                 self.echo(f"[t {t:.1f} s] act: EKF source set 1 (GPS) requested")

@@ -99,6 +99,16 @@ def _trajectory_figure(traj: pd.DataFrame, flight: int, policies: list[str], tit
     return fig
 
 
+def _stale_text(adm: dict[str, Any]) -> str:
+    """The stale-alarm path of the resilient policy's re-admission, as run (none in results
+    written before it existed, or with ``stale_hold_s`` infinite)."""
+    stale = adm.get("stale_hold_s")
+    if stale is None or not np.isfinite(stale):
+        return ""
+    return (f", or, under an alarm standing since its onset, after GPS has agreed for {stale:g} s (that alarm "
+            "then no longer excludes GPS; a new onset or a fix outside the gate does)")
+
+
 def write_resilience_report(results: dict[str, Any], out: Path) -> Path:
     import matplotlib
     matplotlib.use("Agg")
@@ -119,7 +129,8 @@ def write_resilience_report(results: dict[str, Any], out: Path) -> Path:
              + f". Policies: naive (always fuse GPS), px4 ({adm['gate_sigma']:g}-sigma innovation gate, reset "
              f"to GPS after {adm['reset_after_s']:g} s of rejections), resilient (exclude GPS on the detector's "
              f"alarm, re-admit after it has been clear and GPS has agreed with the estimate for "
-             f"{adm['hold_s']:g} s, blended over {adm['blend_s']:g} s), oracle (excludes exactly the spoofed "
+             f"{adm['hold_s']:g} s{_stale_text(adm)}, blended over {adm['blend_s']:g} s), "
+             "oracle (excludes exactly the spoofed "
              "fixes). Deviations are of the true vehicle from its mission during the attack window. Exclusion "
              "P/R/F1: every GPS step of every flight (attacked and clean) is a prediction, GPS excluded, "
              "against the truth, GPS spoofed (point-wise, no adjustment; steps still excluded after an attack "

@@ -18,6 +18,27 @@ decides, per flight, whether the fix is fused and with which noise:
   hysteresis on the way in. Re-admission blends: the GPS noise std is inflated by
   ``blend_inflation`` and decays geometrically to nominal over ``blend_s``, so the estimate
   moves to GPS over seconds instead of jumping.
+
+  Stale alarms. A detector that reads persistent residues (a frozen anchor, a long
+  correction integral) keeps an attack's memory on purpose and may keep alarming long after
+  the spoof ended. An alarm that has stood without a break while the fixes agree is the
+  detector's memory, not new evidence, so a second path re-admits GPS: while excluded, if
+  the alarm still stands and the fix has agreed with the estimate (NIS <= ``readmit_nis``)
+  for ``stale_hold_s`` without a break and without a new alarm onset (a clear step followed
+  by an alarm restarts the count, as it is new evidence), GPS is re-admitted with the same
+  blend. After such a stale re-admission the standing alarm does not exclude GPS again;
+  GPS is excluded again (with the rollback) when either
+    * the alarm re-arises: it has been seen clear at least once since the stale
+      re-admission and then alarms again (from then on the normal rule applies), or
+    * a fix leaves the agreement gate (NIS > ``readmit_nis``) while that alarm still
+      stands: the standing alarm plus a disagreeing fix is taken as evidence, so that a
+      jump of a new attack under a stale alarm is not let through.
+  ``stale_hold_s = inf`` switches the stale path off (the policy before it); 0 re-admits at
+  the first agreeing fix after the exclusion step. The stale path needs no clear step, so
+  it is what brings GPS back when a detector's memory outlasts the attack; a slow drift
+  that keeps the fixes away from the VIO-propagated estimate never passes the gate.
+  ``Decision.readmit`` says which rule re-admitted (``READMIT_CLEAR`` or ``READMIT_STALE``)
+  and ``Decision.exclude`` why GPS was excluded (``EXCLUDE_ALARM`` or ``EXCLUDE_NIS``).
 - ``oracle``: excludes exactly the fixes that are spoofed (it knows the attack window) and
   re-admits with the same blend: the limit any detector-driven policy can reach.
 """
@@ -33,11 +54,16 @@ from scipy.stats import chi2
 POLICIES = ("naive", "px4", "resilient", "oracle")
 
 FUSING, EXCLUDED, BLENDING = 0, 1, 2
+# Decision.readmit: which rule re-admitted GPS at this step (0: none)
+READMIT_CLEAR, READMIT_STALE = 1, 2
+# Decision.exclude: why GPS was excluded at this step (0: not excluded at this step)
+EXCLUDE_ALARM, EXCLUDE_NIS = 1, 2
 
 
 @dataclass(frozen=True)
 class AdmissionConfig:
     hold_s: float = 2.0            # clear and in agreement for this long before re-admission
+    stale_hold_s: float = 5.0      # resilient: in agreement this long under a standing alarm (inf: off)
     readmit_nis: float = float(chi2.ppf(0.999, 6))   # agreement gate on the 6-dof GPS NIS
     blend_s: float = 2.0           # inflation decays to nominal over this time
     blend_inflation: float = 10.0  # initial GPS noise std factor at re-admission
@@ -49,6 +75,8 @@ class AdmissionConfig:
         for name in ("hold_s", "blend_s", "rollback_s", "reset_after_s"):
             if not np.isfinite(getattr(self, name)) or getattr(self, name) < 0:
                 raise ValueError(f"admission.{name} must be a finite number >= 0, got {getattr(self, name)!r}")
+        if np.isnan(self.stale_hold_s) or self.stale_hold_s < 0:
+            raise ValueError(f"admission.stale_hold_s must be a number >= 0 (inf: off), got {self.stale_hold_s!r}")
         for name in ("readmit_nis", "gate_sigma"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"admission.{name} must be > 0, got {getattr(self, name)!r}")
@@ -62,6 +90,8 @@ class Decision:
     std_scale: torch.Tensor     # (B,) GPS noise std factor for the fused ones
     reset: torch.Tensor         # (B,) bool: reset position/velocity to this fix (px4)
     rollback: torch.Tensor      # (B,3) position correction to add (undo of recent GPS corrections)
+    readmit: torch.Tensor | None = None   # (B,) int64: READMIT_CLEAR / READMIT_STALE at this step, else 0
+    exclude: torch.Tensor | None = None   # (B,) int64: EXCLUDE_ALARM / EXCLUDE_NIS at this step, else 0
 
 
 class Admission:
@@ -82,6 +112,9 @@ class Admission:
         B = len(policies)
         self.state = torch.full((B,), FUSING, dtype=torch.int64)
         self.clear_time = torch.zeros(B, dtype=torch.float64)     # resilient: clear + agreeing
+        self.agree_time = torch.zeros(B, dtype=torch.float64)     # resilient: agreeing since the last onset
+        self.stale = torch.zeros(B, dtype=torch.bool)             # re-admitted under the standing alarm
+        self.prev_alarm = torch.zeros(B, dtype=torch.bool)
         self.blend_time = torch.zeros(B, dtype=torch.float64)
         self.reject_time = torch.zeros(B, dtype=torch.float64)    # px4: consecutive rejections
         n_roll = int(round(self.cfg.rollback_s * gps_rate_hz))     # 0: no rollback
@@ -112,22 +145,43 @@ class Admission:
 
         # resilient and oracle: the same state machine, different triggers
         res, orc = self.is_["resilient"], self.is_["oracle"]
+        agree_nis = nis <= c.readmit_nis
+        onset = alarm & ~self.prev_alarm           # a new alarm: clear at the previous step
+        self.prev_alarm = alarm
+        # a stale re-admission holds while its alarm stands; a clear step ends it (the next
+        # alarm then excludes as usual)
+        self.stale = self.stale & res & alarm
         detector_bad = torch.where(orc, attacked, alarm)
         managed = res | orc
         st = self.state
-        enter = managed & (st != EXCLUDED) & detector_bad
+        # the stale alarm excludes again only together with a fix outside the agreement gate
+        trigger = detector_bad & ~(self.stale & agree_nis)
+        enter = managed & (st != EXCLUDED) & trigger
         rollback = torch.where((enter & res)[:, None], -self.recent.sum(1), rollback)
         self.recent = torch.where(enter[:, None, None], torch.zeros_like(self.recent), self.recent)
+        exclude = torch.where(enter & self.stale, EXCLUDE_NIS, torch.where(enter, EXCLUDE_ALARM, 0))
+        self.stale = self.stale & ~enter
         st = torch.where(enter, torch.full_like(st, EXCLUDED), st)
         self.clear_time = torch.where(enter, torch.zeros_like(self.clear_time), self.clear_time)
+        self.agree_time = torch.where(enter, torch.zeros_like(self.agree_time), self.agree_time)
         # excluded: count time clear (oracle: not attacked) and, for the detector, agreeing
-        agree = torch.where(orc, torch.ones_like(detector_bad), nis <= c.readmit_nis)
+        agree = torch.where(orc, torch.ones_like(detector_bad), agree_nis)
         ok = ~detector_bad & agree
         excl = managed & (st == EXCLUDED) & ~enter
         self.clear_time = torch.where(excl & ok, self.clear_time + self.dt,
                                       torch.where(excl, torch.zeros_like(self.clear_time), self.clear_time))
         hold = torch.where(orc, torch.zeros_like(self.clear_time), torch.full_like(self.clear_time, c.hold_s))
         readmit = excl & ok & (self.clear_time >= hold - 1e-9)
+        # resilient, excluded: time the fixes have agreed since the last alarm onset, whatever
+        # the alarm; under a standing alarm it re-admits after stale_hold_s
+        counting = excl & res & agree_nis & ~onset
+        self.agree_time = torch.where(counting, self.agree_time + self.dt,
+                                      torch.where(excl & res, torch.zeros_like(self.agree_time), self.agree_time))
+        stale_readmit = (excl & res & alarm & counting & ~readmit
+                         & (self.agree_time >= c.stale_hold_s - 1e-9))
+        self.stale = self.stale | stale_readmit
+        readmit_rule = torch.where(readmit, READMIT_CLEAR, torch.where(stale_readmit, READMIT_STALE, 0))
+        readmit = readmit | stale_readmit
         st = torch.where(readmit, torch.full_like(st, BLENDING), st)
         self.blend_time = torch.where(readmit, torch.zeros_like(self.blend_time), self.blend_time)
         blending = managed & (st == BLENDING)
@@ -139,7 +193,7 @@ class Admission:
         st = torch.where(done, torch.full_like(st, FUSING), st)
         self.state = st
         fuse = torch.where(managed, st != EXCLUDED, fuse)
-        return Decision(fuse, scale, reset, rollback)
+        return Decision(fuse, scale, reset, rollback, readmit_rule, exclude)
 
     def record(self, applied_dpos: torch.Tensor) -> None:
         """The position correction this GPS step applied per flight (zero where not fused)."""

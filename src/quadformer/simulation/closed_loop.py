@@ -68,8 +68,9 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     admission: a ``resilience.Admission`` over the batch's flights (GPS fused per policy);
     stream: a detector's online stream over the batch (``detector.stream(len(flights))``)
     whose alarms drive the ``resilient`` policy. Both add per-step ``admission`` records
-    (fused, noise scale, reset, score, alarm, and the position correction GPS applied to the
-    estimate: the update's, a reset's jump and a rollback together)."""
+    (fused, noise scale, reset, score, alarm, the position correction GPS applied to the
+    estimate: the update's, a reset's jump and a rollback together, and the rule that
+    re-admitted or excluded GPS at the step: ``Decision.readmit`` / ``Decision.exclude``)."""
     B = len(flights)
     dt, n_steps, spg, spv, n_gps = cfg.dt, cfg.n_steps, cfg.steps_per_gps, cfg.steps_per_vio, cfg.n_gps
     scn = batch_generators(cfg.seed, flights, Stream.SCENARIO)
@@ -117,7 +118,8 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     ref_block = None
     adm_rec = {k: np.zeros((B, n_gps, *shape), dtype=dt_) for k, dt_, shape in
                (("fused", bool, ()), ("std_scale", float, ()), ("reset", bool, ()), ("score", float, ()),
-                ("alarm", bool, ()), ("correction", float, (3,)))} if admission is not None else None
+                ("alarm", bool, ()), ("correction", float, (3,)), ("readmit", np.int8, ()),
+                ("exclude", np.int8, ()))} if admission is not None else None
 
     for k in range(n_steps):
         if k % block == 0:
@@ -243,4 +245,6 @@ def _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, attacked, admission, strea
     rec["score"][:, j] = score
     rec["alarm"][:, j] = alarm
     rec["correction"][:, j] = applied.numpy()
+    rec["readmit"][:, j] = dec.readmit.numpy()
+    rec["exclude"][:, j] = dec.exclude.numpy()
     return new
