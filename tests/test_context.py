@@ -98,3 +98,19 @@ def test_default_context_stream_equals_offline(pca_default):
                        for i in range(len(flight))])
     # the same windows through the same tokens: equal up to float32 rounding of the batch
     np.testing.assert_allclose(online, offline, rtol=1e-5, atol=1e-6)
+
+
+def test_tokens_of_indexed_windows_equal_the_tokens_of_gathered_windows():
+    """``Windows.tokens`` (patch means computed once, offline scoring) gives exactly the tokens of
+    the gathered windows, padding included, across flights."""
+    from quadformer.detectors.windows import Normalizer, Windows
+
+    rng = np.random.default_rng(2)
+    X = pd.concat([_residues(rng, 1, n).assign(flight_id=i) for i, n in enumerate((30, 70, 5))], ignore_index=True)
+    feats = list(DETECTOR_FEATURES)
+    win = Windows(X, feats, Normalizer().fit(X[feats].to_numpy()), 48)
+    idx = np.arange(len(win))
+    for c in (Context(48, fine=16, patch=8), Context(48, fine=48), Context(48, fine=8, patch=4)):
+        np.testing.assert_array_equal(win.tokens(idx, c), c.tokens(win[idx]))
+    with pytest.raises(ValueError, match="a context of 320 steps for windows of 48"):
+        win.tokens(idx, Context(320))

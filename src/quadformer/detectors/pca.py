@@ -49,7 +49,7 @@ class PCADetector(Detector):
             raise ValueError("pca needs training steps not known to be attacked")
         rng = np.random.default_rng(self.seed)
         pick = np.sort(rng.choice(normal, min(len(normal), self.max_windows), replace=False))
-        Z = win.gather(pick, context.tokens).reshape(len(pick), -1).astype(np.float64)
+        Z = win.tokens(pick, context).reshape(len(pick), -1).astype(np.float64)
         self.mean_ = Z.mean(axis=0)
         _, _, vt = np.linalg.svd(Z - self.mean_, full_matrices=False)
         k = int(min(self.n_components, vt.shape[0]))
@@ -63,7 +63,11 @@ class PCADetector(Detector):
 
     def score_windows(self, windows: np.ndarray) -> tuple[np.ndarray, None]:
         """Mean squared reconstruction residual of normalised windows (n, W, features)."""
-        z = self.context.tokens(windows).reshape(len(windows), -1).astype(np.float64) - self.mean_
+        return self.score_tokens(self.context.tokens(windows))
+
+    def score_tokens(self, tokens: np.ndarray) -> tuple[np.ndarray, None]:
+        """``score_windows`` of the windows whose tokens are given (n, tokens, features)."""
+        z = tokens.reshape(len(tokens), -1).astype(np.float64) - self.mean_
         coef = z @ self.components_.T
         resid = z - coef @ self.components_
         return np.mean(resid * resid, axis=1), None

@@ -20,8 +20,9 @@ class CNN1d(nn.Module):
         )
         self.head = nn.Linear(2 * channels + channels, 1)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """x: (batch, W, features) -> logit of the window's last step (batch,)."""
-        h = self.body(self.context.tokens(x).transpose(1, 2))    # (B, C, tokens)
+    def forward(self, x: torch.Tensor, tokens: bool = False) -> torch.Tensor:
+        """x: (batch, W, features) windows, or their tokens (batch, T, features) with
+        ``tokens=True`` -> logit of the window's last step (batch,)."""
+        h = self.body((x if tokens else self.context.tokens(x)).transpose(1, 2))    # (B, C, tokens)
         pooled = torch.cat([h.mean(-1), h.amax(-1), h[..., -1]], dim=-1)
         return self.head(pooled).squeeze(-1)

@@ -137,6 +137,12 @@ class WindowClassifier(TorchCheckpoint, Detector):
             x = torch.from_numpy(np.ascontiguousarray(windows)).to(torch.device(self.device))
             return self.model_(x).double().cpu().numpy(), None
 
+    def score_tokens(self, tokens: np.ndarray) -> tuple[np.ndarray, None]:
+        """``score_windows`` of the windows whose tokens are given (n, tokens, features)."""
+        with torch.no_grad():
+            x = torch.from_numpy(np.ascontiguousarray(tokens)).to(torch.device(self.device))
+            return self.model_(x, tokens=True).double().cpu().numpy(), None
+
     def stream(self, n_flights: int = 1) -> WindowStream:
         return WindowStream(self, n_flights)
 

@@ -15,7 +15,8 @@ class LSTMNet(nn.Module):
         self.lstm = nn.LSTM(n_features, hidden, num_layers=layers, batch_first=True)
         self.head = nn.Linear(hidden, 1)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """x: (batch, W, features) -> logit of the window's last step (batch,)."""
-        out, _ = self.lstm(self.context.tokens(x))
+    def forward(self, x: torch.Tensor, tokens: bool = False) -> torch.Tensor:
+        """x: (batch, W, features) windows, or their tokens (batch, T, features) with
+        ``tokens=True`` -> logit of the window's last step (batch,)."""
+        out, _ = self.lstm(x if tokens else self.context.tokens(x))
         return self.head(out[:, -1]).squeeze(-1)

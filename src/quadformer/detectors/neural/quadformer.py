@@ -207,16 +207,19 @@ class QUADFormer(TorchCheckpoint, Detector):
     # -- scoring ----------------------------------------------------------------------------
     def _parts(self, win: Windows, idx: np.ndarray) -> dict[str, np.ndarray]:
         """Per-step ingredients of the score for windows idx (their last position)."""
-        step = chunk_size(self.window, len(self.features_))
-        chunks = [self._window_parts(win[idx[i:i + step]]) for i in range(0, len(idx), step)]
+        ctx = self.context
+        step = chunk_size(ctx.n_tokens, len(self.features_))
+        chunks = [self._window_parts(win.tokens(idx[i:i + step], ctx), tokens=True)
+                  for i in range(0, len(idx), step)]
         return {k: np.concatenate([c[k] for c in chunks]) if chunks else np.zeros(0)
                 for k in ("err", "dis", "p_attack", "type")}
 
-    def _window_parts(self, windows: np.ndarray) -> dict[str, np.ndarray]:
-        """Score ingredients of the last position of normalised windows (n, W, features)."""
+    def _window_parts(self, windows: np.ndarray, tokens: bool = False) -> dict[str, np.ndarray]:
+        """Score ingredients of the last position of normalised windows (n, W, features), or of
+        the windows whose tokens are given (``tokens=True``: (n, T, features))."""
         with torch.no_grad():
             xb = torch.from_numpy(np.ascontiguousarray(windows)).to(torch.device(self.device))
-            parts = last_step_parts(self.model_, xb, self._disc)
+            parts = last_step_parts(self.model_, xb, self._disc, tokens=tokens)
             return {k: (v if k == "type" else v.double()).cpu().numpy() for k, v in parts.items()}
 
     def score_windows(self, windows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -286,12 +289,13 @@ class QUADFormer(TorchCheckpoint, Detector):
         return KofNStream(self, n_flights)
 
 
-def last_step_parts(model: nn.Module, xb: torch.Tensor, disc: bool) -> dict[str, torch.Tensor]:
-    """Score ingredients of the last position of normalised windows xb (n, W, features), as
+def last_step_parts(model: nn.Module, xb: torch.Tensor, disc: bool, tokens: bool = False) -> dict[str, torch.Tensor]:
+    """Score ingredients of the last position of normalised windows xb (n, W, features) (or of
+    their tokens, ``tokens=True``), as
     float32 tensors (type: int64): reconstruction error, association discrepancy (zero
     without it), attack probability and the most likely attack class. Shared by scoring and
     the exported graph (``detectors.export``)."""
-    o = model(xb, last_only=True)
+    o = model(xb, last_only=True, tokens=tokens)
     err = ((o["recon"][:, -1] - o["tokens"][:, -1]) ** 2).mean(-1)
     d = discrepancy(o["series"], o["priors"])[:, -1] if disc else torch.zeros_like(err)
     prob = torch.softmax(o["logits"][:, -1], dim=-1)

@@ -110,22 +110,23 @@ class QUADFormerNet(nn.Module):
         self.classify = nn.Linear(d_model, n_classes)
         self.use_prior = use_prior
 
-    def forward(self, x: torch.Tensor, last_only: bool = False) -> dict[str, torch.Tensor]:
+    def forward(self, x: torch.Tensor, last_only: bool = False, tokens: bool = False) -> dict[str, torch.Tensor]:
         """x: (B, W, features) windows. Returns their tokens (B,T,F) (``context.tokens``), the
         reconstruction of the tokens (B,T,F), class logits (B,T,C), and the per-layer series and
         prior associations (lists of (B,H,T,T); priors None without prior).
 
         last_only: outputs and associations of the last token only (T replaced by 1), all a
-        causal score needs, at a fraction of the cost. The last token is the window's last step."""
-        tokens = self.context.tokens(x)
-        h = self.embed(tokens) + self.pe
+        causal score needs, at a fraction of the cost. The last token is the window's last step.
+        tokens: x holds the windows' tokens already (B,T,F)."""
+        tok = x if tokens else self.context.tokens(x)
+        h = self.embed(tok) + self.pe
         series, priors = [], []
         for i, layer in enumerate(self.layers):
             final = i == len(self.layers) - 1
             h, s, p = layer(h, last_query=last_only and final, last_row=last_only)
             series.append(s)
             priors.append(p)
-        return {"tokens": tokens, "recon": self.recon(h), "logits": self.classify(h), "series": series,
+        return {"tokens": tok, "recon": self.recon(h), "logits": self.classify(h), "series": series,
                 "priors": priors}
 
 
