@@ -22,10 +22,12 @@ shared storage), may ask for the same entry at once:
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import inspect
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -87,8 +89,12 @@ def ensure_datasets(profile: Profile, cache_dir: Path, progress: bool = True,
 
 def ensure_configs(configs: list[tuple[str, SimConfig]], cache_dir: Path, progress: bool = True,
                    workers: int | None = None, backend: Backend | None = None) -> dict[str, Path]:
-    """Paths of named datasets (``CACHE/<name>-<key>/``), simulating those not in the cache
-    (one work unit per dataset, each dataset once, on ``backend``)."""
+    """Paths of named datasets (``CACHE/<name>-<key>/``), simulating those not in the cache,
+    each dataset once. The missing datasets' flights fly together: configurations that differ
+    only in model, noise, attack and seed share batches (``simulation.simulate.plan_batches``),
+    one work unit per batch and as many batches as workers, so the simulator's per-step cost
+    is paid once per worker instead of once per dataset. Each dataset is written exactly as
+    ``simulate`` of its configuration alone would write it, while this process holds its lock."""
     cache_dir = Path(cache_dir)
     paths, jobs, labels = {}, {}, {}
     for name, cfg in configs:
@@ -96,14 +102,65 @@ def ensure_configs(configs: list[tuple[str, SimConfig]], cache_dir: Path, progre
         paths[name] = path
         if path in jobs:
             continue
-        try:
-            load_dataset(path)
-        except DatasetError:
-            jobs[path] = (cfg, path)
-            labels[path] = f"config {name}, dataset seed {cfg.seed}"
-    run_jobs(simulate_dataset, list(jobs.values()), workers=workers, progress=progress, desc="simulate",
-             unit="dataset", backend=backend, labels=list(labels.values()))
+        if not _readable(path):
+            jobs[path] = cfg
+            labels[path] = name
+    if not jobs:
+        return paths
+    with contextlib.ExitStack() as locks:
+        todo = []
+        for path in sorted(jobs):          # one order for every run: no two runs wait on each other
+            locks.enter_context(exclusive(path))
+            if not _readable(path):        # another run may have written it while this one waited
+                todo.append(path)
+        simulate_into([(jobs[p], p) for p in todo], progress=progress, workers=workers, backend=backend,
+                      names=[labels[p] for p in todo])
     return paths
+
+
+def _readable(path: Path) -> bool:
+    try:
+        load_dataset(path)
+        return True
+    except DatasetError:
+        return False
+
+
+def batch_count(workers: int | None = None, backend: Backend | None = None) -> int:
+    """How many batches to split a run's flights into: one per worker (default: one per core)."""
+    return max(1, workers or os.cpu_count() or 1)
+
+
+def simulate_into(entries: list[tuple[SimConfig, Path]], progress: bool = True, workers: int | None = None,
+                  backend: Backend | None = None, names: list[str] | None = None) -> None:
+    """Simulate the configurations of ``entries`` and write each dataset to its path (the caller
+    holds the entries' locks): mixed batches, one work unit per batch, on ``backend``."""
+    from quadformer.simulation.simulate import assemble, plan_batches
+
+    if not entries:
+        return
+    cfgs = [c for c, _ in entries]
+    names = names or [p.name for _, p in entries]
+    plan = plan_batches(cfgs, batch_count(workers, backend))
+    units = [([(cfgs[i], ids) for i, ids in batch],) for batch in plan]
+    unit_labels = ["flights of " + ", ".join(f"{names[i]} ({len(ids)})" for i, ids in batch) for batch in plan]
+    outputs = run_jobs(simulate_unit, units, workers=workers, progress=progress, desc="simulate", unit="batch",
+                       backend=backend, labels=unit_labels)
+    parts: dict[int, list] = {i: [] for i in range(len(cfgs))}
+    for batch, frames in zip(plan, outputs):
+        for (i, ids), fs in zip(batch, frames):
+            parts[i].append((int(ids[0]), fs))
+    for i, (cfg, path) in enumerate(entries):
+        ds = assemble(cfg, [fs for _, fs in sorted(parts[i], key=lambda x: x[0])])
+        write_dataset(ds, path, overwrite=True)
+
+
+def simulate_unit(parts: list[tuple[SimConfig, Any]]) -> list:
+    """One work unit: one mixed batch (``simulation.simulate.simulate_parts``); returns each
+    part's (flights, scenarios) frames."""
+    from quadformer.simulation.simulate import simulate_parts
+
+    return simulate_parts(parts)
 
 
 @functools.lru_cache(maxsize=1)
