@@ -26,7 +26,7 @@ from quadformer.evaluation.metrics import bootstrap_f1, evaluate, event_recall_b
 from quadformer.evaluation.protocol import TrainingBudget, split_flights
 from quadformer.experiments.cache import check_device, ensure_configs, ensure_tuned, model_dir_for, tuned_model
 from quadformer.experiments.grid import Profile, get_profile, profile_configs
-from quadformer.experiments.pool import Backend
+from quadformer.experiments.pool import Backend, SharedBar
 from quadformer.io import atomic_path, package_versions, write_json
 
 #: bootstrap resamples of the test flights for the F1 interval of a run
@@ -204,7 +204,10 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
     configs = []
     all_alerts: list[pd.DataFrame] = []
     iterator = items
-    if progress:
+    shared = progress if isinstance(progress, SharedBar) else None
+    if shared is not None:
+        shared.phase("evaluate")
+    elif progress:
         from tqdm.auto import tqdm
         iterator = tqdm(items, desc="evaluate", unit="dataset")
     pool = StressPool()
@@ -230,6 +233,8 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
             all_alerts.append(frame.assign(config=name))
         configs.append({"name": name, **described, "dataset": str(path), "n_test_flights": res["split"]["test"],
                         **res})
+        if shared is not None:
+            shared.update(1)
     results = {
         **head, "seed": seed, "label_fraction": label_fraction, "methods_run": methods,
         "protocol": "split by flight 60/20/20 (stratified), hyper-parameters and threshold maximise "
