@@ -100,11 +100,23 @@ LOCAL = Backend()
 
 
 def _call(fn: Callable[..., Any], threads: int, args: tuple) -> tuple[Any, float]:
-    """``fn(*args)`` with ``threads`` torch threads; returns (result, seconds it took)."""
+    """``fn(*args)`` with ``threads`` torch threads and as many BLAS threads (numpy's SVD of
+    PCA, for instance: workers that each start one BLAS thread per core oversubscribe the
+    machine, several times slower); returns (result, seconds it took)."""
     set_threads(threads)
     t0 = time.perf_counter()
-    out = fn(*args)
+    with _blas_threads(threads):
+        out = fn(*args)
     return out, time.perf_counter() - t0
+
+
+def _blas_threads(threads: int):
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:      # pragma: no cover - installed with scikit-learn
+        import contextlib
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=threads, user_api="blas")
 
 
 class SharedBar:
