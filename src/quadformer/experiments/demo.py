@@ -3,7 +3,7 @@ an estimate of how long they take on this machine.
 
 The estimate counts the work (flights x steps to simulate, models to train at the demo's
 training budget, datasets to score, closed-loop batches to fly) and prices it with costs
-measured on an idle 2-core machine (``COSTS``), scaled by the cores this machine has. It is
+measured on a 2-core machine (``COSTS``), scaled by the cores this machine has. It is
 an estimate: another load on the machine, a slower or faster core, change the real time.
 """
 
@@ -21,22 +21,21 @@ from quadformer.experiments.grid import Profile, profile_configs
 #: cores of the machine the costs were measured on
 CALIBRATION_CORES = 2
 
-#: measured costs (seconds, one core each, idle 2-core machine; README, demo section)
+#: costs (seconds) per unit of work. Simulation: the per-step cost of a batch (about 4 ms
+#: whatever its size) and the cost per flight-step on top. Tuning and scoring: one
+#: configuration of 20 flights x 60 s at the demo's budget, derived from a run on a 2-core
+#: machine under a load average of 6-9 (divided by the load's share of the cores), so a
+#: rough figure until measured on an idle machine.
 COSTS = {
-    # simulation: per simulated step of one batch, and per flight-step on top
     "sim_step": 0.0045,
     "sim_flight_step": 0.00018,
-    # tuning one configuration of 20 flights x 60 s at the demo budget, per kind of method
-    "tune_statistic": 2.0,      # chi2, cusum, sprt, bht
-    "tune_windows": 8.0,        # pca, svm
-    "tune_network": 25.0,       # cnn, lstm (per method)
-    "tune_quadformer": 40.0,    # quadformer and its ablations
-    # scoring one configuration's test flights with every method, bootstrap, report rows
-    "evaluate": 12.0,
-    # one configuration's resilience batch (test flights x 4 policies), per simulated step
-    "fly_step": 0.006,
-    # start-up: worker processes, imports, report writing
-    "overhead": 20.0,
+    "tune_statistic": 1.0,      # chi2, cusum, sprt, bht
+    "tune_windows": 20.0,       # pca, svm (PCA's SVD dominates)
+    "tune_network": 10.0,       # cnn, lstm (per method)
+    "tune_quadformer": 70.0,    # quadformer and its ablations (training and 18 alarm-rule scorings)
+    "evaluate": 12.0,           # scoring one configuration's test flights with every method
+    "fly_step": 0.006,          # one configuration's resilience batch, per simulated step
+    "overhead": 20.0,           # worker start-up, imports, reports
 }
 
 
