@@ -876,8 +876,10 @@ def demo(
     short resilience run (QUADFormer driving the resilient estimator, beside the other policies)."""
     from quadformer.dataset import load_dataset
     from quadformer.experiments.cache import ensure_datasets
+    from quadformer.experiments.demo import plan
     from quadformer.experiments.detection import run_benchmark
     from quadformer.experiments.grid import PROFILES, dataset_summary, summary_table
+    from quadformer.experiments.pool import SharedBar
     from quadformer.experiments.resilience import run_resilience
     from quadformer.io import set_threads
 
@@ -885,15 +887,32 @@ def demo(
 
     t0 = time.perf_counter()
     set_threads()
-    paths = ensure_datasets(PROFILES["demo"], cache, progress=not quiet)
-    rows = [{"config": name, **dataset_summary(load_dataset(p))} for name, p in paths.items()]
+    profile = PROFILES["demo"]
+    methods = _methods(None)
+    todo = plan(profile, methods, cache, resilience=True)
+    typer.echo(todo.describe())
+    bar = None if quiet else SharedBar(todo.units, desc="demo")
+    progress = bar if bar is not None else False
+    phases = {}
+    try:
+        paths = ensure_datasets(profile, cache, progress=progress)
+        phases["simulate"] = time.perf_counter() - t0
+        rows = [{"config": name, **dataset_summary(load_dataset(p))} for name, p in paths.items()]
+        t1 = time.perf_counter()
+        results = run_benchmark("demo", methods, out / "detection", cache, progress=progress)
+        phases["detection"] = time.perf_counter() - t1
+        t1 = time.perf_counter()
+        res = run_resilience("demo", "quadformer", out / "resilience", cache, progress=progress)
+        phases["resilience"] = time.perf_counter() - t1
+    finally:
+        if bar is not None:
+            bar.close()
     typer.echo("Datasets (GPS noise moments: velocity error on clean steps, std set to 0.1 m/s):")
     typer.echo(summary_table(rows).to_string(index=False))
-    results = run_benchmark("demo", _methods(None), out / "detection", cache, progress=not quiet)
     _print_tables(results)
-    res = run_resilience("demo", "quadformer", out / "resilience", cache, progress=not quiet)
     _print_resilience(res)
-    typer.echo(f"\ndemo took {time.perf_counter() - t0:.0f} s")
+    typer.echo(f"\ndemo took {time.perf_counter() - t0:.0f} s (estimated {todo.estimate_s:.0f} s): "
+               + ", ".join(f"{k} {v:.0f} s" for k, v in phases.items()))
     typer.echo(f"detection results: {(out / 'detection' / 'results.json').resolve()}")
     typer.echo(f"detection report:  {(out / 'detection' / 'report.html').resolve()}  (open in a browser; works offline)")
     typer.echo(f"resilience report: {(out / 'resilience' / 'report.html').resolve()}")

@@ -23,6 +23,7 @@ its parameters from that kind's ranges. A batch holds one kind per flight.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -107,6 +108,12 @@ class AttackBatch:
             diff = fake - honest
             return diff[:, :3], diff[:, 3:], None
         raise ValueError(f"unknown attack kind {kind!r}")   # pragma: no cover - the config validates kinds
+
+
+def concat_attacks(parts: list[AttackBatch]) -> AttackBatch:
+    """The flights of several ``AttackBatch`` in one, in order (each flight keeps its kind)."""
+    return AttackBatch(*(np.concatenate([getattr(p, f.name) for p in parts])
+                         for f in dataclasses.fields(AttackBatch)))
 
 
 def sample_attacks(gens: list[np.random.Generator], cfg: AttackConfig, attacked: np.ndarray,

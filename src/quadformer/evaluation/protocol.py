@@ -9,6 +9,11 @@
    F1 wins (first on ties). Test flights are scored once, with that threshold.
 4. Also reported: the threshold meeting a false-alarm budget (default one alarm per
    flight-hour) on the clean validation flights.
+
+A reduced training budget (``TrainingBudget``, the demo profile's) gives every method that
+trains the same fraction of its own default budget: training epochs of the network
+detectors, training windows of PCA and the SVM. Methods that fit closed-form statistics
+(chi2, CUSUM, SPRT, BHT) are unchanged. The full budget (None) is the paper's.
 """
 
 from __future__ import annotations
@@ -137,6 +142,50 @@ def budget_threshold(scores: np.ndarray, flight_ids: np.ndarray, clean_flights: 
     return best
 
 
+#: the training-budget parameters a ``TrainingBudget`` scales, where a method has them
+BUDGET_PARAMS = ("epochs", "max_windows")
+
+
+@dataclass(frozen=True)
+class TrainingBudget:
+    """A reduced training budget: ``fraction`` of every trained method's default training
+    epochs and training windows (rounded, at least ``minimum``), the same rule for every
+    method. ``name`` keys the tuned-model cache, so models trained on a reduced budget are
+    never reused by a run on another budget."""
+    name: str
+    fraction: float
+    minimum: int = 2
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.fraction <= 1.0:
+            raise ValueError(f"fraction: must be in (0, 1], got {self.fraction}")
+
+    def fixed(self, method: str) -> dict[str, int]:
+        """The scaled parameters of ``method`` (empty for a method that trains nothing)."""
+        defaults = default_params(get(method))
+        return {k: max(self.minimum, int(round(self.fraction * defaults[k]))) for k in BUDGET_PARAMS
+                if isinstance(defaults.get(k), int)}
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "fraction": self.fraction, "minimum": self.minimum,
+                "scaled_parameters": list(BUDGET_PARAMS),
+                "rule": "every trained method gets the same fraction of its default training epochs "
+                        "(network detectors) and training windows (PCA, SVM); statistical tests unchanged"}
+
+
+def default_params(cls: type) -> dict[str, Any]:
+    """Default constructor arguments of a detector class (through subclasses that take ``**kw``)."""
+    out: dict[str, Any] = {}
+    for c in reversed(cls.__mro__):
+        init = c.__dict__.get("__init__")
+        if init is None:
+            continue
+        for name, p in inspect.signature(init).parameters.items():
+            if p.default is not inspect.Parameter.empty:
+                out[name] = p.default
+    return out
+
+
 @dataclass
 class Tuned:
     detector: Detector      # calibrated: threshold_ (max validation F1) and budget_threshold_
@@ -153,12 +202,18 @@ def grid_points(grid: dict[str, list[Any]]) -> list[dict[str, Any]]:
 
 def tune(method: str, train: pd.DataFrame, y_train: np.ndarray, val: pd.DataFrame,
          gps_rate_hz: float = 10.0, budget_per_hour: float = 1.0,
-         grid: dict[str, list[Any]] | None = None, device: str | None = None, **fixed: Any) -> Tuned:
+         grid: dict[str, list[Any]] | None = None, device: str | None = None,
+         budget: TrainingBudget | None = None, **fixed: Any) -> Tuned:
     """Steps 3 and 4 of the protocol for one method; the winner comes back calibrated.
+
+    budget: a reduced training budget (its scaled parameters are recorded in ``Tuned.params``);
+    None: the methods' defaults.
 
     device: the torch device network detectors train on (``cpu``, ``cuda``, ``cuda:N``; None:
     their default); it is not a hyper-parameter and is not recorded in ``Tuned.params``."""
     cls = get(method)
+    if budget is not None:
+        fixed = {**budget.fixed(method), **fixed}
     if device is not None and "device" in inspect.signature(cls.__init__).parameters:
         fixed_make = {**fixed, "device": device}
     else:

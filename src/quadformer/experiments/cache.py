@@ -4,7 +4,8 @@
   without the batch size, plus the dataset format version): ``CACHE/<config>-<key>/``.
 - Tuned detectors are keyed by dataset, split seed and label fraction (one directory), then
   method, false-alarm budget and a hash of the detector code:
-  ``CACHE/models/<dataset>-s<seed>-l<fraction>/<method>-b<budget>-<code>.{json,pt,tuned.json}``.
+  ``CACHE/models/<dataset>-s<seed>-l<fraction>/<method>-b<budget>-<code>[-t<training budget>].{json,pt,tuned.json}``
+  (a reduced training budget, ``protocol.TrainingBudget``, has its own entries).
   The detection and resilience benchmarks share them instead of training twice; a change
   of the detector code invalidates them.
 
@@ -22,10 +23,12 @@ shared storage), may ask for the same entry at once:
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import inspect
 import json
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -34,7 +37,7 @@ import pandas as pd
 
 from quadformer.config import MIX, SimConfig
 from quadformer.dataset import FORMAT_VERSION, DatasetError, load_dataset, write_dataset
-from quadformer.evaluation.protocol import Tuned, tune
+from quadformer.evaluation.protocol import TrainingBudget, Tuned, tune
 from quadformer.experiments.grid import Profile, dataset_summary, profile_configs
 from quadformer.experiments.pool import Backend, cluster_gpus, run_jobs
 from quadformer.io import exclusive, write_json
@@ -87,8 +90,12 @@ def ensure_datasets(profile: Profile, cache_dir: Path, progress: bool = True,
 
 def ensure_configs(configs: list[tuple[str, SimConfig]], cache_dir: Path, progress: bool = True,
                    workers: int | None = None, backend: Backend | None = None) -> dict[str, Path]:
-    """Paths of named datasets (``CACHE/<name>-<key>/``), simulating those not in the cache
-    (one work unit per dataset, each dataset once, on ``backend``)."""
+    """Paths of named datasets (``CACHE/<name>-<key>/``), simulating those not in the cache,
+    each dataset once. The missing datasets' flights fly together: configurations that differ
+    only in model, noise, attack and seed share batches (``simulation.simulate.plan_batches``),
+    one work unit per batch and as many batches as workers, so the simulator's per-step cost
+    is paid once per worker instead of once per dataset. Each dataset is written exactly as
+    ``simulate`` of its configuration alone would write it, while this process holds its lock."""
     cache_dir = Path(cache_dir)
     paths, jobs, labels = {}, {}, {}
     for name, cfg in configs:
@@ -96,14 +103,65 @@ def ensure_configs(configs: list[tuple[str, SimConfig]], cache_dir: Path, progre
         paths[name] = path
         if path in jobs:
             continue
-        try:
-            load_dataset(path)
-        except DatasetError:
-            jobs[path] = (cfg, path)
-            labels[path] = f"config {name}, dataset seed {cfg.seed}"
-    run_jobs(simulate_dataset, list(jobs.values()), workers=workers, progress=progress, desc="simulate",
-             unit="dataset", backend=backend, labels=list(labels.values()))
+        if not _readable(path):
+            jobs[path] = cfg
+            labels[path] = name
+    if not jobs:
+        return paths
+    with contextlib.ExitStack() as locks:
+        todo = []
+        for path in sorted(jobs):          # one order for every run: no two runs wait on each other
+            locks.enter_context(exclusive(path))
+            if not _readable(path):        # another run may have written it while this one waited
+                todo.append(path)
+        simulate_into([(jobs[p], p) for p in todo], progress=progress, workers=workers, backend=backend,
+                      names=[labels[p] for p in todo])
     return paths
+
+
+def _readable(path: Path) -> bool:
+    try:
+        load_dataset(path)
+        return True
+    except DatasetError:
+        return False
+
+
+def batch_count(workers: int | None = None, backend: Backend | None = None) -> int:
+    """How many batches to split a run's flights into: one per worker (default: one per core)."""
+    return max(1, workers or os.cpu_count() or 1)
+
+
+def simulate_into(entries: list[tuple[SimConfig, Path]], progress: bool = True, workers: int | None = None,
+                  backend: Backend | None = None, names: list[str] | None = None) -> None:
+    """Simulate the configurations of ``entries`` and write each dataset to its path (the caller
+    holds the entries' locks): mixed batches, one work unit per batch, on ``backend``."""
+    from quadformer.simulation.simulate import assemble, plan_batches
+
+    if not entries:
+        return
+    cfgs = [c for c, _ in entries]
+    names = names or [p.name for _, p in entries]
+    plan = plan_batches(cfgs, batch_count(workers, backend))
+    units = [([(cfgs[i], ids) for i, ids in batch],) for batch in plan]
+    unit_labels = ["flights of " + ", ".join(f"{names[i]} ({len(ids)})" for i, ids in batch) for batch in plan]
+    outputs = run_jobs(simulate_unit, units, workers=workers, progress=progress, desc="simulate", unit="batch",
+                       backend=backend, labels=unit_labels)
+    parts: dict[int, list] = {i: [] for i in range(len(cfgs))}
+    for batch, frames in zip(plan, outputs):
+        for (i, ids), fs in zip(batch, frames):
+            parts[i].append((int(ids[0]), fs))
+    for i, (cfg, path) in enumerate(entries):
+        ds = assemble(cfg, [fs for _, fs in sorted(parts[i], key=lambda x: x[0])])
+        write_dataset(ds, path, overwrite=True)
+
+
+def simulate_unit(parts: list[tuple[SimConfig, Any]]) -> list:
+    """One work unit: one mixed batch (``simulation.simulate.simulate_parts``); returns each
+    part's (flights, scenarios) frames."""
+    from quadformer.simulation.simulate import simulate_parts
+
+    return simulate_parts(parts)
 
 
 @functools.lru_cache(maxsize=1)
@@ -125,39 +183,45 @@ def model_dir_for(cache_dir: Path, dataset_path: Path, seed: int, label_fraction
 
 
 def tuned_model(method: str, train: pd.DataFrame, y_train, val: pd.DataFrame, rate: float,
-                budget_per_hour: float, model_dir: Path | None, device: str | None = None) -> Tuned:
+                budget_per_hour: float, model_dir: Path | None, device: str | None = None,
+                budget: TrainingBudget | None = None) -> Tuned:
     """``protocol.tune``, cached in ``model_dir`` (None: always tune). A miss is tuned while
     holding the entry's lock; a worker that waited on that lock reads what the holder wrote.
 
     device: where network detectors train (resolved, e.g. ``cpu`` or ``cuda``; None: their
-    default); a model is saved and loaded the same whatever device it trained on."""
+    default); a model is saved and loaded the same whatever device it trained on.
+    budget: a reduced training budget (None: the full one), part of the cache key."""
     if model_dir is None:
-        return tune(method, train, y_train, val, gps_rate_hz=rate, budget_per_hour=budget_per_hour, device=device)
-    stem = _stem(method, budget_per_hour)
+        return tune(method, train, y_train, val, gps_rate_hz=rate, budget_per_hour=budget_per_hour, device=device,
+                    budget=budget)
+    stem = _stem(method, budget_per_hour, budget)
     model_path, meta_path = Path(model_dir) / f"{stem}.json", Path(model_dir) / f"{stem}.tuned.json"
-    found = cached_model(method, budget_per_hour, model_dir)
+    found = cached_model(method, budget_per_hour, model_dir, budget)
     if found is not None:
         return found
     with exclusive(model_path):
-        found = cached_model(method, budget_per_hour, model_dir)   # written while this worker waited
+        found = cached_model(method, budget_per_hour, model_dir, budget)   # written while this worker waited
         if found is not None:
             return found
-        tuned = tune(method, train, y_train, val, gps_rate_hz=rate, budget_per_hour=budget_per_hour, device=device)
+        tuned = tune(method, train, y_train, val, gps_rate_hz=rate, budget_per_hour=budget_per_hour, device=device,
+                     budget=budget)
         tuned.detector.save(model_path)
         write_json(meta_path, {"params": tuned.params, "val_f1": tuned.val_f1, "grid": tuned.grid})   # published last
     return tuned
 
 
-def _stem(method: str, budget_per_hour: float) -> str:
-    return f"{method}-b{budget_per_hour:g}-{detectors_digest()}"
+def _stem(method: str, budget_per_hour: float, budget: TrainingBudget | None = None) -> str:
+    stem = f"{method}-b{budget_per_hour:g}-{detectors_digest()}"
+    return stem if budget is None else f"{stem}-t{budget.name}{budget.fraction:g}"
 
 
-def cached_model(method: str, budget_per_hour: float, model_dir: Path) -> Tuned | None:
+def cached_model(method: str, budget_per_hour: float, model_dir: Path,
+                 budget: TrainingBudget | None = None) -> Tuned | None:
     """The tuned detector cached in ``model_dir``, or None when there is none (or it is
     unreadable: it will be tuned again and overwritten)."""
     from quadformer.detectors import load
 
-    stem = _stem(method, budget_per_hour)
+    stem = _stem(method, budget_per_hour, budget)
     model_path, meta_path = Path(model_dir) / f"{stem}.json", Path(model_dir) / f"{stem}.tuned.json"
     if not meta_path.exists():
         return None
@@ -197,7 +261,7 @@ def check_device(device: str, backend: Backend | None = None, workers: int | Non
 
 
 def tune_unit(dataset_path: Path, method: str, seed: int, label_fraction: float, budget_per_hour: float,
-              model_dir: Path, device: str = "cpu") -> dict[str, Any]:
+              model_dir: Path, device: str = "cpu", budget: TrainingBudget | None = None) -> dict[str, Any]:
     """One work unit: the tuned detector of one dataset, split and method, in the cache
     (tuned now unless there already). ``device`` is resolved here, in the worker
     (``auto``: this worker's GPU if it has one). Returns {"cached", "seconds"}."""
@@ -205,19 +269,20 @@ def tune_unit(dataset_path: Path, method: str, seed: int, label_fraction: float,
     from quadformer.evaluation.protocol import split_flights
 
     t0 = time.perf_counter()
-    if cached_model(method, budget_per_hour, model_dir) is not None:
+    if cached_model(method, budget_per_hour, model_dir, budget) is not None:
         return {"cached": True, "seconds": time.perf_counter() - t0}
     ds = load_dataset(dataset_path)
     parts = split_flights(ds.scenarios, seed, label_fraction=label_fraction).frames(ds.flights)
     dev = resolve_device(device) if trains_network(method) else None
     tuned = tuned_model(method, parts.train, parts.y_train, parts.val, ds.gps_rate_hz, budget_per_hour, model_dir,
-                        device=dev)
+                        device=dev, budget=budget)
     return {"cached": tuned.cached, "seconds": time.perf_counter() - t0}
 
 
 def ensure_tuned(items: list[tuple[str, Path, Path]], methods: list[str], seed: int, label_fraction: float,
                  budget_per_hour: float = 1.0, device: str = "cpu", progress: bool = True,
-                 workers: int | None = None, backend: Backend | None = None) -> dict[tuple[str, str], dict[str, Any]]:
+                 workers: int | None = None, backend: Backend | None = None,
+                 budget: TrainingBudget | None = None) -> dict[tuple[str, str], dict[str, Any]]:
     """Tuned detectors of every (configuration, method) in the model cache: one work unit per
     pair not there yet, on ``backend``. ``items``: (configuration name, dataset path, model
     directory). Returns {(name, method): {"cached": bool, "seconds": tuning time}}."""
@@ -228,10 +293,10 @@ def ensure_tuned(items: list[tuple[str, Path, Path]], methods: list[str], seed: 
         for m in methods:
             if (name, m) in out or (name, m) in keys:
                 continue
-            if cached_model(m, budget_per_hour, model_dir) is not None:
+            if cached_model(m, budget_per_hour, model_dir, budget) is not None:
                 out[(name, m)] = {"cached": True, "seconds": None}
                 continue
-            units.append((path, m, seed, label_fraction, budget_per_hour, model_dir, device))
+            units.append((path, m, seed, label_fraction, budget_per_hour, model_dir, device, budget))
             keys.append((name, m))
             labels.append(f"config {name}, seed {seed}, method {m}")
             gpus.append(gpu if trains_network(m) else 0.0)

@@ -23,10 +23,10 @@ from quadformer.dataset import Dataset, load_dataset
 from quadformer.detectors import alerts_frame, alerts_from_scores, get, runs
 from quadformer.detectors.alarms import run_starts
 from quadformer.evaluation.metrics import bootstrap_f1, evaluate, event_recall_by_type
-from quadformer.evaluation.protocol import split_flights
+from quadformer.evaluation.protocol import TrainingBudget, split_flights
 from quadformer.experiments.cache import check_device, ensure_configs, ensure_tuned, model_dir_for, tuned_model
 from quadformer.experiments.grid import Profile, get_profile, profile_configs
-from quadformer.experiments.pool import Backend
+from quadformer.experiments.pool import Backend, SharedBar
 from quadformer.io import atomic_path, package_versions, write_json
 
 #: bootstrap resamples of the test flights for the F1 interval of a run
@@ -36,7 +36,8 @@ N_BOOTSTRAP = 2000
 def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: float = 0.2,
                budget_per_hour: float = 1.0, model_dir: Path | None = None,
                detectors: dict[str, Any] | None = None, device: str | None = None,
-               tuning: dict[str, dict[str, Any]] | None = None) -> tuple[dict[str, Any], pd.DataFrame]:
+               tuning: dict[str, dict[str, Any]] | None = None,
+               budget: TrainingBudget | None = None) -> tuple[dict[str, Any], pd.DataFrame]:
     """Tune and evaluate every method on one dataset. Returns (results, per-step test scores).
 
     model_dir: cache of tuned detectors (see ``tuned_model``); None: always tune.
@@ -44,7 +45,8 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
     device: where network detectors train when tuned here (resolved; None: the CPU).
     tuning: per method, what ``cache.ensure_tuned`` reported when the models were tuned in
     work units before (``cached``, ``seconds``): recorded as ``model_from_cache`` and
-    ``tune_seconds`` instead of the time taken to load them."""
+    ``tune_seconds`` instead of the time taken to load them.
+    budget: a reduced training budget (None: the full one)."""
     rate = ds.gps_rate_hz
     sp = split_flights(ds.scenarios, seed, label_fraction=label_fraction)
     parts = sp.frames(ds.flights)
@@ -56,7 +58,8 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
     alerts: list[pd.DataFrame] = []
     for m in methods:
         t0 = time.perf_counter()
-        tuned = tuned_model(m, parts.train, parts.y_train, parts.val, rate, budget_per_hour, model_dir, device=device)
+        tuned = tuned_model(m, parts.train, parts.y_train, parts.val, rate, budget_per_hour, model_dir, device=device,
+                            budget=budget)
         det = tuned.detector
         t1 = time.perf_counter()
         s = det.decision_function(test)
@@ -85,6 +88,14 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
         alerts.append(alerts_frame(alerts_from_scores(test, s, det)).assign(method=m))
     split = {"train": len(sp.train), "val": len(sp.val), "test": len(sp.test), "labelled": len(sp.labelled)}
     return {"split": split, "methods": out, "alerts": pd.concat(alerts, ignore_index=True) if alerts else None}, scores
+
+
+def training_budget_doc(budget: TrainingBudget | None, methods: list[str]) -> dict[str, Any]:
+    """What results.json records of the training budget: ``full`` (the methods' defaults) or
+    the reduced budget's rule and each method's scaled parameters."""
+    if budget is None:
+        return {"name": "full"}
+    return {**budget.describe(), "per_method": {m: budget.fixed(m) for m in methods}}
 
 
 def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray) -> dict[str, Any]:
@@ -146,15 +157,16 @@ def run_benchmark(profile: str | Profile, methods: list[str], out: Path, cache_d
     t0 = time.perf_counter()
     tuning = ensure_tuned([(name, path, model_dir) for name, path, model_dir, _ in items], methods, seed,
                           label_fraction, budget_per_hour, device=device, progress=progress, workers=workers,
-                          backend=backend)
+                          backend=backend, budget=prof.budget)
     t_tune = time.perf_counter() - t0
     head = {"profile": prof.name, "flights_per_config": prof.flights, "duration_s": prof.duration,
-            "dataset_seed": prof.seed}
+            "dataset_seed": prof.seed, "training_budget": training_budget_doc(prof.budget, methods)}
     stress_items = {name: [(n, st, paths[n], c.seed) for n, st, c in units] for name, units in stress_units.items()}
     if stress:
         head["stress_flights_per_set"] = prof.stress_flights
     return _evaluate(items, methods, Path(out), head, t_start, t_sim, progress, seed, label_fraction,
-                     budget_per_hour, stress=stress_items if stress else None, tuning=tuning, t_tune=t_tune)
+                     budget_per_hour, stress=stress_items if stress else None, tuning=tuning, t_tune=t_tune,
+                     budget=prof.budget)
 
 
 def run_datasets(paths: list[Path], methods: list[str], out: Path, progress: bool = True, seed: int = 0,
@@ -180,7 +192,8 @@ def run_datasets(paths: list[Path], methods: list[str], out: Path, progress: boo
 def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t_sim: float, progress: bool,
               seed: int, label_fraction: float, budget_per_hour: float,
               stress: dict[str, list] | None = None, tuning: dict[tuple[str, str], dict[str, Any]] | None = None,
-              t_tune: float | None = None, device: str | None = None) -> dict[str, Any]:
+              t_tune: float | None = None, device: str | None = None,
+              budget: TrainingBudget | None = None) -> dict[str, Any]:
     """Tune and score every method on each (name, dataset path, model cache, description);
     with ``stress`` (configuration name -> [(dataset name, stress set, path, seed)]) score the
     tuned detectors on those datasets too; write results.json, scores, alerts and the report."""
@@ -191,7 +204,10 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
     configs = []
     all_alerts: list[pd.DataFrame] = []
     iterator = items
-    if progress:
+    shared = progress if isinstance(progress, SharedBar) else None
+    if shared is not None:
+        shared.phase("evaluate")
+    elif progress:
         from tqdm.auto import tqdm
         iterator = tqdm(items, desc="evaluate", unit="dataset")
     pool = StressPool()
@@ -203,7 +219,7 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
         tuned: dict[str, Any] = {}
         res, scores = run_config(ds, methods, seed=seed, label_fraction=label_fraction,
                                  budget_per_hour=budget_per_hour, model_dir=model_dir, detectors=tuned, device=device,
-                                 tuning={m: tuning[(name, m)] for m in methods} if tuning else None)
+                                 tuning={m: tuning[(name, m)] for m in methods} if tuning else None, budget=budget)
         t0 = time.perf_counter()
         for ds_name, st, st_path, st_seed in (stress or {}).get(name, []):
             stress_out.setdefault(name, {})[st.name] = {
@@ -217,6 +233,8 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
             all_alerts.append(frame.assign(config=name))
         configs.append({"name": name, **described, "dataset": str(path), "n_test_flights": res["split"]["test"],
                         **res})
+        if shared is not None:
+            shared.update(1)
     results = {
         **head, "seed": seed, "label_fraction": label_fraction, "methods_run": methods,
         "protocol": "split by flight 60/20/20 (stratified), hyper-parameters and threshold maximise "

@@ -14,6 +14,7 @@ from scipy import stats
 
 from quadformer.config import ATTACK_CHOICES, MIX, MODELS, NOISE_SHAPES, SimConfig
 from quadformer.dataset import Dataset
+from quadformer.evaluation.protocol import TrainingBudget
 
 PAPER_GRID = tuple(itertools.product(("I", "II"), ("exponential", "laplace"), ("bias", "ramp")))
 #: mixed attacks: every attacked flight draws its kind from all six (``AttackConfig.mix``)
@@ -28,10 +29,17 @@ class Profile:
     seed: int = 0           # datasets' seed (each configuration derives its own from it)
     grid: tuple[tuple[str, str, str], ...] = PAPER_GRID   # (model, noise, attack) configurations
     stress_flights: int = 24   # flights per stress dataset (``benchmark --stress``)
+    #: a reduced training budget for every trained method (None: the full, paper's budget)
+    budget: TrainingBudget | None = None
+
+
+#: the demo's training budget, chosen by measurement: a quarter of every trained method's
+#: epochs and windows (see the README's demo section for the figures it gives)
+DEMO_BUDGET = TrainingBudget("demo", 0.25)
 
 
 PROFILES = {
-    "demo": Profile("demo", 20, stress_flights=12),
+    "demo": Profile("demo", 20, stress_flights=12, budget=DEMO_BUDGET),
     "quick": Profile("quick", 60),
     "paper": Profile("paper", 600, stress_flights=120),
     "mixed": Profile("mixed", 60, grid=MIXED_GRID),

@@ -100,17 +100,49 @@ LOCAL = Backend()
 
 
 def _call(fn: Callable[..., Any], threads: int, args: tuple) -> tuple[Any, float]:
-    """``fn(*args)`` with ``threads`` torch threads; returns (result, seconds it took)."""
+    """``fn(*args)`` with ``threads`` torch threads and as many BLAS threads (numpy's SVD of
+    PCA, for instance: workers that each start one BLAS thread per core oversubscribe the
+    machine, several times slower); returns (result, seconds it took)."""
     set_threads(threads)
     t0 = time.perf_counter()
-    out = fn(*args)
+    with _blas_threads(threads):
+        out = fn(*args)
     return out, time.perf_counter() - t0
 
 
-def run_jobs(fn: Callable[..., Any], units: Sequence[tuple], workers: int | None = None, progress: bool = True,
+def _blas_threads(threads: int):
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:      # pragma: no cover - installed with scikit-learn
+        import contextlib
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=threads, user_api="blas")
+
+
+class SharedBar:
+    """One progress bar over the work units of several phases (``run_jobs`` calls given it as
+    ``progress`` advance it instead of opening bars of their own); the postfix names the phase."""
+
+    def __init__(self, total: int, desc: str = "work", unit: str = "unit") -> None:
+        from tqdm.auto import tqdm
+        self.bar = tqdm(total=total, desc=desc, unit=unit)
+
+    def phase(self, name: str) -> None:
+        self.bar.set_postfix_str(name)
+
+    def update(self, n: int = 1) -> None:
+        self.bar.update(n)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def run_jobs(fn: Callable[..., Any], units: Sequence[tuple], workers: int | None = None,
+             progress: bool | SharedBar = True,
              desc: str = "work", unit: str = "unit", backend: Backend | None = None,
              labels: Sequence[str] | None = None, gpus: float | Sequence[float] = 0.0) -> list[Any]:
-    """``[fn(*u) for u in units]`` on ``backend`` (default: local processes), with one progress bar.
+    """``[fn(*u) for u in units]`` on ``backend`` (default: local processes), with one progress bar
+    (``progress`` a ``SharedBar``: that bar, advanced by this call's units).
 
     workers: local processes (default one per core); for a Ray runtime started here, its CPUs.
     labels: what each unit is, for the error naming failed units (default: its index).
@@ -127,7 +159,10 @@ def run_jobs(fn: Callable[..., Any], units: Sequence[tuple], workers: int | None
     if len(gpu) != len(units):
         raise ValueError(f"gpus: one per unit needed, got {len(gpu)} for {len(units)} units")
     bar = None
-    if progress:
+    if isinstance(progress, SharedBar):
+        bar = progress
+        bar.phase(desc)
+    elif progress:
         from tqdm.auto import tqdm
         bar = tqdm(total=len(units), desc=desc, unit=unit)
     try:
@@ -136,7 +171,7 @@ def run_jobs(fn: Callable[..., Any], units: Sequence[tuple], workers: int | None
         else:
             done, failed = _run_local(fn, units, workers, bar)
     finally:
-        if bar is not None:
+        if bar is not None and bar is not progress:
             bar.close()
     out = []
     for label, d in zip(labels, done):

@@ -21,9 +21,10 @@ import pandas as pd
 from quadformer.dataset import Dataset, load_dataset
 from quadformer.detectors import alerts_frame, alerts_from_scores, get
 from quadformer.estimator.schema import RESIDUES
-from quadformer.evaluation.protocol import split_flights
+from quadformer.evaluation.protocol import TrainingBudget, split_flights
 from quadformer.evaluation.resilience import flight_metrics, summarize_policy
 from quadformer.experiments.cache import check_device, ensure_datasets, ensure_tuned, model_dir_for, tuned_model
+from quadformer.experiments.detection import training_budget_doc
 from quadformer.experiments.grid import Profile, get_profile
 from quadformer.experiments.pool import Backend, run_jobs
 from quadformer.io import atomic_path, package_versions, write_json
@@ -36,7 +37,7 @@ THRESHOLDS = ("f1", "budget")
 def run_config(ds: Dataset, detector: str, seed: int = 0, label_fraction: float = 0.2,
                policies: tuple[str, ...] = POLICIES, admission: AdmissionConfig | None = None,
                max_flights: int | None = None, model_dir: Path | None = None, threshold: str = "f1",
-               ) -> tuple[dict[str, Any], pd.DataFrame, pd.DataFrame]:
+               budget: TrainingBudget | None = None) -> tuple[dict[str, Any], pd.DataFrame, pd.DataFrame]:
     """Tune ``detector`` on the dataset's train/validation flights (or load it from
     ``model_dir``, the detection benchmark's cache) and fly its test flights under every
     policy. Returns (results, per-step trajectories, alerts of the resilient policy).
@@ -50,7 +51,8 @@ def run_config(ds: Dataset, detector: str, seed: int = 0, label_fraction: float 
     sp = split_flights(ds.scenarios, seed, label_fraction=label_fraction)
     parts = sp.frames(ds.flights)
     t0 = time.perf_counter()
-    tuned = tuned_model(detector, parts.train, parts.y_train, parts.val, cfg.gps.rate_hz, 1.0, model_dir)
+    tuned = tuned_model(detector, parts.train, parts.y_train, parts.val, cfg.gps.rate_hz, 1.0, model_dir,
+                        budget=budget)
     t_tune = time.perf_counter() - t0
     det = tuned.detector if threshold == "f1" else tuned.detector.at_budget()
     test = np.sort(np.asarray(sp.test))
@@ -127,10 +129,11 @@ def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: 
     t_sim = time.perf_counter() - t_start
     model_dirs = {name: model_dir_for(cache_dir, p, seed, label_fraction) for name, p in paths.items()}
     tuning = ensure_tuned([(name, p, model_dirs[name]) for name, p in paths.items()], [detector], seed,
-                          label_fraction, 1.0, device=device, progress=progress, workers=workers, backend=backend)
+                          label_fraction, 1.0, device=device, progress=progress, workers=workers, backend=backend,
+                          budget=prof.budget)
     (out / "trajectories").mkdir(parents=True, exist_ok=True)
     units = [(p, detector, seed, label_fraction, tuple(policies), admission, max_flights, model_dirs[name],
-              threshold) for name, p in paths.items()]
+              threshold, prof.budget) for name, p in paths.items()]
     outputs = run_jobs(_fly_config, units, workers=workers, progress=progress, desc="fly", unit="config",
                        backend=backend, labels=[f"config {name}, seed {seed}, detector {detector}" for name in paths])
     configs, all_alerts = [], []
@@ -153,6 +156,7 @@ def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: 
         "profile": prof.name, "flights_per_config": prof.flights, "duration_s": prof.duration,
         "detector": detector, "threshold_rule": threshold, "max_test_flights": max_flights, "seed": seed,
         "label_fraction": label_fraction,
+        "training_budget": training_budget_doc(prof.budget, [detector]),
         "policies": list(policies),
         "admission": vars(admission or AdmissionConfig()),
         "protocol": "detector tuned on train/validation flights as in the detection benchmark; test flights "

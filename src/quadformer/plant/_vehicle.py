@@ -10,6 +10,7 @@ instead of torch's global one, so flights do not depend on their batch.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -102,34 +103,49 @@ def _dryden_axis(length: torch.Tensor, sigma: torch.Tensor, batch: int) -> _Draw
     return gust
 
 
-class Plant:
-    """A batch of vehicles of one model: rotorpy dynamics plus its SE(3) controller."""
+def concat_wind(parts: list[WindBatch]) -> WindBatch:
+    """The flights of several ``WindBatch`` in one, in order."""
+    return WindBatch(np.concatenate([w.mean for w in parts]), np.concatenate([w.gust_std for w in parts]))
 
-    def __init__(self, model: str, pos0: np.ndarray, vel0: np.ndarray):
+
+class Plant:
+    """A batch of vehicles, rotorpy dynamics plus its SE(3) controller.
+
+    model: the vehicle model of every flight (``"I"``, ``"II"``) or of each flight (a
+    sequence of B names): rotorpy takes per-vehicle parameters, so flights of both models
+    fly in one batch, each exactly as in a batch of its own model."""
+
+    def __init__(self, model: str | Sequence[str], pos0: np.ndarray, vel0: np.ndarray):
         B = pos0.shape[0]
+        models = [model] * B if isinstance(model, str) else [str(m) for m in model]
+        assert len(models) == B
         self.model = model
         self.device = torch.device("cpu")
-        params = VEHICLE_PARAMS[model]
-        self.params = BatchedMultirotorParams([params] * B, B, self.device)
+        self.params = BatchedMultirotorParams([VEHICLE_PARAMS[m] for m in models], B, self.device)
         # rotorpy draws motor-speed noise from torch's global RNG; both models have none.
         assert float(self.params.motor_noise.abs().max()) == 0.0
         self.idx = torch.arange(B)
-        hover = float(np.sqrt(params["mass"] * 9.81 / (params["num_rotors"] * params["k_eta"])))
+        hover = torch.tensor([float(np.sqrt(p["mass"] * 9.81 / (p["num_rotors"] * p["k_eta"])))
+                              for p in (VEHICLE_PARAMS[m] for m in models)], dtype=torch.float64)
         self.state = {
             "x": torch.as_tensor(pos0, dtype=torch.float64).clone(),
             "v": torch.as_tensor(vel0, dtype=torch.float64).clone(),
             "q": torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64).repeat(B, 1),
             "w": torch.zeros(B, 3, dtype=torch.float64),
             "wind": torch.zeros(B, 3, dtype=torch.float64),
-            "rotor_speeds": torch.full((B, 4), hover, dtype=torch.float64),
+            "rotor_speeds": hover[:, None].repeat(1, 4),
         }
         self.vehicle = BatchedMultirotor(self.params, B, self.state, self.device,
                                          control_abstraction="cmd_motor_speeds", aero=True, integrator="rk4")
-        gains = ATTITUDE_GAINS[model]
         kw = {}
-        if gains is not None:
-            kw = {"kp_att": torch.full((B, 1), gains[0], dtype=torch.float64),
-                  "kd_att": torch.full((B, 1), gains[1], dtype=torch.float64)}
+        if any(ATTITUDE_GAINS[m] is not None for m in models):
+            # rotorpy's gains (per vehicle) where the model keeps them, ours where it sets its own
+            kp = self.params.kp_att.double().reshape(B, -1)[:, :1].clone()
+            kd = self.params.kd_att.double().reshape(B, -1)[:, :1].clone()
+            for b, m in enumerate(models):
+                if ATTITUDE_GAINS[m] is not None:
+                    kp[b], kd[b] = ATTITUDE_GAINS[m]
+            kw = {"kp_att": kp, "kd_att": kd}
         self.controller = BatchedSE3Control(self.params, B, self.device, **kw)
 
     def control(self, est: dict[str, torch.Tensor], ref: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

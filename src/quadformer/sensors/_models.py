@@ -15,6 +15,8 @@ noise of the chosen shape.
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 import roma
 import torch
@@ -31,18 +33,28 @@ class ChunkedNoise:
     drawn per flight in blocks.
 
     Each flight's generator is only ever asked for blocks of ``block`` calls, so its draws
-    do not depend on how many flights are simulated together.
+    do not depend on how many flights are simulated together. ``shape`` may also name each
+    flight's own shape (a sequence of B names: flights of several configurations in one batch).
     """
 
-    def __init__(self, gens: list[np.random.Generator], shape: str, dims: int, block: int = 100):
-        self.gens, self.shape, self.dims, self.block = gens, shape, dims, block
+    def __init__(self, gens: list[np.random.Generator], shape: str | Sequence[str], dims: int, block: int = 100):
+        self.gens, self.dims, self.block = gens, dims, block
+        self.shape = shape if isinstance(shape, str) or len(set(shape)) > 1 else str(shape[0])
         self._buf = torch.empty(0)
         self._i = block
 
     def _fill(self) -> np.ndarray:
-        if self.shape == "uniform":
-            return np.stack([g.uniform(-1.0, 1.0, (self.block, self.dims)) for g in self.gens])
-        return batch_noise(self.gens, self.shape, (self.block, self.dims))
+        if not isinstance(self.shape, str):    # per-flight shapes: each flight draws exactly as alone
+            out = np.empty((len(self.gens), self.block, self.dims))
+            for b, (g, s) in enumerate(zip(self.gens, self.shape)):
+                out[b] = self._draw([g], s)[0]
+            return out
+        return self._draw(self.gens, self.shape)
+
+    def _draw(self, gens: list[np.random.Generator], shape: str) -> np.ndarray:
+        if shape == "uniform":
+            return np.stack([g.uniform(-1.0, 1.0, (self.block, self.dims)) for g in gens])
+        return batch_noise(gens, shape, (self.block, self.dims))
 
     def next(self) -> torch.Tensor:
         if self._i >= self.block:

@@ -16,14 +16,15 @@ flight's admission policy allows (possibly with inflated noise, a reset or a rol
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import replace
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import roma
 import torch
 
-from quadformer.attacks import sample_attacks
+from quadformer.attacks import concat_attacks, sample_attacks
 from quadformer.config import SimConfig
 from quadformer.estimator.eskf import (
     baro_update,
@@ -41,7 +42,7 @@ from quadformer.estimator.residues import AIDING, ResidueTracker
 from quadformer.estimator.schema import as_columns, groups_for
 from quadformer.geometry import exp_quat
 from quadformer.missions import sample_missions
-from quadformer.plant import DrydenWind, Plant, sample_wind
+from quadformer.plant import DrydenWind, Plant, concat_wind, sample_wind
 from quadformer.rng import Stream, batch_generators
 from quadformer.sensors import GPS, IMU, VIO, Barometer, ChunkedNoise, Magnetometer
 
@@ -71,25 +72,98 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
     (fused, noise scale, reset, score, alarm, the position correction GPS applied to the
     estimate: the update's, a reset's jump and a rollback together, and the rule that
     re-admitted or excluded GPS at the step: ``Decision.readmit`` / ``Decision.exclude``)."""
+    return _simulate([(cfg, np.asarray(flights), np.asarray(attacked))], progress, record_nees, record_sensors,
+                     admission, stream)
+
+
+#: what may differ between configurations flown in one batch (``simulate_groups``)
+PER_FLIGHT = ("model", "noise", "attack", "seed", "flights", "batch_size")
+
+
+def mixable(a: SimConfig, b: SimConfig) -> bool:
+    """Whether flights of ``a`` and ``b`` can fly in one batch: the configurations differ
+    only in vehicle model, noise shape, attack, seed and size (``PER_FLIGHT``)."""
+    da, db = a.to_dict(), b.to_dict()
+    return all(da[k] == db[k] for k in da if k not in PER_FLIGHT)
+
+
+def simulate_groups(groups: Sequence[tuple[SimConfig, np.ndarray, np.ndarray]],
+                    progress: Callable[[float], None] | None = None) -> list[BatchResult]:
+    """Flights of several configurations in one batch: ``groups`` holds (config, flight
+    indices, attacked) per configuration, the configurations ``mixable``. Vehicle model,
+    noise shape, attack and seed are per flight, so each group's result equals
+    ``simulate_batch(config, flights, attacked)`` of that group alone, bit for bit (flight
+    i's data depends only on its configuration, seed and i). Returns one ``BatchResult``
+    per group, in order."""
+    groups = [(c, np.asarray(f), np.asarray(a, dtype=bool)) for c, f, a in groups]
+    if not groups:
+        return []
+    for c, _, _ in groups[1:]:
+        if not mixable(groups[0][0], c):
+            raise ValueError("simulate_groups: configurations must differ only in "
+                             f"{', '.join(PER_FLIGHT)} to fly in one batch")
+    whole = _simulate(groups, progress)
+    out, start = [], 0
+    B = len(whole["label"])
+    for _, f, _ in groups:
+        idx = np.arange(start, start + len(f))
+        start += len(f)
+        part = BatchResult({k: (v if k == "t" else _take(v, idx, B)) for k, v in whole.items()})
+        out.append(part)
+    return out
+
+
+def _take(v, idx: np.ndarray, B: int):
+    """Rows ``idx`` of a batch's per-flight value (arrays, tensors, dataclasses of them, dicts)."""
+    if v is None:
+        return None
+    if isinstance(v, dict):
+        return {k: _take(x, idx, B) for k, x in v.items()}
+    if dataclasses.is_dataclass(v) and not isinstance(v, type):
+        return dataclasses.replace(v, **{f.name: _take(getattr(v, f.name), idx, B)
+                                         for f in dataclasses.fields(v) if f.init})
+    if isinstance(v, (np.ndarray, torch.Tensor)) and v.ndim >= 1 and v.shape[0] == B:
+        return v[idx]
+    return v
+
+
+def _simulate(groups, progress=None, record_nees=False, record_sensors=False, admission=None, stream=None):
+    cfg = groups[0][0]
+    flights = np.concatenate([f for _, f, _ in groups])
     B = len(flights)
+    single = len(groups) == 1
+
+    def gens(stream_: Stream) -> list[np.random.Generator]:
+        return [g for c, f, _ in groups for g in batch_generators(c.seed, f, stream_)]
+
+    def per_flight(values: list) -> list:
+        return [v for (_, f, _), v in zip(groups, values) for _ in range(len(f))]
+
     dt, n_steps, spg, spv, n_gps = cfg.dt, cfg.n_steps, cfg.steps_per_gps, cfg.steps_per_vio, cfg.n_gps
-    scn = batch_generators(cfg.seed, flights, Stream.SCENARIO)
+    scn = gens(Stream.SCENARIO)
+    scn_parts, start = [], 0
+    for _, f, _ in groups:
+        scn_parts.append(scn[start:start + len(f)])
+        start += len(f)
     missions = sample_missions(scn, cfg.mission, cfg.duration)
-    wind = sample_wind(scn, cfg.model)
+    wind = concat_wind([sample_wind(g, c.model) for (c, _, _), g in zip(groups, scn_parts)])
     ba0 = np.stack([g.standard_normal(3) for g in scn]) * cfg.imu.accel_bias_std
     bg0 = np.stack([g.standard_normal(3) for g in scn]) * cfg.imu.gyro_bias_std
     init_err = np.stack([g.standard_normal(9) for g in scn])
-    attacks = sample_attacks(scn, cfg.attack, attacked, cfg.duration)
+    attacks = concat_attacks([sample_attacks(g, c.attack, a, c.duration)
+                              for (c, _, a), g in zip(groups, scn_parts)])
+    model = cfg.model if single else per_flight([c.model for c, _, _ in groups])
+    shape = cfg.noise if single else per_flight([c.noise for c, _, _ in groups])
 
     p0, v0, _ = (torch.from_numpy(x[:, 0]) for x in missions.evaluate(np.array([0.0])))
-    plant = Plant(cfg.model, p0.numpy(), v0.numpy())
+    plant = Plant(model, p0.numpy(), v0.numpy())
     dryden = DrydenWind(wind, missions.altitude)
-    wind_draws = ChunkedNoise(batch_generators(cfg.seed, flights, Stream.WIND), "uniform", 3)
-    imu = IMU(cfg.imu, 1.0 / dt, batch_generators(cfg.seed, flights, Stream.IMU), ba0, bg0)
-    gps = GPS(cfg.gps, cfg.noise, batch_generators(cfg.seed, flights, Stream.GPS))
-    vio = VIO(cfg.vio, cfg.noise, batch_generators(cfg.seed, flights, Stream.VIO), p0) if cfg.has("vio") else None
-    mag = Magnetometer(cfg.mag, cfg.noise, batch_generators(cfg.seed, flights, Stream.MAG)) if cfg.has("mag") else None
-    baro = Barometer(cfg.baro, cfg.noise, batch_generators(cfg.seed, flights, Stream.BARO)) if cfg.has("baro") else None
+    wind_draws = ChunkedNoise(gens(Stream.WIND), "uniform", 3)
+    imu = IMU(cfg.imu, 1.0 / dt, gens(Stream.IMU), ba0, bg0)
+    gps = GPS(cfg.gps, shape, gens(Stream.GPS))
+    vio = VIO(cfg.vio, shape, gens(Stream.VIO), p0) if cfg.has("vio") else None
+    mag = Magnetometer(cfg.mag, shape, gens(Stream.MAG)) if cfg.has("mag") else None
+    baro = Barometer(cfg.baro, shape, gens(Stream.BARO)) if cfg.has("baro") else None
     spm, spb = cfg.steps_per_mag, cfg.steps_per_baro
     nm = noise_model(cfg.imu, cfg.gps, cfg.vio, cfg.ekf, 1.0 / dt, cfg.mag, cfg.baro)
     aiding = tuple(a for a in AIDING if cfg.has(a))

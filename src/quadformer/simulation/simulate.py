@@ -6,7 +6,7 @@ The columns follow the sensor configuration (``estimator.schema.groups_for``).
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import pandas as pd
@@ -16,7 +16,7 @@ from quadformer.dataset import FORMAT_VERSION, Dataset, summarize
 from quadformer.estimator.schema import groups_for
 from quadformer.io import package_versions
 from quadformer.rng import attacked_flights
-from quadformer.simulation.closed_loop import BatchResult, simulate_batch
+from quadformer.simulation.closed_loop import BatchResult, mixable, simulate_batch, simulate_groups
 
 
 def _batch_frames(cfg: SimConfig, r: BatchResult) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -48,12 +48,29 @@ def _batch_frames(cfg: SimConfig, r: BatchResult) -> tuple[pd.DataFrame, pd.Data
     return flights, scen
 
 
+def _attacked(cfg: SimConfig) -> np.ndarray:
+    return attacked_flights(cfg.seed, cfg.flights, cfg.attack.fraction if cfg.attack.kind != "none" else 0.0)
+
+
+def _dataset(cfg: SimConfig, frames: list[pd.DataFrame], scens: list[pd.DataFrame]) -> Dataset:
+    flights = pd.concat(frames, ignore_index=True)
+    scenarios = pd.concat(scens, ignore_index=True)
+    meta = {
+        "format_version": FORMAT_VERSION,
+        "config": cfg.to_dict(),
+        "seed": cfg.seed,
+        "versions": package_versions(),
+        "summary": summarize(flights, scenarios),
+    }
+    return Dataset(flights, scenarios, meta)
+
+
 def simulate(cfg: SimConfig, progress: bool | Callable[[float], None] = False) -> Dataset:
     """Simulate ``cfg.flights`` flights in batches of ``cfg.batch_size``.
 
     Flight i's data depends only on (config, seed, i): the batch size changes speed, not data.
     """
-    attacked = attacked_flights(cfg.seed, cfg.flights, cfg.attack.fraction if cfg.attack.kind != "none" else 0.0)
+    attacked = _attacked(cfg)
     bar = None
     if progress is True:
         from tqdm.auto import tqdm
@@ -72,13 +89,74 @@ def simulate(cfg: SimConfig, progress: bool | Callable[[float], None] = False) -
     finally:
         if bar is not None:
             bar.close()
-    flights = pd.concat(frames, ignore_index=True)
-    scenarios = pd.concat(scens, ignore_index=True)
-    meta = {
-        "format_version": FORMAT_VERSION,
-        "config": cfg.to_dict(),
-        "seed": cfg.seed,
-        "versions": package_versions(),
-        "summary": summarize(flights, scenarios),
-    }
-    return Dataset(flights, scenarios, meta)
+    return _dataset(cfg, frames, scens)
+
+
+def plan_batches(cfgs: Sequence[SimConfig], n_batches: int = 1, batch_size: int | None = None,
+                 ) -> list[list[tuple[int, np.ndarray]]]:
+    """Split the flights of several configurations into batches that mix configurations:
+    each batch a list of (configuration index, flight indices), configurations ``mixable``
+    within a batch. Flights are dealt in order into at least ``n_batches`` batches (as even as
+    possible) of at most ``batch_size`` flights (default: the first configuration's)."""
+    cfgs = list(cfgs)
+    families: list[list[int]] = []          # configurations that can share a batch
+    for i, c in enumerate(cfgs):
+        for fam in families:
+            if mixable(cfgs[fam[0]], c):
+                fam.append(i)
+                break
+        else:
+            families.append([i])
+    out = []
+    for fam in families:
+        units = [(i, f) for i in fam for f in range(cfgs[i].flights)]
+        cap = batch_size or cfgs[fam[0]].batch_size
+        n = max(n_batches, -(-len(units) // cap))
+        for chunk in np.array_split(np.arange(len(units)), min(n, len(units))):
+            batch: dict[int, list[int]] = {}
+            for u in chunk:
+                i, f = units[u]
+                batch.setdefault(i, []).append(f)
+            out.append([(i, np.asarray(fl)) for i, fl in batch.items()])
+    return out
+
+
+def simulate_parts(parts: Sequence[tuple[SimConfig, np.ndarray]],
+                   progress: Callable[[float], None] | None = None) -> list[tuple[pd.DataFrame, pd.DataFrame]]:
+    """One batch of flights of several (mixable) configurations: (config, flight indices) per
+    part. Returns each part's (flights, scenarios) frames, exactly those ``simulate`` writes
+    for these flights."""
+    groups = [(cfg, ids, _attacked(cfg)[ids]) for cfg, ids in parts]
+    results = simulate_groups(groups, progress=progress)
+    return [_batch_frames(cfg, r) for (cfg, _), r in zip(parts, results)]
+
+
+def simulate_many(cfgs: Sequence[SimConfig], progress: bool | Callable[[float], None] = False,
+                  batch_size: int | None = None) -> list[Dataset]:
+    """The datasets of several configurations, their flights mixed in as few batches as
+    ``batch_size`` allows (default: the first configuration's): each dataset equals
+    ``simulate(cfg)`` of its configuration, bit for bit. Configurations that differ in more
+    than model, noise, attack, seed and size fly in batches of their own."""
+    cfgs = list(cfgs)
+    bar = None
+    if progress is True:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=sum(c.flights * int(c.duration) for c in cfgs), unit="flight-s", desc="simulate",
+                   mininterval=1.0)
+        callback = bar.update
+    else:
+        callback = progress or None
+    frames: dict[int, list] = {i: [] for i in range(len(cfgs))}
+    try:
+        for batch in plan_batches(cfgs, 1, batch_size):
+            for (i, ids), fs in zip(batch, simulate_parts([(cfgs[i], ids) for i, ids in batch], callback)):
+                frames[i].append((int(ids[0]), fs))
+    finally:
+        if bar is not None:
+            bar.close()
+    return [assemble(c, [fs for _, fs in sorted(frames[i], key=lambda x: x[0])]) for i, c in enumerate(cfgs)]
+
+
+def assemble(cfg: SimConfig, parts: Sequence[tuple[pd.DataFrame, pd.DataFrame]]) -> Dataset:
+    """The dataset of ``cfg`` from the frames of its flights (``simulate_parts``), in flight order."""
+    return _dataset(cfg, [f for f, _ in parts], [s for _, s in parts])

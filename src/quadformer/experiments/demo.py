@@ -1,0 +1,96 @@
+"""The demo's plan: the work units still to do (for one progress bar over all of them) and
+an estimate of how long they take on this machine.
+
+The estimate counts the work (flights x steps to simulate, models to train at the demo's
+training budget, datasets to score, closed-loop batches to fly) and prices it with costs
+measured on a 2-core machine (``COSTS``), scaled by the cores this machine has. It is
+an estimate: another load on the machine, a slower or faster core, change the real time.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from quadformer.experiments.cache import (batch_count, cached_model, dataset_key, model_dir_for, trains_network,
+                                          _readable)
+from quadformer.experiments.grid import Profile, profile_configs
+
+#: cores of the machine the costs were measured on
+CALIBRATION_CORES = 2
+
+#: costs (seconds) per unit of work. Simulation: the per-step cost of a batch (about 4 ms
+#: whatever its size) and the cost per flight-step on top. Tuning and scoring: one
+#: configuration of 20 flights x 60 s at the demo's budget, derived from a run on a 2-core
+#: machine under a load average of 6-9 (divided by the load's share of the cores), so a
+#: rough figure until measured on an idle machine.
+COSTS = {
+    "sim_step": 0.0045,
+    "sim_flight_step": 0.00018,
+    "tune_statistic": 1.0,      # chi2, cusum, sprt, bht
+    "tune_windows": 20.0,       # pca, svm (PCA's SVD dominates)
+    "tune_network": 10.0,       # cnn, lstm (per method)
+    "tune_quadformer": 70.0,    # quadformer and its ablations (training and 18 alarm-rule scorings)
+    "evaluate": 12.0,           # scoring one configuration's test flights with every method
+    "fly_step": 0.006,          # one configuration's resilience batch, per simulated step
+    "overhead": 20.0,           # worker start-up, imports, reports
+}
+
+
+@dataclass(frozen=True)
+class DemoPlan:
+    units: int              # work units the progress bar counts
+    estimate_s: float       # expected duration on this machine
+    flights: int            # flights to simulate (datasets not cached)
+    steps: int              # simulation steps per flight
+    models: int             # models to tune (not cached)
+
+    def describe(self) -> str:
+        return (f"Estimated duration: about {max(1, round(self.estimate_s / 60))} min on this machine "
+                f"({os.cpu_count() or 1} cores; an estimate from the work to do: {self.flights} flights x "
+                f"{self.steps} steps to simulate, {self.models} models to tune at the demo's training budget, "
+                f"then scoring and the resilience flights; another load on the machine makes it longer).")
+
+
+def _tune_cost(method: str) -> float:
+    if method.startswith("quadformer"):
+        return COSTS["tune_quadformer"]
+    if trains_network(method):
+        return COSTS["tune_network"]
+    if method in ("pca", "svm"):
+        return COSTS["tune_windows"]
+    return COSTS["tune_statistic"]
+
+
+def plan(profile: Profile, methods: list[str], cache_dir: Path, workers: int | None = None,
+         seed: int = 0, label_fraction: float = 0.2, resilience: bool = True) -> DemoPlan:
+    """The work units of a demo run over ``profile`` and their expected duration."""
+    from quadformer.simulation.simulate import plan_batches
+
+    cores = os.cpu_count() or 1
+    n_workers = batch_count(workers)
+    configs = profile_configs(profile)
+    missing = [cfg for name, cfg in configs if not _readable(Path(cache_dir) / f"{name}-{dataset_key(cfg)}")]
+    batches = plan_batches(missing, n_workers) if missing else []
+    steps = configs[0][1].n_steps if configs else 0
+    sim_s = 0.0
+    if batches:
+        biggest = max(sum(len(ids) for _, ids in b) for b in batches)
+        rounds = math.ceil(len(batches) / n_workers)
+        sim_s = rounds * steps * (COSTS["sim_step"] + COSTS["sim_flight_step"] * biggest)
+    size = profile.flights * profile.duration / (20 * 60.0)     # the costs are per 20 flights of 60 s
+    tune_units, tune_s = 0, 0.0
+    for name, cfg in configs:
+        model_dir = model_dir_for(cache_dir, Path(cache_dir) / f"{name}-{dataset_key(cfg)}", seed, label_fraction)
+        for m in methods:
+            if cached_model(m, 1.0, model_dir, profile.budget) is None:
+                tune_units += 1
+                tune_s += _tune_cost(m) * size
+    tune_s /= n_workers
+    eval_s = COSTS["evaluate"] * size * len(configs) * CALIBRATION_CORES / max(cores, 1)
+    fly_s = COSTS["fly_step"] * steps * len(configs) / n_workers if resilience else 0.0
+    units = len(batches) + tune_units + len(configs) + (len(configs) if resilience else 0)
+    total = COSTS["overhead"] + sim_s + tune_s + eval_s + fly_s
+    return DemoPlan(units, total, sum(c.flights for c in missing), steps, tune_units)
