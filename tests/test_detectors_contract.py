@@ -208,3 +208,17 @@ def test_pca_score_is_the_reconstruction_error_of_a_reference_pca(data):
     s = det.decision_function(test)
     lab = test.label.to_numpy() == 1
     assert s[lab].mean() > s[~lab].mean()
+
+
+def test_pca_fits_of_the_grid_share_one_decomposition(data):
+    """Tuning fits PCA once per n_components on the same windows: the directions of a smaller
+    fit are the leading directions of a larger one, whichever comes first, and a new seed
+    (other windows) decomposes anew."""
+    train, y, _ = data
+    big = make("pca", n_components=16).fit(train, y)
+    small = make("pca", n_components=4).fit(train, y)
+    np.testing.assert_array_equal(small.components_, big.components_[:4])
+    again = make("pca", n_components=16).fit(train, y)
+    np.testing.assert_array_equal(again.components_, big.components_)
+    other = make("pca", n_components=4, max_windows=300, seed=1).fit(train, y)
+    assert not np.allclose(np.abs(other.components_), np.abs(small.components_))

@@ -13,6 +13,8 @@ hyper-parameter; no label is needed to fit.
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 import pandas as pd
 
@@ -20,6 +22,25 @@ from quadformer.detectors.base import Detector, check_residues
 from quadformer.detectors.context import FINE, PATCH, WINDOW, Context
 from quadformer.detectors.registry import register
 from quadformer.detectors.windows import Normalizer, Windows, WindowStream, input_features, window_scores
+
+
+#: the last decomposition (key, mean, leading directions): tuning fits the same training
+#: windows once per ``n_components`` of the grid, and the SVD of long windows dominates a fit
+_LAST_SVD: list = []
+_KEEP = 64     # leading directions kept for later fits with fewer components
+
+
+def _principal_directions(Z: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of Z's rows and its leading right singular vectors (at least k of them, fewer if Z
+    has fewer), by a full SVD of the centred rows, reused for the same Z."""
+    key = (Z.shape, hashlib.blake2b(np.ascontiguousarray(Z).tobytes(), digest_size=16).hexdigest())
+    if _LAST_SVD and _LAST_SVD[0] == key and (_LAST_SVD[2].shape[0] >= k or _LAST_SVD[3]):
+        return _LAST_SVD[1], _LAST_SVD[2]
+    mean = Z.mean(axis=0)
+    _, _, vt = np.linalg.svd(Z - mean, full_matrices=False)
+    keep = max(k, _KEEP)
+    _LAST_SVD[:] = [key, mean, vt[:keep].copy(), keep >= vt.shape[0]]
+    return mean, _LAST_SVD[2]
 
 
 @register("pca")
@@ -50,10 +71,8 @@ class PCADetector(Detector):
         rng = np.random.default_rng(self.seed)
         pick = np.sort(rng.choice(normal, min(len(normal), self.max_windows), replace=False))
         Z = win.tokens(pick, context).reshape(len(pick), -1).astype(np.float64)
-        self.mean_ = Z.mean(axis=0)
-        _, _, vt = np.linalg.svd(Z - self.mean_, full_matrices=False)
-        k = int(min(self.n_components, vt.shape[0]))
-        self.components_ = vt[:k]
+        self.mean_, vt = _principal_directions(Z, int(self.n_components))
+        self.components_ = vt[:int(self.n_components)]
         self.fitted_ = True
         return self
 
