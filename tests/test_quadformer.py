@@ -181,3 +181,21 @@ def test_noprior_and_nodisc_train_different_networks(bias_dataset):
     assert nodisc.dis_scale_ == 1.0
     assert not np.allclose(noprior.decision_function(test), nodisc.decision_function(test))
     assert [h["train_loss"] for h in noprior.history_] != [h["train_loss"] for h in nodisc.history_]
+
+
+def test_alarm_rule_variants_share_one_scoring_of_the_network(bias_dataset):
+    f = bias_dataset.flights
+    train, val = f[f.flight_id < 4].reset_index(drop=True), f[f.flight_id >= 4].reset_index(drop=True)
+    det = make("quadformer", **TINY).fit(train, train.label.to_numpy())
+    variants = [det.with_post(k=k, n=n, w_anomaly=w) for k, n, w in ((1, 3, 1.0), (2, 5, 0.0), (3, 5, 1.0))]
+    first = variants[0].raw_scores(val)
+    parts = det.__dict__["_cache"]["parts"]          # the network's output, computed once
+    for v in variants[1:]:
+        v.decision_function(val)
+        assert v.__dict__["_cache"]["parts"] is parts
+    # the variants still differ where their parameters say: the score weight and the k-of-n rule
+    assert not np.array_equal(variants[1].raw_scores(val)[0], first[0])
+    assert not np.array_equal(variants[1].decision_function(val), variants[2].decision_function(val))
+    # scores on other flights replace the cached ingredients for every variant
+    variants[2].raw_scores(train)
+    assert det.__dict__["_cache"]["parts"] is not parts

@@ -8,8 +8,8 @@ from quadformer.detectors.alarms import Alert, alerts_frame, alerts_from_scores,
 from quadformer.detectors.base import Detector, NotFittedError, flight_slices
 from quadformer.detectors.export import OnnxDetector, export_onnx, load_model
 from quadformer.detectors.registry import available, defaults, get, load, make, register
-from quadformer.detectors.streams import DetectorStream, StreamStep
+from quadformer.detectors.streams import DetectorStream, StreamGroup, StreamStep
 
-__all__ = ["Alert", "Detector", "DetectorStream", "NotFittedError", "OnnxDetector", "StreamStep", "alerts_frame",
+__all__ = ["Alert", "Detector", "DetectorStream", "NotFittedError", "OnnxDetector", "StreamGroup", "StreamStep", "alerts_frame",
            "alerts_from_scores", "available", "defaults", "export_onnx", "flight_slices", "get", "load", "load_model",
            "make", "register", "runs", "write_alerts"]

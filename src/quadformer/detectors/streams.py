@@ -80,3 +80,33 @@ class RingBuffer:
         self.data[:, :-1] = self.data[:, 1:]
         self.data[:, -1] = rows
         return self.data
+
+
+class StreamGroup:
+    """Several detectors' streams side by side over one batch of flights: ``streams`` cover
+    consecutive slices of the batch (the first ``streams[0].n`` flights, then the next, ...),
+    each driven by its own detector (flights of different configurations flown together, each
+    configuration with the detector tuned on it). ``update`` gives each stream its slice and
+    joins their steps; a slice's scores and alarms are those of its stream alone."""
+
+    def __init__(self, streams: list[DetectorStream]):
+        if not streams:
+            raise ValueError("StreamGroup: at least one stream needed")
+        self.streams = list(streams)
+        self.n = sum(s.n for s in self.streams)
+        self._bounds = np.cumsum([0] + [s.n for s in self.streams])
+
+    def update(self, residues) -> StreamStep:
+        steps = []
+        for s, a, b in zip(self.streams, self._bounds[:-1], self._bounds[1:]):
+            if isinstance(residues, Mapping):
+                part = {c: (np.asarray(v)[a:b] if np.ndim(v) else v) for c, v in residues.items()}
+            else:
+                part = np.asarray(residues)[a:b]
+            steps.append(s.update(part))
+        types = None
+        if any(st.attack_type is not None for st in steps):
+            types = np.concatenate([st.attack_type if st.attack_type is not None
+                                    else np.full(len(st.score), None, dtype=object) for st in steps])
+        return StreamStep(np.concatenate([st.score for st in steps]),
+                          np.concatenate([st.alarm for st in steps]), types)

@@ -67,6 +67,7 @@ def _tune_cost(method: str) -> float:
 def plan(profile: Profile, methods: list[str], cache_dir: Path, workers: int | None = None,
          seed: int = 0, label_fraction: float = 0.2, resilience: bool = True) -> DemoPlan:
     """The work units of a demo run over ``profile`` and their expected duration."""
+    from quadformer.experiments.resilience import batches_of
     from quadformer.simulation.simulate import plan_batches
 
     cores = os.cpu_count() or 1
@@ -91,6 +92,7 @@ def plan(profile: Profile, methods: list[str], cache_dir: Path, workers: int | N
     tune_s /= n_workers
     eval_s = COSTS["evaluate"] * size * len(configs) * CALIBRATION_CORES / max(cores, 1)
     fly_s = COSTS["fly_step"] * steps * len(configs) / n_workers if resilience else 0.0
-    units = len(batches) + tune_units + len(configs) + (len(configs) if resilience else 0)
+    fly_units = len(batches_of([cfg for _, cfg in configs], n_workers)) if resilience else 0
+    units = len(batches) + tune_units + len(configs) + fly_units
     total = COSTS["overhead"] + sim_s + tune_s + eval_s + fly_s
     return DemoPlan(units, total, sum(c.flights for c in missing), steps, tune_units)

@@ -29,6 +29,8 @@ import logging
 import multiprocessing
 import os
 import re
+import signal
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -108,6 +110,23 @@ def _call(fn: Callable[..., Any], threads: int, args: tuple) -> tuple[Any, float
     with _blas_threads(threads):
         out = fn(*args)
     return out, time.perf_counter() - t0
+
+
+def _exit_with_parent(parent: int) -> None:
+    """Worker initializer: on Linux, the worker receives SIGTERM when the process that started
+    it dies (``prctl(PR_SET_PDEATHSIG)``), so a driver killed by a signal does not leave its
+    workers computing; elsewhere nothing (a killed driver's workers finish their unit, then
+    exit)."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)   # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):      # pragma: no cover - no prctl in this libc
+        return
+    if os.getppid() != parent:             # the driver died before the request took effect
+        os._exit(1)
 
 
 def _blas_threads(threads: int):
@@ -201,7 +220,8 @@ def _run_local(fn, units, workers, bar) -> tuple[list[Any], dict[int, BaseExcept
                 bar.update(1)
         return out, failed
     ctx = multiprocessing.get_context("spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_exit_with_parent,
+                               initargs=(os.getpid(),))
     try:
         futures = {pool.submit(_call, fn, threads, u): i for i, u in enumerate(units)}
         for fut in as_completed(futures):

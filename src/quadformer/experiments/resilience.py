@@ -19,17 +19,18 @@ import numpy as np
 import pandas as pd
 
 from quadformer.dataset import Dataset, load_dataset
-from quadformer.detectors import alerts_frame, alerts_from_scores, get
+from quadformer.detectors import StreamGroup, alerts_frame, alerts_from_scores, get
 from quadformer.estimator.schema import RESIDUES
 from quadformer.evaluation.protocol import TrainingBudget, split_flights
 from quadformer.evaluation.resilience import flight_metrics, summarize_policy
-from quadformer.experiments.cache import check_device, ensure_datasets, ensure_tuned, model_dir_for, tuned_model
+from quadformer.experiments.cache import batch_count, check_device, ensure_datasets, ensure_tuned, model_dir_for, tuned_model
 from quadformer.experiments.detection import training_budget_doc
-from quadformer.experiments.grid import Profile, get_profile
+from quadformer.experiments.grid import Profile, get_profile, profile_configs
 from quadformer.experiments.pool import Backend, run_jobs
 from quadformer.io import atomic_path, package_versions, write_json
 from quadformer.resilience import POLICIES, Admission, AdmissionConfig
-from quadformer.simulation import simulate_batch
+from quadformer.config import SimConfig
+from quadformer.simulation import mixable, simulate_groups
 
 THRESHOLDS = ("f1", "budget")
 
@@ -45,8 +46,38 @@ def run_config(ds: Dataset, detector: str, seed: int = 0, label_fraction: float 
     threshold: the detector's alarm threshold, both chosen on validation flights: ``f1``
     maximises validation F1 (the detection benchmark's), ``budget`` allows one alarm per
     flight-hour on clean validation flights (fewer wrongful exclusions, later detections)."""
+    return run_configs([(ds, model_dir)], detector, seed, label_fraction, policies, admission, max_flights,
+                       threshold, budget)[0]
+
+
+def run_configs(parts: list[tuple[Dataset, Path | None]], detector: str, seed: int = 0, label_fraction: float = 0.2,
+                policies: tuple[str, ...] = POLICIES, admission: AdmissionConfig | None = None,
+                max_flights: int | None = None, threshold: str = "f1",
+                budget: TrainingBudget | None = None) -> list[tuple[dict[str, Any], pd.DataFrame, pd.DataFrame]]:
+    """``run_config`` for several configurations (``parts``: dataset and model cache per
+    configuration, the configurations ``simulation.mixable``) flown in one closed-loop batch,
+    each configuration's flights driven by the detector tuned on it. Each configuration's
+    results equal those of ``run_config`` alone (flight i's randomness depends only on its
+    configuration, seed and i; each detector streams over its own flights); ``fly_seconds``
+    is the shared batch's time."""
     if threshold not in THRESHOLDS:
         raise ValueError(f"threshold: unknown choice {threshold!r}; choose from {', '.join(THRESHOLDS)}")
+    plans = [_plan(ds, model_dir, detector, seed, label_fraction, policies, max_flights, threshold, budget)
+             for ds, model_dir in parts]
+    rate = plans[0]["cfg"].gps.rate_hz
+    adm = Admission(np.concatenate([p["pol"] for p in plans]), rate, admission)
+    stream = StreamGroup([p["det"].stream(len(p["flights"])) for p in plans])
+    t0 = time.perf_counter()
+    flown = simulate_groups([(p["cfg"], p["flights"], p["attacked"]) for p in plans], admission=adm, stream=stream)
+    t_fly = time.perf_counter() - t0
+    return [_outcome(p, r, detector, threshold, policies, t_fly) for p, r in zip(plans, flown)]
+
+
+def _plan(ds: Dataset, model_dir: Path | None, detector: str, seed: int, label_fraction: float,
+          policies: tuple[str, ...], max_flights: int | None, threshold: str,
+          budget: TrainingBudget | None) -> dict[str, Any]:
+    """One configuration's part of a closed-loop batch: its tuned detector and the test
+    flights to fly under every policy."""
     cfg = ds.config
     sp = split_flights(ds.scenarios, seed, label_fraction=label_fraction)
     parts = sp.frames(ds.flights)
@@ -60,14 +91,17 @@ def run_config(ds: Dataset, detector: str, seed: int = 0, label_fraction: float 
         test = test[:max_flights]
     attacked = ds.scenarios.set_index("flight_id").loc[test, "attacked"].to_numpy(bool)
     P = len(policies)
-    flights = np.tile(test, P)
-    pol = np.repeat(np.array(policies, dtype=object), len(test))
-    adm = Admission(pol, cfg.gps.rate_hz, admission)
-    t0 = time.perf_counter()
-    r = simulate_batch(cfg, flights, np.tile(attacked, P), admission=adm, stream=det.stream(len(flights)))
-    t_fly = time.perf_counter() - t0
+    return {"cfg": cfg, "tuned": tuned, "det": det, "test": test, "t_tune": t_tune,
+            "flights": np.tile(test, P), "attacked": np.tile(attacked, P),
+            "pol": np.repeat(np.array(policies, dtype=object), len(test))}
+
+
+def _outcome(p: dict[str, Any], r, detector: str, threshold: str, policies: tuple[str, ...],
+             t_fly: float) -> tuple[dict[str, Any], pd.DataFrame, pd.DataFrame]:
+    """One configuration's results, trajectories and alerts from its flown batch ``r``."""
+    flights, pol, det, tuned = p["flights"], p["pol"], p["det"], p["tuned"]
     t = r["t"]
-    rows_by_policy: dict[str, list[dict[str, Any]]] = {p: [] for p in policies}
+    rows_by_policy: dict[str, list[dict[str, Any]]] = {q: [] for q in policies}
     per_flight = []
     for b in range(len(flights)):
         m = flight_metrics(t, r["label"][b], r["true_pos"][b], r["est_pos"][b], r["ref_pos"][b],
@@ -77,8 +111,9 @@ def run_config(ds: Dataset, detector: str, seed: int = 0, label_fraction: float 
     results = {
         "detector": detector, "threshold": det.threshold_, "threshold_rule": threshold, "params": tuned.params,
         "val_f1": tuned.val_f1,
-        "test_flights": len(test), "tune_seconds": t_tune, "model_from_cache": tuned.cached, "fly_seconds": t_fly,
-        "policies": {p: summarize_policy(rows_by_policy[p]) for p in policies},   # exclusion P/R/F1 included
+        "test_flights": len(p["test"]), "tune_seconds": p["t_tune"], "model_from_cache": tuned.cached,
+        "fly_seconds": t_fly,
+        "policies": {q: summarize_policy(rows_by_policy[q]) for q in policies},   # exclusion P/R/F1 included
         "flights": per_flight,
     }
     # per-step trajectories of every flight and policy (figures, further analysis)
@@ -103,9 +138,28 @@ def run_config(ds: Dataset, detector: str, seed: int = 0, label_fraction: float 
     return results, traj, alerts
 
 
-def _fly_config(path: Path, *args: Any) -> tuple[dict[str, Any], pd.DataFrame, pd.DataFrame]:
-    """One work unit: the configuration's dataset at ``path`` under ``run_config``."""
-    return run_config(load_dataset(path), *args)
+def _fly_configs(paths: list[tuple[Path, Path]], *args: Any) -> list[tuple[dict[str, Any], pd.DataFrame, pd.DataFrame]]:
+    """One work unit: the configurations' datasets (and model caches) at ``paths`` flown in
+    one batch under ``run_configs``."""
+    return run_configs([(load_dataset(p), m) for p, m in paths], *args)
+
+
+def batches_of(configs: list[SimConfig], n: int) -> list[list[int]]:
+    """Indices of ``configs`` in at most about ``n`` closed-loop batches: configurations that
+    can fly together (``mixable``) are dealt into ``n`` batches in order; others apart."""
+    classes: list[list[int]] = []
+    for i, c in enumerate(configs):
+        for cl in classes:
+            if mixable(configs[cl[0]], c):
+                cl.append(i)
+                break
+        else:
+            classes.append([i])
+    out = []
+    for cl in classes:
+        k = max(1, min(len(cl), round(n * len(cl) / len(configs))))
+        out += [list(chunk) for chunk in np.array_split(np.array(cl), k)]
+    return [[int(i) for i in b] for b in out]
 
 
 def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: Path, progress: bool = True,
@@ -132,10 +186,16 @@ def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: 
                           label_fraction, 1.0, device=device, progress=progress, workers=workers, backend=backend,
                           budget=prof.budget)
     (out / "trajectories").mkdir(parents=True, exist_ok=True)
-    units = [(p, detector, seed, label_fraction, tuple(policies), admission, max_flights, model_dirs[name],
-              threshold, prof.budget) for name, p in paths.items()]
-    outputs = run_jobs(_fly_config, units, workers=workers, progress=progress, desc="fly", unit="config",
-                       backend=backend, labels=[f"config {name}, seed {seed}, detector {detector}" for name in paths])
+    names = list(paths)
+    config_of = dict(profile_configs(prof))
+    batches = batches_of([config_of[n] for n in names], batch_count(workers, backend))
+    units = [([(paths[names[i]], model_dirs[names[i]]) for i in b], detector, seed, label_fraction, tuple(policies),
+              admission, max_flights, threshold, prof.budget) for b in batches]
+    flown = run_jobs(_fly_configs, units, workers=workers, progress=progress, desc="fly", unit="batch",
+                     backend=backend, labels=[f"configs {', '.join(names[i] for i in b)}, seed {seed}, "
+                                              f"detector {detector}" for b in batches])
+    by_index = {i: out for b, outs in zip(batches, flown) for i, out in zip(b, outs)}
+    outputs = [by_index[i] for i in range(len(names))]
     configs, all_alerts = [], []
     for (model, noise, attack), name, (res, traj, alerts) in zip(prof.grid, paths, outputs):
         unit = tuning[(name, detector)]

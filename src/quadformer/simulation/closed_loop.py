@@ -88,13 +88,17 @@ def mixable(a: SimConfig, b: SimConfig) -> bool:
 
 
 def simulate_groups(groups: Sequence[tuple[SimConfig, np.ndarray, np.ndarray]],
-                    progress: Callable[[float], None] | None = None) -> list[BatchResult]:
+                    progress: Callable[[float], None] | None = None, admission=None,
+                    stream=None) -> list[BatchResult]:
     """Flights of several configurations in one batch: ``groups`` holds (config, flight
     indices, attacked) per configuration, the configurations ``mixable``. Vehicle model,
     noise shape, attack and seed are per flight, so each group's result equals
     ``simulate_batch(config, flights, attacked)`` of that group alone, bit for bit (flight
     i's data depends only on its configuration, seed and i). Returns one ``BatchResult``
-    per group, in order."""
+    per group, in order.
+
+    admission, stream: as in ``simulate_batch``, over the whole batch (the groups' flights in
+    order); a ``detectors.StreamGroup`` gives each group the stream of its own detector."""
     groups = [(c, np.asarray(f), np.asarray(a, dtype=bool)) for c, f, a in groups]
     if not groups:
         return []
@@ -102,7 +106,7 @@ def simulate_groups(groups: Sequence[tuple[SimConfig, np.ndarray, np.ndarray]],
         if not mixable(groups[0][0], c):
             raise ValueError("simulate_groups: configurations must differ only in "
                              f"{', '.join(PER_FLIGHT)} to fly in one batch")
-    whole = _simulate(groups, progress)
+    whole = _simulate(groups, progress, admission=admission, stream=stream)
     out, start = [], 0
     B = len(whole["label"])
     for _, f, _ in groups:

@@ -262,6 +262,12 @@ class QUADFormer(TorchCheckpoint, Detector):
         parts = cache["parts"]
         return self._raw(parts), parts["type"].astype(int)
 
+    def with_post(self, **post: Any) -> "QUADFormer":
+        """A copy with another alarm rule or score weight, sharing the fitted network and its
+        cached per-step score ingredients: tuning the alarm rule scores the network once."""
+        self.__dict__.setdefault("_cache", {})
+        return super().with_post(**post)
+
     def decision_function(self, X: pd.DataFrame) -> np.ndarray:
         raw, _ = self.raw_scores(X)
         return kth_of_last_n(raw, X, self.k, self.n)
