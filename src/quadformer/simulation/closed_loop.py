@@ -132,6 +132,12 @@ def _take(v, idx: np.ndarray, B: int):
 
 
 def _simulate(groups, progress=None, record_nees=False, record_sensors=False, admission=None, stream=None):
+    # no autograd bookkeeping in the loop: about a fifth of the per-step cost, same numbers
+    with torch.inference_mode():
+        return _simulate_loop(groups, progress, record_nees, record_sensors, admission, stream)
+
+
+def _simulate_loop(groups, progress, record_nees, record_sensors, admission, stream):
     cfg = groups[0][0]
     flights = np.concatenate([f for _, f, _ in groups])
     B = len(flights)
