@@ -473,3 +473,28 @@ def test_oracle_exclusion_scores_one_in_the_loop(loop):
     assert oracle["exclusion_precision"] == oracle["exclusion_recall"] == oracle["exclusion_f1"] == 1.0
     assert naive["exclusion_recall"] == 0.0 and naive["exclusion_f1"] == 0.0
     assert 0.0 < policy("resilient")["exclusion_recall"] <= 1.0
+
+
+def test_readmissions_are_counted_by_rule():
+    """Per flight the steps where a rule re-admitted GPS; per policy the stale ones summed."""
+    from quadformer.evaluation.resilience import summarize_policy
+    from quadformer.resilience import READMIT_CLEAR, READMIT_STALE
+
+    t = np.arange(12) / 10.0
+    z = np.zeros((12, 3))
+    lab = np.zeros(12, bool)
+    lab[2:5] = True
+    fused = np.ones(12, bool)
+    fused[3:6] = False
+    fused[8:10] = False
+    readmit = np.zeros(12, np.int8)
+    readmit[6], readmit[10] = READMIT_STALE, READMIT_CLEAR
+    rules = lambda codes: {"clear": codes == READMIT_CLEAR, "stale": codes == READMIT_STALE}   # noqa: E731
+    a = flight_metrics(t, lab, z, z, z, fused, rules(readmit))
+    b = flight_metrics(t, np.zeros(12, bool), z, z, z, np.ones(12, bool), rules(np.r_[np.zeros(11), READMIT_STALE]))
+    assert (a["readmissions_clear"], a["readmissions_stale"]) == (1, 1)
+    assert (b["readmissions_clear"], b["readmissions_stale"]) == (0, 1)
+    assert summarize_policy([a, b])["stale_readmissions"] == 2
+    # without the records (a flight not flown under admission control): nothing counted
+    assert "readmissions_stale" not in flight_metrics(t, lab, z, z, z, fused)
+    assert summarize_policy([flight_metrics(t, lab, z, z, z, fused)])["stale_readmissions"] == 0

@@ -13,7 +13,10 @@ Per flight (attack steps: fixes that are spoofed):
   (TP: excluded and spoofed, FP: excluded and honest, FN: fused and spoofed), summed over a
   policy's flights into point-wise precision, recall and F1 (``exclusion_prf``). Steps after
   an attack while GPS is still excluded count as false positives: re-admission delay costs
-  precision.
+  precision;
+- re-admissions by rule: after the detector cleared (``readmissions_clear``) or under a
+  standing alarm once the fixes had agreed for ``stale_hold_s`` (``readmissions_stale``);
+  a policy's summary counts the latter over its flights (``stale_readmissions``).
 """
 
 from __future__ import annotations
@@ -24,12 +27,17 @@ import numpy as np
 
 
 def flight_metrics(t: np.ndarray, label: np.ndarray, true_pos: np.ndarray, est_pos: np.ndarray,
-                   ref_pos: np.ndarray, fused: np.ndarray) -> dict[str, Any]:
-    """Metrics of one flight (arrays per GPS step)."""
+                   ref_pos: np.ndarray, fused: np.ndarray,
+                   readmitted_by: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
+    """Metrics of one flight (arrays per GPS step). ``readmitted_by``: per re-admission rule
+    (``clear``, ``stale``), the steps at which it re-admitted GPS (bool per step, from the closed
+    loop's ``admission.readmit``), counted as ``readmissions_{rule}``."""
     err = np.linalg.norm(est_pos - true_pos, axis=1)
     dev = np.linalg.norm(true_pos - ref_pos, axis=1)
     out: dict[str, Any] = {"attacked": bool(label.any()), "max_dev_flight_m": float(dev.max()),
                            **exclusion_counts(label, fused)}
+    for rule, steps in (readmitted_by or {}).items():
+        out[f"readmissions_{rule}"] = int(np.count_nonzero(steps))
     if not label.any():
         out["excluded_fraction"] = float(1.0 - fused.mean())
         return out
@@ -93,6 +101,8 @@ def summarize_policy(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "readmit_delay_p95_s": stat("readmit_delay_s", lambda v: np.percentile(v, 95)),
         "readmit_delay_max_s": stat("readmit_delay_s", np.max),
         "not_readmitted": sum(r["readmitted"] is False for r in att),
+        # re-admissions under a standing alarm (the stale-alarm rule), over all flights
+        "stale_readmissions": sum(r.get("readmissions_stale", 0) for r in rows),
         "wrongly_excluded_fraction": stat("excluded_fraction", np.mean, clean),
         "clean_max_dev_median_m": stat("max_dev_flight_m", np.median, clean),
         **exclusion_prf(rows),

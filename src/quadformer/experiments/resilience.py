@@ -28,7 +28,7 @@ from quadformer.experiments.detection import training_budget_doc
 from quadformer.experiments.grid import Profile, get_profile, profile_configs
 from quadformer.experiments.pool import Backend, run_jobs
 from quadformer.io import atomic_path, package_versions, write_json
-from quadformer.resilience import POLICIES, Admission, AdmissionConfig
+from quadformer.resilience import POLICIES, READMIT_CLEAR, READMIT_STALE, Admission, AdmissionConfig
 from quadformer.config import SimConfig
 from quadformer.simulation import mixable, simulate_groups
 
@@ -105,7 +105,8 @@ def _outcome(p: dict[str, Any], r, detector: str, threshold: str, policies: tupl
     per_flight = []
     for b in range(len(flights)):
         m = flight_metrics(t, r["label"][b], r["true_pos"][b], r["est_pos"][b], r["ref_pos"][b],
-                           r["admission"]["fused"][b])
+                           r["admission"]["fused"][b], {"clear": r["admission"]["readmit"][b] == READMIT_CLEAR,
+                                                        "stale": r["admission"]["readmit"][b] == READMIT_STALE})
         rows_by_policy[pol[b]].append(m)
         per_flight.append({"policy": pol[b], "flight_id": int(flights[b]), **m})
     results = {

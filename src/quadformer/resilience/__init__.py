@@ -1,5 +1,6 @@
 """Resilient state estimation: per-flight GPS admission policies driven by a detector."""
 
-from quadformer.resilience.admission import POLICIES, Admission, AdmissionConfig, Decision
+from quadformer.resilience.admission import (POLICIES, READMIT_CLEAR, READMIT_STALE, Admission, AdmissionConfig,
+                                             Decision)
 
-__all__ = ["POLICIES", "Admission", "AdmissionConfig", "Decision"]
+__all__ = ["POLICIES", "READMIT_CLEAR", "READMIT_STALE", "Admission", "AdmissionConfig", "Decision"]
