@@ -21,6 +21,7 @@ from typer.testing import CliRunner
 from quadformer.cli import app
 from quadformer.config import AttackConfig, SimConfig
 from quadformer.dataset import DatasetError, load_dataset, write_dataset
+from quadformer.evaluation.protocol import TrainingBudget
 from quadformer.experiments.cache import (cached_model, dataset_key, ensure_configs, model_dir_for,
                                           simulate_dataset, tune_unit)
 from quadformer.experiments.detection import run_benchmark
@@ -31,6 +32,9 @@ runner = CliRunner()
 
 #: two of the paper's configurations, sized by the datasets copied into the cache
 TINY = Profile("tiny", 6, grid=PAPER_GRID[:2])
+#: a tenth of every trained method's epochs and windows: the device test checks where the
+#: network trains and how it is saved and loaded, not how well it learns
+BUDGET = TrainingBudget("tiny", 0.1)
 #: a dataset simulated in a few seconds
 SMALL = SimConfig(model="I", noise="laplace", flights=2, duration=12.0, seed=5,
                   attack=AttackConfig(kind="bias", onset=(4.0, 6.0), duration=(3.0, 5.0)))
@@ -204,10 +208,10 @@ def test_cpu_training_is_saved_and_loaded_as_cpu(dataset_dir, tmp_path):
     name, cfg = profile_configs(Profile("one", 6, grid=PAPER_GRID[:1]))[0]
     path = cache / f"{name}-{dataset_key(cfg)}"
     model_dir = model_dir_for(cache, path, 0, 1.0)
-    assert tune_unit(path, "cnn", 0, 1.0, 1.0, model_dir, "cpu")["cached"] is False
+    assert tune_unit(path, "cnn", 0, 1.0, 1.0, model_dir, "cpu", budget=BUDGET)["cached"] is False
     doc = json.loads(next(p for p in model_dir.glob("cnn-*.json") if ".tuned." not in p.name).read_text())
     assert doc["params"]["device"] == "cpu"
-    det = cached_model("cnn", 1.0, model_dir).detector
+    det = cached_model("cnn", 1.0, model_dir, BUDGET).detector
     assert all(p.device.type == "cpu" for p in det.model_.parameters())
 
 

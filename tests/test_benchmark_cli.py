@@ -23,6 +23,20 @@ def dataset_dir(bias_dataset, tmp_path_factory):
     return write_dataset(bias_dataset, tmp_path_factory.mktemp("data") / "ds")
 
 
+@pytest.fixture(scope="module")
+def short_dataset_dir(tmp_path_factory):
+    """Like the bias dataset (6 flights, half of them attacked) in flights of 10 s with attacks
+    of 2.5-4 s from 2.5-4 s: the resilience run flies its test flights again under four
+    policies for each of the profile's eight configurations, so the flights' length sets the
+    test's time."""
+    from quadformer.config import AttackConfig, SimConfig
+    from quadformer.simulation import simulate
+
+    cfg = SimConfig(model="II", noise="laplace", flights=6, duration=10.0, seed=3,
+                    attack=AttackConfig(kind="bias", onset=(2.5, 4.0), duration=(2.5, 4.0)))
+    return write_dataset(simulate(cfg), tmp_path_factory.mktemp("short") / "ds")
+
+
 def test_benchmark_writes_schema_tables_report_and_reuses_cache(dataset_dir, tmp_path):
     # Fill the cache with one small real dataset under every demo configuration's key, so
     # the test exercises the harness without simulating eight datasets.
@@ -58,10 +72,10 @@ def test_benchmark_writes_schema_tables_report_and_reuses_cache(dataset_dir, tmp
     assert len(list((cache / "models").rglob("cusum-*.tuned.json"))) == 8      # tuned detectors cached
 
 
-def test_resilience_cli_flies_four_policies_and_reuses_tuned_detectors(dataset_dir, tmp_path):
+def test_resilience_cli_flies_four_policies_and_reuses_tuned_detectors(short_dataset_dir, tmp_path):
     cache = tmp_path / "cache"
     for name, cfg in profile_configs(PROFILES["demo"]):
-        shutil.copytree(dataset_dir, cache / f"{name}-{dataset_key(cfg)}")
+        shutil.copytree(short_dataset_dir, cache / f"{name}-{dataset_key(cfg)}")
     out = tmp_path / "res"
     args = ["--profile", "demo", "--cache", str(cache), "--quiet", "--workers", "2"]
     res = runner.invoke(app, ["benchmark", "--methods", "cusum", "--out", str(tmp_path / "bench"), *args])
@@ -85,7 +99,7 @@ def test_resilience_cli_flies_four_policies_and_reuses_tuned_detectors(dataset_d
         assert cc["policies"]["naive"]["exclusion_f1"] == 0.0
     assert "exclusion F1" in pd.read_csv(out / "overall.csv").columns
     traj = pd.read_parquet(out / "trajectories" / f"{c['name']}.parquet")
-    assert len(traj) == 4 * c["test_flights"] * 240
+    assert len(traj) == 4 * c["test_flights"] * 100           # 10 s at 10 Hz
     html = (out / "report.html").read_text()
     assert html.count("data:image/png;base64,") >= 1 and "oracle" in html
     assert (out / "alerts.csv").exists() and (out / "overall.csv").exists()
@@ -254,8 +268,10 @@ def test_benchmark_stress_scores_the_tuned_detectors_on_stress_sets(dataset_dir,
 def mixed_dir(tmp_path_factory):
     from quadformer.simulation import simulate
 
-    cfg = SimConfig(model="II", noise="laplace", flights=10, duration=24.0, seed=9,
-                    attack=AttackConfig(kind="mix", onset=(6.0, 10.0), duration=(6.0, 10.0), fraction=0.6))
+    # 12 s flights (attacks of 3-5 s from 3-5 s): five kinds among the six attacked flights, a
+    # freeze among the test flights
+    cfg = SimConfig(model="II", noise="laplace", flights=10, duration=12.0, seed=9,
+                    attack=AttackConfig(kind="mix", onset=(3.0, 5.0), duration=(3.0, 5.0), fraction=0.6))
     return write_dataset(simulate(cfg), tmp_path_factory.mktemp("mixdata") / "ds")
 
 
