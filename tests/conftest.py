@@ -10,7 +10,7 @@ from quadformer.config import AttackConfig, GPSConfig, SimConfig
 from quadformer.simulation import simulate
 from quadformer.simulation.closed_loop import simulate_batch
 
-torch.set_num_threads(2)
+torch.set_num_threads(1)   # the simulator's small tensor operations run fastest on one thread
 
 
 @pytest.fixture(scope="session")
