@@ -41,5 +41,7 @@ def test_demo_plan_counts_units_and_estimates(tmp_path):
     methods = defaults()
     p = plan(PROFILES["demo"], methods, tmp_path, workers=2)
     assert p.flights == 160 and p.steps == 6000 and p.models == 8 * len(methods)
-    assert p.units == 2 + 8 * len(methods) + 8 + 8       # 2 mixed batches, models, scoring, flights
+    # 2 mixed simulation batches, the models, scoring per configuration, 2 mixed closed-loop batches
+    assert p.units == 2 + 8 * len(methods) + 8 + 2
+    assert len(PROFILES["demo"].for_resilience().grid) == 4 and PROFILES["quick"].for_resilience() is PROFILES["quick"]
     assert 60 < p.estimate_s < 3600 and "estimate" in p.describe()

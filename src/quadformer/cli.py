@@ -873,7 +873,8 @@ def demo(
     quiet: bool = typer.Option(False, help="No progress bars."),
 ) -> None:
     """The demo profile end to end: simulate, residues, every detector, tables, report; then a
-    short resilience run (QUADFormer driving the resilient estimator, beside the other policies)."""
+    short resilience run over four of the configurations (QUADFormer driving the resilient
+    estimator, beside the other policies)."""
     from quadformer.dataset import load_dataset
     from quadformer.experiments.cache import ensure_datasets
     from quadformer.experiments.demo import plan

@@ -21,21 +21,22 @@ from quadformer.experiments.grid import Profile, profile_configs
 #: cores of the machine the costs were measured on
 CALIBRATION_CORES = 2
 
-#: costs (seconds) per unit of work. Simulation: the per-step cost of a batch (about 4 ms
-#: whatever its size) and the cost per flight-step on top. Tuning and scoring: one
-#: configuration of 20 flights x 60 s at the demo's budget, derived from a run on a 2-core
-#: machine under a load average of 6-9 (divided by the load's share of the cores), so a
-#: rough figure until measured on an idle machine.
+#: costs (seconds) per unit of work, measured on an idle 2-core machine (``make demo`` from a
+#: fresh clone). Simulation: the per-step cost of a batch (about 4.5 ms whatever its size)
+#: and the cost per flight-step on top. Tuning and scoring: one configuration of 20 flights x
+#: 60 s at the demo's budget. Resilience: per step of a closed-loop batch and per flight-step
+#: on top (QUADFormer scored online included).
 COSTS = {
     "sim_step": 0.0045,
-    "sim_flight_step": 0.00018,
-    "tune_statistic": 1.0,      # chi2, cusum, sprt, bht
-    "tune_windows": 20.0,       # pca, svm (PCA's SVD dominates)
-    "tune_network": 10.0,       # cnn, lstm (per method)
-    "tune_quadformer": 70.0,    # quadformer and its ablations (training and 18 alarm-rule scorings)
-    "evaluate": 12.0,           # scoring one configuration's test flights with every method
-    "fly_step": 0.006,          # one configuration's resilience batch, per simulated step
-    "overhead": 20.0,           # worker start-up, imports, reports
+    "sim_flight_step": 0.000165,
+    "tune_statistic": 0.6,      # chi2, cusum, sprt, bht
+    "tune_windows": 4.0,        # pca, svm
+    "tune_network": 4.0,        # cnn, lstm (per method)
+    "tune_quadformer": 24.0,    # quadformer and its ablations (training and the alarm-rule scorings)
+    "evaluate": 4.0,            # scoring one configuration's test flights with every method
+    "fly_step": 0.0045,
+    "fly_flight_step": 0.00024,
+    "overhead": 10.0,           # worker start-up, imports, reports
 }
 
 
@@ -91,8 +92,14 @@ def plan(profile: Profile, methods: list[str], cache_dir: Path, workers: int | N
                 tune_s += _tune_cost(m) * size
     tune_s /= n_workers
     eval_s = COSTS["evaluate"] * size * len(configs) * CALIBRATION_CORES / max(cores, 1)
-    fly_s = COSTS["fly_step"] * steps * len(configs) / n_workers if resilience else 0.0
-    fly_units = len(batches_of([cfg for _, cfg in configs], n_workers)) if resilience else 0
+    fly_s, fly_units = 0.0, 0
+    if resilience:     # the test flights (a fifth) under four policies, in batches mixing configurations
+        fly_cfgs = [cfg for _, cfg in profile_configs(profile.for_resilience())]
+        fly = batches_of(fly_cfgs, n_workers)
+        fly_units = len(fly)
+        per_config = 4 * max(1, round(0.2 * profile.flights))
+        biggest = max(len(b) for b in fly) * per_config
+        fly_s = math.ceil(len(fly) / n_workers) * steps * (COSTS["fly_step"] + COSTS["fly_flight_step"] * biggest)
     units = len(batches) + tune_units + len(configs) + fly_units
     total = COSTS["overhead"] + sim_s + tune_s + eval_s + fly_s
     return DemoPlan(units, total, sum(c.flights for c in missing), steps, tune_units)

@@ -4,6 +4,7 @@ profiles that size them."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from dataclasses import dataclass
 from typing import Any
@@ -31,15 +32,25 @@ class Profile:
     stress_flights: int = 24   # flights per stress dataset (``benchmark --stress``)
     #: a reduced training budget for every trained method (None: the full, paper's budget)
     budget: TrainingBudget | None = None
+    #: the configurations the resilience run flies (None: the whole grid)
+    resilience_grid: tuple[tuple[str, str, str], ...] | None = None
+
+    def for_resilience(self) -> "Profile":
+        """This profile over the configurations its resilience run flies."""
+        return self if self.resilience_grid is None else dataclasses.replace(self, grid=self.resilience_grid)
 
 
-#: the demo's training budget, chosen by measurement: a quarter of every trained method's
-#: epochs and windows (see the README's demo section for the figures it gives)
-DEMO_BUDGET = TrainingBudget("demo", 0.25)
+#: the demo's training budget, chosen by measurement so that ``make demo`` stays short: an
+#: eighth of every trained method's epochs and windows (see the README's demo section)
+DEMO_BUDGET = TrainingBudget("demo", 0.125)
+#: the demo's resilience run: four of the eight configurations, each model, noise shape and
+#: attack twice (every pair of them once)
+DEMO_RESILIENCE_GRID = (("I", "exponential", "bias"), ("I", "laplace", "ramp"), ("II", "exponential", "ramp"),
+                        ("II", "laplace", "bias"))
 
 
 PROFILES = {
-    "demo": Profile("demo", 20, stress_flights=12, budget=DEMO_BUDGET),
+    "demo": Profile("demo", 20, stress_flights=12, budget=DEMO_BUDGET, resilience_grid=DEMO_RESILIENCE_GRID),
     "quick": Profile("quick", 60),
     "paper": Profile("paper", 600, stress_flights=120),
     "mixed": Profile("mixed", 60, grid=MIXED_GRID),

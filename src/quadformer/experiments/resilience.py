@@ -173,7 +173,7 @@ def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: 
     closed-loop batch per configuration (its test flights under every policy)."""
     from quadformer.report.resilience import write_resilience_report
 
-    prof = get_profile(profile)
+    prof = get_profile(profile).for_resilience()
     get(detector)    # unknown names fail before any work
     if threshold not in THRESHOLDS:
         raise ValueError(f"threshold: unknown choice {threshold!r}; choose from {', '.join(THRESHOLDS)}")
