@@ -29,14 +29,14 @@ CALIBRATION_CORES = 2
 COSTS = {
     "sim_step": 0.0045,
     "sim_flight_step": 0.000165,
-    "tune_statistic": 0.6,      # chi2, cusum, sprt, bht
-    "tune_windows": 4.0,        # pca, svm
-    "tune_network": 4.0,        # cnn, lstm (per method)
-    "tune_quadformer": 24.0,    # quadformer and its ablations (training and the alarm-rule scorings)
-    "evaluate": 4.0,            # scoring one configuration's test flights with every method
+    "tune_statistic": 0.2,      # chi2, cusum, sprt, bht
+    "tune_windows": 2.2,        # pca, svm
+    "tune_network": 3.2,        # cnn, lstm (per method)
+    "tune_quadformer": 21.0,    # quadformer and its ablations (training and the alarm-rule scorings)
+    "evaluate": 2.0,            # scoring one configuration's test flights with every method
     "fly_step": 0.0045,
-    "fly_flight_step": 0.00024,
-    "overhead": 10.0,           # worker start-up, imports, reports
+    "fly_flight_step": 0.00026,
+    "overhead": 5.0,            # worker start-up, imports, reports
 }
 
 
