@@ -30,7 +30,7 @@ from quadformer.experiments.pool import Backend, run_jobs
 from quadformer.io import atomic_path, package_versions, write_json
 from quadformer.resilience import POLICIES, READMIT_CLEAR, READMIT_STALE, Admission, AdmissionConfig
 from quadformer.config import SimConfig
-from quadformer.simulation import mixable, simulate_groups
+from quadformer.simulation import mixable_families, simulate_groups
 
 THRESHOLDS = ("f1", "budget")
 
@@ -148,16 +148,8 @@ def _fly_configs(paths: list[tuple[Path, Path]], *args: Any) -> list[tuple[dict[
 def batches_of(configs: list[SimConfig], n: int) -> list[list[int]]:
     """Indices of ``configs`` in at most about ``n`` closed-loop batches: configurations that
     can fly together (``mixable``) are dealt into ``n`` batches in order; others apart."""
-    classes: list[list[int]] = []
-    for i, c in enumerate(configs):
-        for cl in classes:
-            if mixable(configs[cl[0]], c):
-                cl.append(i)
-                break
-        else:
-            classes.append([i])
     out = []
-    for cl in classes:
+    for cl in mixable_families(configs):
         k = max(1, min(len(cl), round(n * len(cl) / len(configs))))
         out += [list(chunk) for chunk in np.array_split(np.array(cl), k)]
     return [[int(i) for i in b] for b in out]

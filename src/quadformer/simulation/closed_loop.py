@@ -87,6 +87,20 @@ def mixable(a: SimConfig, b: SimConfig) -> bool:
     return all(da[k] == db[k] for k in da if k not in PER_FLIGHT)
 
 
+def mixable_families(cfgs: Sequence[SimConfig]) -> list[list[int]]:
+    """Indices of ``cfgs`` grouped into families that can fly in one batch (``mixable``), in
+    order of first appearance."""
+    families: list[list[int]] = []
+    for i, c in enumerate(cfgs):
+        for fam in families:
+            if mixable(cfgs[fam[0]], c):
+                fam.append(i)
+                break
+        else:
+            families.append([i])
+    return families
+
+
 def simulate_groups(groups: Sequence[tuple[SimConfig, np.ndarray, np.ndarray]],
                     progress: Callable[[float], None] | None = None, admission=None,
                     stream=None) -> list[BatchResult]:

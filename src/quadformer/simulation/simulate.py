@@ -16,7 +16,7 @@ from quadformer.dataset import FORMAT_VERSION, Dataset, summarize
 from quadformer.estimator.schema import groups_for
 from quadformer.io import package_versions
 from quadformer.rng import attacked_flights
-from quadformer.simulation.closed_loop import BatchResult, mixable, simulate_batch, simulate_groups
+from quadformer.simulation.closed_loop import BatchResult, mixable_families, simulate_batch, simulate_groups
 
 
 def _batch_frames(cfg: SimConfig, r: BatchResult) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -99,16 +99,8 @@ def plan_batches(cfgs: Sequence[SimConfig], n_batches: int = 1, batch_size: int 
     within a batch. Flights are dealt in order into at least ``n_batches`` batches (as even as
     possible) of at most ``batch_size`` flights (default: the first configuration's)."""
     cfgs = list(cfgs)
-    families: list[list[int]] = []          # configurations that can share a batch
-    for i, c in enumerate(cfgs):
-        for fam in families:
-            if mixable(cfgs[fam[0]], c):
-                fam.append(i)
-                break
-        else:
-            families.append([i])
     out = []
-    for fam in families:
+    for fam in mixable_families(cfgs):
         units = [(i, f) for i in fam for f in range(cfgs[i].flights)]
         cap = batch_size or cfgs[fam[0]].batch_size
         n = max(n_batches, -(-len(units) // cap))
