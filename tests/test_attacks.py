@@ -241,15 +241,14 @@ def test_single_kind_data_unchanged_by_mixed_attacks():
     offsets, sensors and estimates to 1e-6 (another platform's floating point moves the closed
     loop by 1e-14 to 1e-9; a shifted draw moves it by the noise, 1e-3 and more). The persistent
     residues, added later, are appended after the pinned columns and leave them unchanged."""
-    from quadformer.simulation import simulate
-
     from types import SimpleNamespace
 
     from quadformer.estimator.schema import PERSISTENT, columns
+    from quadformer.simulation import simulate_many
 
     mod, pin = _pin_script()
-    for kind in mod.KINDS:
-        ds = simulate(mod.config(kind))
+    # every kind's flights in one batch: each dataset equals simulate() of its configuration
+    for kind, ds in zip(mod.KINDS, simulate_many([mod.config(kind) for kind in mod.KINDS])):
         # the persistent residues came later, appended after every pinned column
         new = columns(*PERSISTENT)
         assert list(ds.flights.columns[-len(new):]) == new

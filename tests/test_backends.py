@@ -30,11 +30,11 @@ from quadformer.experiments.pool import Backend, UnitError, run_jobs
 
 runner = CliRunner()
 
-#: two of the paper's configurations, sized by the datasets copied into the cache
-TINY = Profile("tiny", 6, grid=PAPER_GRID[:2])
-#: a tenth of every trained method's epochs and windows: the device test checks where the
-#: network trains and how it is saved and loaded, not how well it learns
+#: a tenth of every trained method's epochs and windows: these tests check where and how
+#: units run and networks are saved and loaded, not how well they learn
 BUDGET = TrainingBudget("tiny", 0.1)
+#: two of the paper's configurations, sized by the datasets copied into the cache
+TINY = Profile("tiny", 6, grid=PAPER_GRID[:2], budget=BUDGET)
 #: a dataset simulated in a few seconds
 SMALL = SimConfig(model="I", noise="laplace", flights=2, duration=12.0, seed=5,
                   attack=AttackConfig(kind="bias", onset=(4.0, 6.0), duration=(3.0, 5.0)))

@@ -15,8 +15,8 @@ from quadformer.detectors import make
 from quadformer.evaluation.protocol import best_f1_threshold
 from quadformer.detectors import alerts_from_scores
 from quadformer.evaluation.resilience import flight_metrics
-from quadformer.resilience import POLICIES, Admission, AdmissionConfig
-from quadformer.simulation.closed_loop import simulate_batch
+from quadformer.resilience import POLICIES, Admission, AdmissionConfig, AdmissionGroup
+from quadformer.simulation.closed_loop import simulate_batch, simulate_groups
 
 
 def _drive(policy, alarm, nis=None, w=None, attacked=None, cfg=None, corrections=None):
@@ -117,6 +117,35 @@ def _drive_rules(alarm, nis, cfg=None):
         exclude.append(int(d.exclude[0]))
         adm.record(torch.zeros(1, 3))
     return np.array(fused), np.array(readmit), np.array(exclude)
+
+
+def test_an_admission_group_decides_each_slice_as_its_admission_alone():
+    """Flights under different admission configurations in one batch: each slice's decisions
+    equal those of its own admission driven alone, step for step."""
+    rng = np.random.default_rng(4)
+    n, cfgs = 150, [None, AdmissionConfig(rollback_s=0.0, hold_s=0.5), AdmissionConfig(blend_s=0.0, stale_hold_s=2.0)]
+    policies = [["resilient", "px4"], ["resilient"], ["resilient", "oracle", "naive"]]
+    B = sum(len(p) for p in policies)
+    alarm = rng.random((n, B)) < np.linspace(0.05, 0.9, n)[:, None]     # more alarms as time goes on
+    nis = rng.exponential(8.0, (n, B))
+    w = rng.normal(0.0, 3.0, (n, B, 6))
+    attacked = rng.random((n, B)) < 0.3
+    dpos = rng.normal(0.0, 0.1, (n, B, 3))
+    group = AdmissionGroup([Admission(p, 10.0, c) for p, c in zip(policies, cfgs)])
+    alone = [Admission(p, 10.0, c) for p, c in zip(policies, cfgs)]
+    bounds = np.cumsum([0] + [len(p) for p in policies])
+    fields = ("fuse", "std_scale", "reset", "rollback", "readmit", "exclude")
+    for k in range(n):
+        args = [torch.from_numpy(a[k]) for a in (nis, w, alarm, attacked)]
+        joined = group.decide(*args)
+        group.record(torch.from_numpy(dpos[k]) * joined.fuse[:, None])
+        for adm, a, b in zip(alone, bounds[:-1], bounds[1:]):
+            d = adm.decide(*(x[a:b] for x in args))
+            adm.record(torch.from_numpy(dpos[k, a:b]) * d.fuse[:, None])
+            for f in fields:
+                assert torch.equal(getattr(joined, f)[a:b], getattr(d, f)), (k, f)
+    with pytest.raises(ValueError, match="at least one admission"):
+        AdmissionGroup([])
 
 
 def test_stale_alarm_readmits_after_stale_hold_and_only_a_new_alarm_excludes_again():
@@ -316,13 +345,12 @@ _JUMP = SimConfig(model="I", noise="gaussian", flights=1, duration=26.0, seed=2,
 def jump(bias_dataset):
     f = bias_dataset.flights
     det = make("bht", inflation=3.0).fit(f, f.label.to_numpy()).calibrate(0.0)   # posterior above 1/2
-    one, both = np.zeros(1, int), np.ones(2, bool)
-    runs = {"main": simulate_batch(_JUMP, np.zeros(2, int), both, admission=Admission(["resilient", "px4"], 10.0),
-                                   stream=det.stream(2))}
-    for name, cfg in (("no_rollback", AdmissionConfig(rollback_s=0.0)), ("no_blend", AdmissionConfig(blend_s=0.0))):
-        runs[name] = simulate_batch(_JUMP, one, both[:1], admission=Admission(["resilient"], 10.0, cfg),
-                                    stream=det.stream(1))
-    return runs
+    # the three runs in one batch, each under its own admission configuration
+    parts = [Admission(["resilient", "px4"], 10.0), Admission(["resilient"], 10.0, AdmissionConfig(rollback_s=0.0)),
+             Admission(["resilient"], 10.0, AdmissionConfig(blend_s=0.0))]
+    groups = [(_JUMP, np.zeros(len(p.policies), int), np.ones(len(p.policies), bool)) for p in parts]
+    flown = simulate_groups(groups, admission=AdmissionGroup(parts), stream=det.stream(4))
+    return dict(zip(("main", "no_rollback", "no_blend"), flown))
 
 
 def test_px4_gate_resets_onto_the_spoofed_fix_after_seven_seconds_in_the_loop(jump):

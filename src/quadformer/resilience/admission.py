@@ -199,3 +199,31 @@ class Admission:
         """The position correction this GPS step applied per flight (zero where not fused)."""
         if self.recent.shape[1]:
             self.recent = torch.cat([self.recent[:, 1:], applied_dpos[:, None].to(torch.float64)], 1)
+
+
+class AdmissionGroup:
+    """Several admissions side by side over one batch: ``parts`` cover consecutive slices of
+    the batch (the first ``len(parts[0].policies)`` flights, then the next, ...), each with its
+    own configuration, so that flights under different admission parameters fly together
+    (a sweep of ``AdmissionConfig``). Each slice's decisions are those of its admission alone."""
+
+    def __init__(self, parts: list[Admission]):
+        if not parts:
+            raise ValueError("AdmissionGroup: at least one admission needed")
+        self.parts = list(parts)
+        self.policies = np.concatenate([p.policies for p in self.parts])
+        self._bounds = np.cumsum([0] + [len(p.policies) for p in self.parts])
+
+    def _slices(self):
+        return zip(self.parts, self._bounds[:-1], self._bounds[1:])
+
+    def decide(self, nis: torch.Tensor, w_component: torch.Tensor, alarm: torch.Tensor,
+               attacked: torch.Tensor) -> Decision:
+        """``Admission.decide`` of each part on its slice, joined."""
+        decs = [p.decide(nis[a:b], w_component[a:b], alarm[a:b], attacked[a:b]) for p, a, b in self._slices()]
+        return Decision(*(torch.cat([getattr(d, f) for d in decs]) for f in
+                          ("fuse", "std_scale", "reset", "rollback", "readmit", "exclude")))
+
+    def record(self, applied_dpos: torch.Tensor) -> None:
+        for p, a, b in self._slices():
+            p.record(applied_dpos[a:b])
