@@ -37,6 +37,29 @@ def exported(request, bias_dataset, tmp_path_factory):
     return det, OnnxDetector(path), _flights(f, [2, 3, 4, 5]), path
 
 
+def test_extreme_raw_residues_score_finite_and_as_torch(exported):
+    """The graph's asinh (a log/sqrt formula, see ``detectors.export``) on raw residues far
+    from the training range: residues up to 1e15 times the normaliser's scale score as the
+    PyTorch detector does; beyond 1e18 they saturate, and the score stays finite."""
+    det, onx, _, _ = exported
+    rng = np.random.default_rng(3)
+    scale = np.asarray(det.normalizer_.std_, dtype=np.float64)
+    centre = np.asarray(det.normalizer_.mean_, dtype=np.float64)
+    z = rng.normal(0.0, 1.0, (4, det.window, len(det.features_)))
+    z[0, -5:] *= 1e15                              # a spoof of absurd size at the end
+    z[1, -5:] = -1e6
+    z[2, :, :3] = 1e-30                            # next to the centre
+    raw = (centre + z * scale).astype(np.float32)
+    normalised = det.normalizer_.transform(raw.astype(np.float64))
+    ref = det.score_windows(normalised)[0]
+    got = onx.score_windows(raw)[0]
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-4)
+    huge = np.array(raw[3:4])
+    huge[0, -1] = np.where(scale[None] > 0, 1e30, 0).astype(np.float32)
+    assert np.isfinite(onx.score_windows(huge)[0]).all()
+
+
 def _same_alarms(a, b, scores, threshold):
     near = np.abs(scores - threshold) < TOL            # rounding may flip only these
     return np.array_equal(np.asarray(a)[~near], np.asarray(b)[~near])

@@ -61,8 +61,12 @@ BATCH = 64
 
 # -- the graph ------------------------------------------------------------------------------
 class _Asinh(torch.autograd.Function):
-    """asinh, exported as the ONNX ``Asinh`` operator (the TorchScript exporter has no rule
-    for it; a log/sqrt formula would lose precision near zero)."""
+    """asinh, exported as ``sign(x) * log(a + sqrt(a^2 + 1))`` with ``a = min(|x|, 1e18)``
+    (so that a^2 cannot overflow: inputs beyond 1e18 read as 1e18, asinh 42.1).
+    onnxruntime's ``Asinh`` kernel is scalar: on a 320-step window of 65 features it took
+    about 0.6 ms, half of a QUADFormer step; Log, Sqrt and the rest are vectorised. Within
+    2e-7 absolute of float32 ``asinh`` (the formula loses relative, not absolute, precision
+    near zero)."""
 
     @staticmethod
     def forward(ctx, x):
@@ -70,7 +74,12 @@ class _Asinh(torch.autograd.Function):
 
     @staticmethod
     def symbolic(g, x):
-        return g.op("Asinh", x)
+        def const(v):
+            return g.op("Constant", value_t=torch.tensor(v, dtype=torch.float32))
+
+        a = g.op("Min", g.op("Abs", x), const(1e18))
+        y = g.op("Log", g.op("Add", a, g.op("Sqrt", g.op("Add", g.op("Mul", a, a), const(1.0)))))
+        return g.op("Mul", g.op("Sign", x), y)
 
 
 class _Normalise(nn.Module):
