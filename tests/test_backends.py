@@ -113,8 +113,8 @@ def test_a_failed_tuning_unit_is_named_and_a_rerun_does_only_what_is_missing(dat
     assert "config modelI-exponential-ramp, seed 0, method quadformer" in msg
     for name, cfg in profile_configs(TINY):
         model_dir = model_dir_for(cache, cache / f"{name}-{dataset_key(cfg)}", 0, 0.0)
-        assert cached_model("cusum", 1.0, model_dir) is not None      # kept
-        assert cached_model("quadformer", 1.0, model_dir) is None
+        assert cached_model("cusum", 1.0, model_dir, BUDGET) is not None      # kept
+        assert cached_model("quadformer", 1.0, model_dir, BUDGET) is None
     res = run_benchmark(TINY, ["cusum"], tmp_path / "out", cache, progress=False, workers=2, label_fraction=0.0)
     assert [c["methods"]["cusum"]["model_from_cache"] for c in res["configs"]] == [True, True]
 
