@@ -62,6 +62,11 @@ from quadformer.detectors.windows import (AxisSymmetry, Normalizer, RawInputs, W
                                           input_features)
 from quadformer.estimator.schema import ATTACK_TYPES
 
+#: windows per network call when scoring on the CPU: a call over a few dozen windows keeps the
+#: attention's intermediate tensors in the processor's caches, where one over thousands
+#: allocates, and first touches, hundreds of megabytes (offline scoring about twice as fast,
+#: one thread; the CNN and LSTM gain nothing from it)
+CPU_SCORE_BATCH = 64
 CLASSES = ("none", *ATTACK_TYPES)   # the classifier's classes; a fitted model keeps its own (classes_)
 W_ANOMALY = (0.0, 0.5, 1.0)     # weights of the unsupervised statistic in the score
 
@@ -219,7 +224,10 @@ class QUADFormer(TorchCheckpoint, Detector):
         the windows whose tokens are given (``tokens=True``: (n, T, features))."""
         with torch.no_grad():
             xb = torch.from_numpy(np.ascontiguousarray(windows)).to(torch.device(self.device))
-            parts = last_step_parts(self.model_, xb, self._disc, tokens=tokens)
+            step = CPU_SCORE_BATCH if xb.device.type == "cpu" else max(1, len(xb))
+            chunks = [last_step_parts(self.model_, xb[i:i + step], self._disc, tokens=tokens)
+                      for i in range(0, len(xb), step)] or [last_step_parts(self.model_, xb, self._disc, tokens)]
+            parts = {k: torch.cat([c[k] for c in chunks]) for k in chunks[0]}
             return {k: (v if k == "type" else v.double()).cpu().numpy() for k, v in parts.items()}
 
     def score_windows(self, windows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
