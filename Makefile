@@ -5,6 +5,8 @@ VENV := .venv
 PIP := $(VENV)/bin/pip
 PY := $(VENV)/bin/python
 DEMO_OUT ?= runs/demo
+# test processes (pytest-xdist), each test file in one of them: one per core of CI's 2-core machine
+TEST_WORKERS ?= 2
 
 .PHONY: demo test install install-test clean
 
@@ -29,7 +31,7 @@ demo: $(VENV)/.installed
 	$(VENV)/bin/quadformer demo --out $(DEMO_OUT)
 
 test: $(VENV)/.installed-test
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 clean:
 	rm -rf $(VENV) runs build *.egg-info src/*.egg-info

@@ -255,6 +255,14 @@ def test_benchmark_stress_scores_the_tuned_detectors_on_stress_sets(dataset_dir,
     want = evaluate(f.flight_id.to_numpy(), f.t.to_numpy(), f.label.to_numpy(), s, s > det.threshold_)
     assert entry["methods"]["cusum"]["f1"] == want["f1"]
     assert entry["methods"]["cusum"]["event_recall"] == want["event_recall"]
+    # and at the false-alarm budget threshold chosen on the main run's validation flights
+    assert det.budget_threshold_ is not None
+    at_budget = evaluate(f.flight_id.to_numpy(), f.t.to_numpy(), f.label.to_numpy(), s, s > det.budget_threshold_,
+                         vus=False)
+    for k in ("event_recall", "false_alarms_per_hour", "f1", "delay_median_s"):
+        assert entry["methods"]["cusum"]["budget"][k] == at_budget[k]
+    assert set(pooled["budget"]) >= {"event_recall", "false_alarms_per_hour", "delay_median_s"}
+    assert "budget: event recall" in res.output
     html = (out / "report.html").read_text()
     assert "Stress evaluation" in html and (out / "stress.csv").exists()
     # per-type recall and type confusion for every method (non-classifiers predict "attack")

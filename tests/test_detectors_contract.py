@@ -89,12 +89,13 @@ def test_save_load_round_trip(method, data, tmp_path):
 def test_bad_input_is_named(method, data):
     train, y, test = data
     det = make(method).fit(train, y)
+    col = "res_gps_nis" if "res_gps_nis" in det.features_ else det.features_[0]
     bad = test.copy()
-    bad.loc[5, "res_gps_nis"] = np.nan
-    with pytest.raises(ValueError, match="non-finite residue in column res_gps_nis"):
+    bad.loc[5, col] = np.nan
+    with pytest.raises(ValueError, match=f"non-finite residue in column {col}"):
         det.decision_function(bad)
     with pytest.raises(ValueError, match="missing columns"):
-        det.decision_function(test.drop(columns=["res_gps_nis"]))
+        det.decision_function(test.drop(columns=[col]))
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -127,7 +128,7 @@ def test_stream_of_several_flights_equals_offline(method, data):
 
 def _nis(z, det):
     """A one-flight frame whose normalised NIS is z."""
-    return pd.DataFrame({"flight_id": 0, "t": np.arange(len(z)) / 10.0, "res_gps_nis": np.asarray(z) * det.nis_scale_})
+    return pd.DataFrame({"flight_id": 0, "t": np.arange(len(z)) / 10.0, "res_gps_nis": np.asarray(z) * det.scale_})
 
 
 Z = [2.0, 9.0, 14.0, 3.0, 30.0, 0.5, 0.0]
@@ -139,6 +140,34 @@ def test_cusum_hand_case(data):
     # S = max(0, S + z - b), b = 6 + 1 * sqrt(12) = 9.464102: by hand
     expected = [0.0, 0.0, 4.535898, 0.0, 20.535898, 11.571797, 2.107695]
     assert det.decision_function(_nis(Z, det)) == pytest.approx(expected, abs=1e-6)
+
+
+def test_velocity_reference_tests_hand_case(data):
+    train, y, _ = data
+    det = make("cusum-vref", drift=1.0).fit(train, y)
+    assert det.features_ == ["res_ref_vmean_x", "res_ref_vmean_y", "res_ref_vmean_z"] and det.scale_ > 0
+    # the statistic is the sum of squares of the three whitened components: split z*scale over them
+    v = np.sqrt(np.asarray(Z) * det.scale_ / 3.0)
+    frame = pd.DataFrame({"flight_id": 0, "t": np.arange(len(Z)) / 10.0, "res_ref_vmean_x": v,
+                          "res_ref_vmean_y": -v, "res_ref_vmean_z": v})
+    # S = max(0, S + z - b), b = 3 + 1 * sqrt(6) = 5.449490: by hand
+    expected = [0.0, 3.550510, 12.101021, 9.651531, 34.202041, 29.252551, 23.803062]
+    assert det.decision_function(frame) == pytest.approx(expected, abs=1e-6)
+    gate = make("chi2-vref").fit(train, y)
+    assert gate.decision_function(frame) == pytest.approx(np.asarray(Z) * det.scale_ / gate.scale_, rel=1e-12)
+
+
+def test_a_model_saved_with_the_former_scale_name_loads(data, tmp_path):
+    import json
+
+    train, y, test = data
+    det = make("cusum", drift=0.5).fit(train, y)
+    path = det.save(tmp_path / "cusum.json")
+    doc = json.loads(path.read_text())
+    text = json.dumps(doc).replace('"scale_"', '"nis_scale_"')     # as models were saved before
+    assert "nis_scale_" in text
+    path.write_text(text)
+    assert np.array_equal(load(path).decision_function(test), det.decision_function(test))
 
 
 def test_sprt_hand_case(data):

@@ -1,8 +1,13 @@
 """Classical residue detectors: chi-square gate, CUSUM, SPRT and Bayesian hypothesis testing.
 
-All work on the GPS innovations. Their nominal statistics are fitted on training flights:
-on the steps labelled clean when labels are given, otherwise robustly on all steps (the
-median of the NIS, which attacks on a minority of steps barely move).
+The paper's four (``chi2``, ``cusum``, ``sprt``, ``bht``) work on the GPS innovations: their
+statistic is the NIS, a chi-square of 6 dof when nominal. ``chi2-vref`` and ``cusum-vref`` are
+the gate and the CUSUM on a persistent residue instead (``estimator.reference``): the GPS
+velocity minus the GPS-free reference's, averaged over 10 s and whitened, a chi-square of 3 dof
+when nominal, which keeps a coordinated drift's evidence for as long as the drift lasts where
+the innovation fades within seconds. Nominal statistics are fitted on training flights: on
+the steps labelled clean when labels are given, otherwise robustly on all steps (the median,
+which attacks on a minority of steps barely move).
 
 The recursive ones (CUSUM, SPRT, BHT) share one implementation of the recursion for a
 whole batch of flights (offline) and for one flight step by step (online), so streaming
@@ -18,30 +23,50 @@ from scipy import stats
 from quadformer.detectors.base import Detector, check_residues, flight_slices
 from quadformer.detectors.registry import register
 from quadformer.detectors.streams import DetectorStream
-from quadformer.estimator.schema import NIS
+from quadformer.estimator.schema import NIS, columns
 
 DOF = 6
+#: the persistent velocity evidence: GPS velocity minus the GPS-free reference's, averaged over
+#: 10 s and whitened (x, y, z)
+VREF = tuple(columns("res_ref_vmean"))
 
 
-class _NominalNIS(Detector):
-    """Fits a scaled chi-square to the nominal GPS NIS: NIS / c ~ chi2(6)."""
+class _Nominal(Detector):
+    """Fits a scaled chi-square to a nominal statistic: stat / c ~ chi2(dof). The statistic is
+    the one input column (the GPS NIS), or the sum of squares of whitened input columns."""
+
+    #: the residue columns of the statistic, and its degrees of freedom when nominal
+    inputs: tuple[str, ...] = (NIS,)
+    dof: int = DOF
+
+    def _stat(self, values: np.ndarray) -> np.ndarray:
+        return values[:, 0] if values.shape[1] == 1 else np.einsum("ij,ij->i", values, values)
 
     def _fit_scale(self, X: pd.DataFrame, y: np.ndarray | None) -> None:
-        nis = check_residues(X, [NIS])[:, 0]
+        stat = self._stat(check_residues(X, list(self.inputs)))
         if y is not None and np.any(np.asarray(y) == 0):
-            nis = nis[np.asarray(y) == 0]
-        self.nis_scale_ = float(np.median(nis) / stats.chi2.median(DOF))
-        self.features_ = [NIS]
+            stat = stat[np.asarray(y) == 0]
+        self.scale_ = float(np.median(stat) / stats.chi2.median(self.dof))
+        self.features_ = list(self.inputs)
         self.fitted_ = True
 
     def _z(self, X: pd.DataFrame) -> np.ndarray:
-        """Per-step NIS normalised to the nominal chi-square (mean about 6)."""
+        """Per-step statistic normalised to the nominal chi-square (mean about ``dof``)."""
         self.check_fitted()
-        return check_residues(X, [NIS])[:, 0] / self.nis_scale_
+        return self.z_rows(check_residues(X, self.features_))
+
+    def z_rows(self, values: np.ndarray) -> np.ndarray:
+        """The normalised statistic of rows of the input columns (``features_``, in order)."""
+        return self._stat(values) / self.scale_
+
+    def load_state(self, state: dict) -> None:
+        # models saved before the statistic was general named its scale after the NIS
+        state = {("scale_" if k == "nis_scale_" else k): v for k, v in state.items()}
+        super().load_state(state)
 
 
 @register("chi2")
-class Chi2Gate(_NominalNIS):
+class Chi2Gate(_Nominal):
     """The innovation gate of PX4 EKF2 / ArduPilot EKF3 as a detector: the per-step NIS.
 
     The autopilots reject a sample whose test ratio exceeds a 5-sigma gate; here the NIS is
@@ -72,11 +97,11 @@ class PointwiseStream(DetectorStream):
     """The gate online: the normalised NIS of each step."""
 
     def _score(self, x):
-        return x[:, 0] / self.detector.nis_scale_, None
+        return self.detector.z_rows(x), None
 
 
-class _Recursive(_NominalNIS):
-    """A recursion over steps: ``state, score = step(state, z)`` with z the normalised NIS."""
+class _Recursive(_Nominal):
+    """A recursion over steps: ``state, score = step(state, z)`` with z the normalised statistic."""
 
     def _init(self, n: int) -> np.ndarray:
         return np.zeros(n)
@@ -121,7 +146,7 @@ class RecursiveStream(DetectorStream):
         self.state = detector._init(self.n)
 
     def _score(self, x):
-        self.state, s = self.detector._step(self.state, x[:, 0] / self.detector.nis_scale_)
+        self.state, s = self.detector._step(self.state, self.detector.z_rows(x))
         return s, None
 
 
@@ -129,8 +154,9 @@ class RecursiveStream(DetectorStream):
 class Cusum(_Recursive):
     """CUSUM on the NIS distance measure (Murguia and Ruths): S = max(0, S + z - b).
 
-    ``drift`` is b in units of the nominal NIS standard deviation above its mean
-    (b = 6 + drift * sqrt(12)); the alarm threshold on S is calibrated.
+    ``drift`` is b in units of the nominal statistic's standard deviation above its mean
+    (b = dof + drift * sqrt(2 dof): 6 + drift * sqrt(12) on the NIS); the alarm threshold on S
+    is calibrated.
     """
     param_grid = {"drift": [0.25, 0.5, 1.0, 2.0, 4.0]}
 
@@ -138,7 +164,7 @@ class Cusum(_Recursive):
         self.drift = drift
 
     def _step(self, state, z):
-        b = DOF + self.drift * np.sqrt(2 * DOF)
+        b = self.dof + self.drift * np.sqrt(2 * self.dof)
         s = np.maximum(0.0, state + z - b)
         return s, s
 
@@ -153,7 +179,7 @@ class _VarianceInflation(_Recursive):
 
     def _llr(self, z: np.ndarray) -> np.ndarray:
         s = self.inflation
-        return -DOF * np.log(s) + 0.5 * z * (1.0 - 1.0 / s**2)
+        return -self.dof * np.log(s) + 0.5 * z * (1.0 - 1.0 / s**2)
 
 
 @register("sprt")
@@ -203,3 +229,24 @@ class BHT(_VarianceInflation):
         logodds = np.log(prior) - np.log1p(-prior) + self._llr(z)
         logodds = np.clip(logodds, -50.0, 50.0)
         return logodds, logodds
+
+
+class _VelocityReference:
+    """The statistic: the chi-square of the 10-s mean GPS-minus-reference velocity (3 dof)."""
+
+    inputs = VREF
+    dof = 3
+
+
+@register("chi2-vref")
+class Chi2VRef(_VelocityReference, Chi2Gate):
+    """A velocity consistency gate: the whitened 10-s mean of GPS velocity minus the GPS-free
+    reference's (``res_ref_vmean``), squared and summed, normalised to its nominal chi-square
+    (3 dof). A coordinated drift, whose position the filter absorbs, keeps it raised for as
+    long as it lasts; a bias without velocity leaves it alone."""
+
+
+@register("cusum-vref")
+class CusumVRef(_VelocityReference, Cusum):
+    """CUSUM on the velocity consistency statistic of ``chi2-vref``: S = max(0, S + z - b),
+    b = 3 + drift * sqrt(6)."""

@@ -108,20 +108,31 @@ class StressPool:
     def results(self, rate: float) -> dict[str, dict[str, Any]]:
         out: dict[str, dict[str, Any]] = {}
         for (st, m), parts in self._parts.items():
-            fid, t, y, s, a, off, types = (np.concatenate(x) for x in zip(*parts))
+            fid, t, y, s, a, b, off, types = (np.concatenate(x) for x in zip(*parts))
             res = evaluate(fid, t, y, s, a, gps_rate_hz=rate, offsets=off)
             res["event_recall_by_type"] = event_recall_by_type(fid, y, a, types)
+            res["budget"] = _at_budget(fid, t, y, s, b, rate, off)
             res["configs"] = len(parts)
             out.setdefault(st, {})[m] = res
         return out
+
+
+def _at_budget(fid, t, y, s, alarms, rate, offsets) -> dict[str, Any] | None:
+    """The metrics at the false-alarm budget threshold (None for a detector without one)."""
+    if alarms is None or not len(alarms) or np.isnan(alarms).any():
+        return None
+    return evaluate(fid, t, y, s, alarms.astype(bool), gps_rate_hz=rate, offsets=offsets, vus=False)
 
 
 def score_stress(detectors: dict[str, Any], ds: Dataset, set_name: str, pool: StressPool | None = None
                  ) -> dict[str, dict[str, Any]]:
     """Every tuned detector (calibrated; ``threshold_`` from the main run's validation
     flights) on every flight of stress dataset ``ds``: per method, the metrics of
-    ``evaluation.metrics.evaluate`` (false alarms per flight-hour on its clean flights) and
-    the event recall per attack type. Adds the per-step arrays to ``pool``."""
+    ``evaluation.metrics.evaluate`` (false alarms per flight-hour on its clean flights), the
+    event recall per attack type, and under ``budget`` the same metrics at the detector's
+    false-alarm budget threshold (``budget_threshold_``, also chosen on the main run's
+    validation flights: at most the budget of alarms per clean flight-hour there). Adds the
+    per-step arrays to ``pool``."""
     f = ds.flights
     rate = ds.gps_rate_hz
     fid, t, y = f.flight_id.to_numpy(), f.t.to_numpy(), f.label.to_numpy()
@@ -134,7 +145,11 @@ def score_stress(detectors: dict[str, Any], ds: Dataset, set_name: str, pool: St
         alarms = s > det.threshold_
         res = evaluate(fid, t, y, s, alarms, gps_rate_hz=rate, offsets=offsets)
         res["event_recall_by_type"] = event_recall_by_type(fid, y, alarms, types)
+        budget = getattr(det, "budget_threshold_", None)
+        # NaN: no budget threshold (kept as an array so that every pooled part has the same fields)
+        at_budget = (s > budget).astype(float) if budget is not None else np.full(len(s), np.nan)
+        res["budget"] = _at_budget(fid, t, y, s, at_budget, rate, offsets)
         out[m] = res
         if pool is not None:
-            pool.add(set_name, m, fid, t, y, s, alarms, offsets, types, offset=offset)
+            pool.add(set_name, m, fid, t, y, s, alarms, at_budget, offsets, types, offset=offset)
     return out
