@@ -119,7 +119,7 @@ class StressPool:
 
 def _at_budget(fid, t, y, s, alarms, rate, offsets) -> dict[str, Any] | None:
     """The metrics at the false-alarm budget threshold (None for a detector without one)."""
-    if alarms is None or not len(alarms) or np.isnan(alarms).any():
+    if not len(alarms) or np.isnan(alarms).any():
         return None
     return evaluate(fid, t, y, s, alarms.astype(bool), gps_rate_hz=rate, offsets=offsets, vus=False)
 

@@ -48,28 +48,26 @@ class TwoBranchAttention(nn.Module):
         self.register_buffer("dist2", (pos[:, None] - pos[None, :]) ** 2, persistent=False)
 
     def forward(self, x: torch.Tensor, last_query: bool = False, last_row: bool = False):
-        """last_query: output only the last position (the final layer at scoring time);
-        last_row: return the associations of the last position only (B,H,1,W)."""
+        """last_row: return the associations of the last position only (B,H,1,W), all a causal
+        score needs; last_query (with last_row: the final layer at scoring time): output only
+        the last position, whose queries are then the only ones computed."""
         B, W, D = x.shape
-        if last_row:
-            # scoring: only the last row of the associations is needed, so the attention's
-            # output comes from the fused kernel (no (W, W) matrix kept) and the series of the
-            # last position is computed on its own; the same numbers to float rounding
-            if last_query:     # queries of the last position only
-                q = nn.functional.linear(x[:, -1:], self.qkv.weight[:D], self.qkv.bias[:D])
-                k, v = nn.functional.linear(x, self.qkv.weight[D:], self.qkv.bias[D:]).view(
-                    B, W, 2, self.h, self.dk).permute(2, 0, 3, 1, 4)
-                q = q.view(B, 1, self.h, self.dk).transpose(1, 2)
-            else:
-                q, k, v = self.qkv(x).view(B, W, 3, self.h, self.dk).permute(2, 0, 3, 1, 4)
-            z = nn.functional.scaled_dot_product_attention(q, k, v).transpose(1, 2).reshape(B, q.shape[2], D)
-            series = torch.softmax((q[:, :, -1:] * (1.0 / math.sqrt(self.dk))) @ k.transpose(-1, -2), dim=-1)
+        if last_query:
+            q = nn.functional.linear(x[:, -1:], self.qkv.weight[:D], self.qkv.bias[:D])
+            q = q.view(B, 1, self.h, self.dk).transpose(1, 2)
+            k, v = nn.functional.linear(x, self.qkv.weight[D:], self.qkv.bias[D:]).view(
+                B, W, 2, self.h, self.dk).permute(2, 0, 3, 1, 4)
         else:
             q, k, v = self.qkv(x).view(B, W, 3, self.h, self.dk).permute(2, 0, 3, 1, 4)
-            if last_query:
-                q = q[:, :, -1:]
-            series = torch.softmax(q @ k.transpose(-1, -2) / math.sqrt(self.dk), dim=-1)   # (B,H,W|1,W)
-            z = (series @ v).transpose(1, 2).reshape(B, q.shape[2], D)
+        if last_row:
+            # the attention's output from the fused kernel (no (W, W) matrix kept) and the
+            # series of the last position on its own: the same numbers to float rounding
+            z = nn.functional.scaled_dot_product_attention(q, k, v)
+            series = torch.softmax((q[:, :, -1:] * (1.0 / math.sqrt(self.dk))) @ k.transpose(-1, -2), dim=-1)
+        else:
+            series = torch.softmax(q @ k.transpose(-1, -2) / math.sqrt(self.dk), dim=-1)   # (B,H,W,W)
+            z = series @ v
+        z = z.transpose(1, 2).reshape(B, q.shape[2], D)
         if not self.use_prior:
             return self.out(z), series, None
         xs = x[:, -1:] if last_row else x
