@@ -157,6 +157,24 @@ def test_velocity_reference_tests_hand_case(data):
     assert gate.decision_function(frame) == pytest.approx(np.asarray(Z) * det.scale_ / gate.scale_, rel=1e-12)
 
 
+def test_reference_cusum_hand_case(data):
+    """``cusum-ref``: the statistic is the sum of squares of the whitened 5-s position change and
+    the whitened 10-s mean velocity difference (6 columns, 6 dof), the same CUSUM as ``cusum``."""
+    train, y, _ = data
+    det = make("cusum-ref", drift=1.0).fit(train, y)
+    assert det.features_ == ["res_ref_h5_px", "res_ref_h5_py", "res_ref_h5_pz",
+                             "res_ref_vmean_x", "res_ref_vmean_y", "res_ref_vmean_z"] and det.scale_ > 0
+    # z * scale split over the six columns, half of it in the position step, with mixed signs
+    v = np.sqrt(np.asarray(Z) * det.scale_ / 6.0)
+    frame = pd.DataFrame({"flight_id": 0, "t": np.arange(len(Z)) / 10.0,
+                          **{c: (-v if i % 2 else v) for i, c in enumerate(det.features_)}})
+    # the velocity test's columns alone would not give this: every column counts
+    assert det.decision_function(frame) == pytest.approx(
+        [0.0, 0.0, 4.535898, 0.0, 20.535898, 11.571797, 2.107695], abs=1e-6)   # b = 6 + sqrt(12), as cusum's case
+    frame[list(det.features_[:3])] = 0.0
+    assert det.decision_function(frame)[4] == pytest.approx(max(0.0, 15.0 - 9.464102), abs=1e-6)
+
+
 def test_a_model_saved_with_the_former_scale_name_loads(data, tmp_path):
     import json
 

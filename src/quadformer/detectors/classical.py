@@ -5,7 +5,9 @@ statistic is the NIS, a chi-square of 6 dof when nominal. ``chi2-vref`` and ``cu
 the gate and the CUSUM on a persistent residue instead (``estimator.reference``): the GPS
 velocity minus the GPS-free reference's, averaged over 10 s and whitened, a chi-square of 3 dof
 when nominal, which keeps a coordinated drift's evidence for as long as the drift lasts where
-the innovation fades within seconds. Nominal statistics are fitted on training flights: on
+the innovation fades within seconds. ``cusum-ref`` adds the position step: the change of GPS
+minus the reference's position over 5 s, whitened (3 more dof), which holds an offset's onset
+for 5 s where its size alone is within what the receiver's slowly wandering error can do. Nominal statistics are fitted on training flights: on
 the steps labelled clean when labels are given, otherwise robustly on all steps (the median,
 which attacks on a minority of steps barely move).
 
@@ -29,6 +31,9 @@ DOF = 6
 #: the persistent velocity evidence: GPS velocity minus the GPS-free reference's, averaged over
 #: 10 s and whitened (x, y, z)
 VREF = tuple(columns("res_ref_vmean"))
+#: the position step: the change over 5 s of GPS minus the GPS-free reference's position,
+#: whitened (x, y, z)
+PSTEP = tuple(c for c in columns("res_ref_h5") if c[-2] == "p")
 
 
 class _Nominal(Detector):
@@ -250,3 +255,16 @@ class Chi2VRef(_VelocityReference, Chi2Gate):
 class CusumVRef(_VelocityReference, Cusum):
     """CUSUM on the velocity consistency statistic of ``chi2-vref``: S = max(0, S + z - b),
     b = 3 + drift * sqrt(6)."""
+
+
+@register("cusum-ref")
+class CusumRef(Cusum):
+    """CUSUM on both reference consistency tests (6 dof): the position step, the change over
+    5 s of GPS minus the GPS-free reference's position (``res_ref_h5``, whitened by what the
+    receiver's own slow error and the reference's drift explain over 5 s), and the 10-s mean
+    velocity difference of ``chi2-vref``. An offset too small to stand out once the receiver's
+    error may have wandered as far stays in the first for 5 s after its onset; a drift too slow
+    for the innovation stays in the second. S = max(0, S + z - b), b = 6 + drift * sqrt(12)."""
+
+    inputs = PSTEP + VREF
+    dof = 6
