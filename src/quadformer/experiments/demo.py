@@ -29,7 +29,7 @@ CALIBRATION_CORES = 2
 COSTS = {
     "sim_step": 0.0045,
     "sim_flight_step": 0.000165,
-    "tune_statistic": 0.2,      # chi2, cusum, sprt, bht and the velocity tests (chi2-vref, cusum-vref)
+    "tune_statistic": 0.2,      # chi2, cusum, sprt, bht and the reference tests (chi2-vref, cusum-vref, cusum-ref)
     "tune_windows": 2.2,        # pca, svm
     "tune_network": 3.2,        # cnn, lstm (per method)
     "tune_quadformer": 21.0,    # quadformer and its ablations (training and the alarm-rule scorings)
