@@ -22,8 +22,9 @@ from quadformer.cli import app
 from quadformer.config import AttackConfig, SimConfig
 from quadformer.dataset import DatasetError, load_dataset, write_dataset
 from quadformer.evaluation.protocol import TrainingBudget
-from quadformer.experiments.cache import (cached_model, dataset_key, ensure_configs, model_dir_for,
-                                          simulate_dataset, tune_unit)
+from quadformer.detectors.classical import Cusum
+from quadformer.experiments.cache import (cached_model, dataset_key, detector_sources, detectors_digest,
+                                          ensure_configs, model_dir_for, simulate_dataset, tune_unit)
 from quadformer.experiments.detection import run_benchmark
 from quadformer.experiments.grid import PAPER_GRID, Profile, profile_configs
 from quadformer.experiments.pool import Backend, UnitError, run_jobs
@@ -253,3 +254,27 @@ def test_a_lock_left_by_a_dead_process_is_taken_over_and_a_live_one_is_waited_fo
             with exclusive(entry, poll_s=0.05, timeout_s=0.3):
                 pass
     assert not (tmp_path / "entry.lock").exists()
+
+
+def test_a_tuned_models_cache_key_covers_its_own_code_and_not_the_other_methods():
+    """A change to the CUSUM must not retrain the networks, nor the reverse; every method's key
+    covers the module defining it, what it imports from the detectors package and the residue
+    schema (a plugin defined outside the package is covered by its own file)."""
+    def names(method):
+        return {p.as_posix().split("/quadformer/", 1)[-1] for p in detector_sources(method)}
+
+    cusum, cnn, quad, pca = names("cusum"), names("cnn"), names("quadformer"), names("pca")
+    assert {"detectors/classical.py", "detectors/base.py", "estimator/schema.py"} <= cusum
+    assert not any(n.startswith("detectors/neural/") for n in cusum) and "detectors/pca.py" not in cusum
+    assert {"detectors/neural/detector.py", "detectors/neural/training.py", "detectors/windows.py",
+            "detectors/context.py"} <= cnn and "detectors/classical.py" not in cnn
+    assert {"detectors/neural/quadformer.py", "detectors/neural/quadformer_net.py",
+            "detectors/neural/training.py"} <= quad and "detectors/classical.py" not in quad
+    assert "detectors/neural/quadformer.py" not in cnn and "detectors/pca.py" in pca
+    assert detectors_digest("cusum") == detectors_digest("bht") != detectors_digest("cnn") != detectors_digest("quadformer")
+
+    class PluginCusum(Cusum):      # a user's detector, defined outside the package
+        pass
+
+    assert Path(__file__).resolve() in {p.resolve() for p in detector_sources(PluginCusum)}
+    assert "detectors/classical.py" in names(PluginCusum)

@@ -7,7 +7,9 @@
   ``CACHE/models/<dataset>-s<seed>-l<fraction>/<method>-b<budget>-<code>[-t<training budget>].{json,pt,tuned.json}``
   (a reduced training budget, ``protocol.TrainingBudget``, has its own entries).
   The detection and resilience benchmarks share them instead of training twice; a change
-  of the detector code invalidates them.
+  of a method's code invalidates its entries: the hash covers the module that defines the
+  method, the modules of ``quadformer.detectors`` it imports (transitively) and the residue
+  schema, so a change to the CUSUM leaves the networks' tuned models valid, and the reverse.
 
 Several workers, of one run or of several runs sharing a cache directory (``--cache`` on
 shared storage), may ask for the same entry at once:
@@ -23,9 +25,11 @@ shared storage), may ask for the same entry at once:
 
 from __future__ import annotations
 
+import ast
 import contextlib
 import functools
 import hashlib
+import importlib.util
 import inspect
 import json
 import os
@@ -164,16 +168,60 @@ def simulate_unit(parts: list[tuple[SimConfig, Any]]) -> list:
     return simulate_parts(parts)
 
 
-@functools.lru_cache(maxsize=1)
-def detectors_digest() -> str:
-    """Hash of the detector code and the residue schema: a tuned model cached by an older
-    version is not reused."""
-    import quadformer.detectors as pkg
+_PACKAGE = "quadformer.detectors"
+
+
+def _module_file(name: str) -> Path | None:
+    try:
+        spec = importlib.util.find_spec(name)
+    except (ImportError, ValueError):      # a name inside a module, not a module
+        return None
+    return Path(spec.origin) if spec is not None and spec.origin not in (None, "built-in", "frozen") else None
+
+
+def _detector_imports(path: Path) -> set[str]:
+    """Modules of ``quadformer.detectors`` the source file ``path`` imports (a name imported
+    from a package counts as its submodule when it is one)."""
+    ours = lambda m: m == _PACKAGE or m.startswith(_PACKAGE + ".")  # noqa: E731
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names if ours(a.name))
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0 and ours(node.module):
+            package = (_module_file(node.module) or Path()).name == "__init__.py"
+            subs = [m for m in (f"{node.module}.{a.name}" for a in node.names) if package and _module_file(m)]
+            found.update(subs if subs else [node.module])
+    return found
+
+
+def detector_sources(method: str | type) -> list[Path]:
+    """The source files a tuned model of ``method`` (a registered name or a detector class)
+    depends on, sorted: the module that defines its class (a plugin's too) and those of its
+    bases in this package, the modules of ``quadformer.detectors`` they import (transitively)
+    and the residue schema."""
+    from quadformer.detectors import get
     from quadformer.estimator import schema
 
+    cls = get(method) if isinstance(method, str) else method
+    todo = {cls.__module__} | {c.__module__ for c in inspect.getmro(cls) if c.__module__.startswith("quadformer")}
+    files: dict[str, Path] = {}
+    while todo:
+        name = todo.pop()
+        path = _module_file(name)
+        if name in files or path is None:
+            continue
+        files[name] = path
+        todo |= _detector_imports(path) - set(files)
+    return sorted({*files.values(), Path(schema.__file__)})
+
+
+@functools.lru_cache(maxsize=None)
+def detectors_digest(method: str) -> str:
+    """Hash of ``detector_sources(method)``: a tuned model cached by an older version of that
+    code is not reused."""
     h = hashlib.sha256()
-    for f in sorted(Path(pkg.__file__).parent.rglob("*.py")) + [Path(schema.__file__)]:
-        h.update(f.read_bytes())
+    for path in detector_sources(method):
+        h.update(path.read_bytes())
     return h.hexdigest()[:12]
 
 
@@ -211,7 +259,7 @@ def tuned_model(method: str, train: pd.DataFrame, y_train, val: pd.DataFrame, ra
 
 
 def _stem(method: str, budget_per_hour: float, budget: TrainingBudget | None = None) -> str:
-    stem = f"{method}-b{budget_per_hour:g}-{detectors_digest()}"
+    stem = f"{method}-b{budget_per_hour:g}-{detectors_digest(method)}"
     return stem if budget is None else f"{stem}-t{budget.name}{budget.fraction:g}"
 
 
