@@ -264,7 +264,11 @@ class CusumRef(Cusum):
     receiver's own slow error and the reference's drift explain over 5 s), and the 10-s mean
     velocity difference of ``chi2-vref``. An offset too small to stand out once the receiver's
     error may have wandered as far stays in the first for 5 s after its onset; a drift too slow
-    for the innovation stays in the second. S = max(0, S + z - b), b = 6 + drift * sqrt(12)."""
+    for the innovation stays in the second. S = max(0, S + z - b), b = 6 + drift * sqrt(12).
+
+    The grid reaches larger drifts than ``cusum``'s: the position step holds each excursion for
+    5 s, clean ones too, and the best drift on validation was the largest of ``cusum``'s grid."""
+    param_grid = {"drift": [0.5, 1.0, 2.0, 4.0, 8.0, 16.0]}
 
     inputs = PSTEP + VREF
     dof = 6
