@@ -7,9 +7,10 @@ velocity minus the GPS-free reference's, averaged over 10 s and whitened, a chi-
 when nominal, which keeps a coordinated drift's evidence for as long as the drift lasts where
 the innovation fades within seconds. ``cusum-ref`` adds the position step: the change of GPS
 minus the reference's position over 5 s, whitened (3 more dof), which holds an offset's onset
-for 5 s where its size alone is within what the receiver's slowly wandering error can do. Nominal statistics are fitted on training flights: on
-the steps labelled clean when labels are given, otherwise robustly on all steps (the median,
-which attacks on a minority of steps barely move).
+for 5 s where its size alone is within what the receiver's slowly wandering error can do.
+Nominal statistics are fitted on training flights: on the steps labelled clean when labels are
+given, otherwise robustly on all steps (the median, which attacks on a minority of steps barely
+move).
 
 The recursive ones (CUSUM, SPRT, BHT) share one implementation of the recursion for a
 whole batch of flights (offline) and for one flight step by step (online), so streaming
@@ -25,7 +26,7 @@ from scipy import stats
 from quadformer.detectors.base import Detector, check_residues, flight_slices
 from quadformer.detectors.registry import register
 from quadformer.detectors.streams import DetectorStream
-from quadformer.estimator.schema import NIS, columns
+from quadformer.estimator.schema import NIS, XYZ, columns
 
 DOF = 6
 #: the persistent velocity evidence: GPS velocity minus the GPS-free reference's, averaged over
@@ -33,7 +34,7 @@ DOF = 6
 VREF = tuple(columns("res_ref_vmean"))
 #: the position step: the change over 5 s of GPS minus the GPS-free reference's position,
 #: whitened (x, y, z)
-PSTEP = tuple(c for c in columns("res_ref_h5") if c[-2] == "p")
+PSTEP = tuple(f"res_ref_h5_p{axis}" for axis in XYZ)
 
 
 class _Nominal(Detector):

@@ -208,7 +208,7 @@ def detector_sources(method: str | type) -> list[Path]:
     while todo:
         name = todo.pop()
         path = _module_file(name)
-        if name in files or path is None:
+        if path is None:
             continue
         files[name] = path
         todo |= _detector_imports(path) - set(files)
