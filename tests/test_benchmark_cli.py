@@ -11,6 +11,7 @@ from typer.testing import CliRunner
 
 from quadformer.cli import app
 from quadformer.detectors import load
+from quadformer.estimator.schema import ATTACK_TYPES
 from quadformer.dataset import write_dataset
 from quadformer.experiments.cache import dataset_key
 from quadformer.experiments.grid import PROFILES, profile_configs
@@ -308,7 +309,21 @@ def test_benchmark_mixed_profile_reports_types(mixed_dir, tmp_path):
         assert sum(v["windows"] for v in c["methods"]["chi2"]["event_recall_by_type"].values()) >= len(test)
     recall = pd.read_csv(out / "event_recall_by_type.csv", index_col=0)
     assert list(recall.index) == ["chi2", "cusum"] and set(recall.columns) == set(test.attack_type)
-    assert "attack type predicted at the first alarm" in (out / "report.html").read_text()
+    # every detector's alarms typed by shape, at the first and the last step of each alarm run
+    for c in r["configs"]:
+        for m in ("chi2", "cusum"):
+            got = c["methods"][m]
+            assert set(got["type_confusion"]) == set(got["type_confusion_shape"]) == \
+                set(got["type_confusion_shape_end"])
+            assert sum(map(sum, (row.values() for row in got["type_confusion_shape"].values()))) == \
+                sum(map(sum, (row.values() for row in got["type_confusion"].values())))
+            assert all(set(row) <= set(ATTACK_TYPES) for row in got["type_confusion_shape"].values())
+    html = (out / "report.html").read_text()
+    assert "Attack typing at alarms" in html and "shape typer at the first alarm" in html
+    typing = pd.read_csv(out / "typing.csv", index_col=0)
+    assert list(typing.index) == ["chi2", "cusum"]
+    assert list(typing.columns) == ["shape typer at the first alarm", "shape typer at the last alarm step"]
+    assert "Attack type right at alarm runs" in res.output
 
 
 def test_benchmark_over_seeds_keeps_each_run_and_the_spread(dataset_dir, tmp_path):

@@ -17,6 +17,9 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
 
 
 _RUNTIME_HELP = "torch (the saved model) or onnx (a graph written by `quadformer export`, scored with onnxruntime)."
+_TYPING_HELP = ("Where alerts take their attack type from: shape (each attack shape fitted to GPS minus the "
+                "GPS-free reference, no labels; where the data has those residues) or detector (its own "
+                "classifier; 'attack' from a detector that does not classify).")
 _FILTER_HELP = ("The replayed filter's tuning: ekf2 (PX4 EKF2's default noise, the receiver's own accuracy), or "
                 "a simulated dataset directory (its filter's tuning, so that the residues have the scale of that "
                 "data's).")
@@ -220,7 +223,17 @@ def _print_tables(results: dict) -> None:
         flat = df.copy()
         flat.columns = [f"{n[:3]}-{a.split('(')[1].rstrip(')')}-{m}" for n, a, m in df.columns]
         typer.echo(flat.to_string(float_format=lambda v: f"{v:.2f}"))
+    _print_typing(results)
     _print_stress(results)
+
+
+def _print_typing(results: dict) -> None:
+    from quadformer.report.detection import typing_table
+
+    df = typing_table(results)
+    if df is not None:
+        typer.echo("\nAttack type right at alarm runs on attacked steps (right/runs; shape: no labels)")
+        typer.echo(df.to_string())
 
 
 def _print_stress(results: dict) -> None:
@@ -246,6 +259,13 @@ def _print_seeds(results: dict) -> None:
     typer.echo(f"\nPoint-wise F1 on test flights over seeds {', '.join(map(str, results['seeds']))}: "
                "mean ± std [min, max]")
     typer.echo(seeds_table(results, "f1").to_string())
+
+
+def _typing(typing: str) -> None:
+    from quadformer.detectors.attack_types import TYPINGS
+
+    if typing not in TYPINGS:
+        _fail(f"typing: unknown {typing!r}; choose from {', '.join(TYPINGS)}")
 
 
 def _seed_list(seeds: Optional[int], seed_list: Optional[str], seed: int) -> Optional[list[int]]:
@@ -377,15 +397,18 @@ def evaluate(
     out: Path = typer.Option(..., "--out", help="Output directory."),
     test_only: bool = typer.Option(False, help="Score only the test flights of the split the model was fit with."),
     runtime: str = typer.Option("torch", help=_RUNTIME_HELP),
+    typing: str = typer.Option("shape", help=_TYPING_HELP),
 ) -> None:
     """Score a dataset with a fitted detector; metrics when it has labels."""
     import numpy as np
 
     from quadformer.dataset import DatasetError, load_dataset
     from quadformer.detectors import alerts_from_scores, write_alerts
+    from quadformer.detectors.attack_types import alert_typer
     from quadformer.evaluation.metrics import evaluate as metrics
     from quadformer.io import atomic_path, write_json
 
+    _typing(typing)
     det = _load_model(model, runtime)
     try:
         ds = load_dataset(data)
@@ -413,7 +436,7 @@ def evaluate(
                                  gps_rate_hz=ds.gps_rate_hz, offsets=offsets)
     with atomic_path(out / "scores.parquet") as tmp:
         table.to_parquet(tmp, index=False)
-    alerts = alerts_from_scores(f, s, det)
+    alerts = alerts_from_scores(f, s, det, typer=alert_typer(f, typing))
     write_alerts(alerts, out / "alerts.csv")
     res["alerts"] = len(alerts)
     write_json(out / "results.json", res)
@@ -601,6 +624,7 @@ def detect(
     gps_rate: Optional[float] = typer.Option(None, help="At most this many fixes per second are fused (Hz; "
                                              "default 10, or the matched simulation's)."),
     min_segment: float = typer.Option(3.0, help="Seconds of GPS a segment needs to be replayed."),
+    typing: str = typer.Option("shape", help=_TYPING_HELP),
     quiet: bool = typer.Option(False, help="No progress bar."),
 ) -> None:
     """Detect GPS spoofing in flight logs: per-step scores, alerts (printed and CSV) and a report per log."""
@@ -618,6 +642,7 @@ def detect(
         _fail(f"{model}: the detector has no alarm threshold; write it with `quadformer fit`")
     if residues not in ("ekf", "autopilot"):
         _fail(f"residues: unknown source {residues!r}; choose from ekf, autopilot")
+    _typing(typing)
     config = _replay_config(sensors, imu_rate, gps_rate, min_segment, filter, det)
     paths = _log_paths(logs, format)
     set_threads(1)
@@ -633,7 +658,7 @@ def detect(
             name = f"{path.parent.name}-{name}" if not name.startswith(path.parent.name) else f"{name}-1"
         used.add(name)
         try:
-            res = detect_log(path, det, residues, config, format=format)
+            res = detect_log(path, det, residues, config, format=format, typing=typing)
         except NothingToScore as e:                      # readable, but no GPS or too short: say so
             with atomic_dir(out / name, overwrite=True) as tmp:
                 write_unscored_report(e.log, str(e), tmp)

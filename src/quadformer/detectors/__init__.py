@@ -5,6 +5,7 @@ detectors exported as ONNX graphs and scored with onnxruntime."""
 from quadformer.detectors import classical, pca, svm  # noqa: F401  (registration)
 from quadformer.detectors import neural  # noqa: F401  (registration)
 from quadformer.detectors.alarms import Alert, alerts_frame, alerts_from_scores, runs, write_alerts
+from quadformer.detectors.attack_types import ShapeTyper
 from quadformer.detectors.base import Detector, NotFittedError, flight_slices
 from quadformer.detectors.export import OnnxDetector, export_onnx, load_model
 from quadformer.detectors.registry import available, defaults, get, load, make, register

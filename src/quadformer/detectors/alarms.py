@@ -2,13 +2,14 @@
 
 One alert per run of consecutive alarmed steps of a flight: when it was raised, the
 estimated onset of the attack (from the detector's onset criterion where it has one, else
-the alarm time), the attack type it predicts (where it classifies, else ``attack``), the
-peak score during the run and when the run ended (``None`` while still alarmed at the end
-of the data).
+the alarm time), its attack type (from a typer such as ``attack_types.ShapeTyper`` where
+one is given, else from the detector where it classifies, else ``attack``), the peak score
+during the run and when the run ended (``None`` while still alarmed at the end of the data).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -55,10 +56,14 @@ class Alert:
 
 
 def alerts_from_scores(X: pd.DataFrame, scores: np.ndarray, detector=None, *,
-                       threshold: float | None = None) -> list[Alert]:
+                       threshold: float | None = None,
+                       typer: Callable[[pd.DataFrame, np.ndarray], np.ndarray] | None = None) -> list[Alert]:
     """Alerts of the flights in X (rows grouped by ``flight_id``, time ``t``) for per-step
     ``scores``, under the detector's alarm rule (``score > detector.threshold_``), or under
-    ``threshold`` for scores that come without a detector."""
+    ``threshold`` for scores that come without a detector.
+
+    The attack type of an alert is ``typer(X, rows)`` at its first row when a typer is given
+    (e.g. ``ShapeTyper().type_rows``), else the detector's own classifier's, else ``attack``."""
     scores = np.asarray(scores, dtype=float)
     if len(scores) != len(X):
         raise ValueError(f"{len(scores)} scores for {len(X)} rows")
@@ -70,18 +75,24 @@ def alerts_from_scores(X: pd.DataFrame, scores: np.ndarray, detector=None, *,
     onsets: dict[tuple[Any, float], float] = {}
     if detector is not None and hasattr(detector, "onset_times"):
         onsets = {(fid, ta): to for fid, ta, to in detector.onset_times(X, alarms)}
-    types = detector.predict_type(X) if detector is not None and hasattr(detector, "predict_type") else None
     t = X["t"].to_numpy(dtype=float)
+    found = [(fid, idx, s, e) for fid, idx in flight_slices(X) for s, e in runs(alarms[idx])]
+    starts = np.array([idx[s] for _, idx, s, _ in found], dtype=int)
+    if typer is not None:
+        types = typer(X, starts)
+    elif detector is not None and hasattr(detector, "predict_type"):
+        types = detector.predict_type(X)[starts]
+    else:
+        types = np.full(len(found), "attack", dtype=object)
     out = []
-    for fid, idx in flight_slices(X):
-        for s, e in runs(alarms[idx]):
-            t0 = float(t[idx[s]])
-            out.append(Alert(
-                flight_id=fid.item() if hasattr(fid, "item") else fid, start_s=t0,
-                onset_s=float(onsets.get((fid, t0), t0)),
-                attack_type=str(types[idx[s]]) if types is not None else "attack",
-                score=float(scores[idx[s:e]].max()),
-                end_s=float(t[idx[e]]) if e < len(idx) else None))
+    for (fid, idx, s, e), kind in zip(found, types):
+        t0 = float(t[idx[s]])
+        out.append(Alert(
+            flight_id=fid.item() if hasattr(fid, "item") else fid, start_s=t0,
+            onset_s=float(onsets.get((fid, t0), t0)),
+            attack_type=str(kind),
+            score=float(scores[idx[s:e]].max()),
+            end_s=float(t[idx[e]]) if e < len(idx) else None))
     return out
 
 

@@ -50,6 +50,9 @@ from quadformer.estimator.schema import ATTACK_TYPES, columns
 TYPING_COLUMNS = ["t", *columns("res_ref_d", "res_ref_age", "gps_vel")]
 #: the type given where the typer cannot tell (too few samples, non-finite inputs, no columns)
 UNTYPED = "attack"
+#: where alerts take their type from: the shape typer (where the rows carry its columns; else
+#: as ``detector``), or the detector's own classifier (``attack`` from one that does not classify)
+TYPINGS = ("shape", "detector")
 
 
 @dataclass(frozen=True)
@@ -107,20 +110,21 @@ class ShapeTyper:
         steps = np.diff(t, prepend=t[:1])[:, None]
         return FlightShapes(t, d, g["res_ref_age"].to_numpy(dtype=float), vel, np.cumsum(vel * steps, 0))
 
-    def type_rows(self, X: pd.DataFrame, rows: np.ndarray) -> np.ndarray:
-        """The type at each of ``rows`` (positions in X), each from its flight up to that row."""
+    def type_rows(self, X: pd.DataFrame, rows: np.ndarray, memo: dict[int, str] | None = None) -> np.ndarray:
+        """The type at each of ``rows`` (positions in X), each from its flight up to that row.
+        ``memo``: row -> type found before on the same X, read and filled."""
         rows = np.asarray(rows, dtype=int)
-        out = np.full(len(rows), UNTYPED, dtype=object)
-        if len(rows) == 0:
-            return out
-        for _, idx in flight_slices(X):
-            pos = np.searchsorted(idx, rows)
-            mine = np.flatnonzero((pos < len(idx)) & (idx[np.minimum(pos, len(idx) - 1)] == rows))
-            if len(mine):
-                f = self.prepare(X.iloc[idx])
-                for j in mine:
-                    out[j] = self.type_at(f, int(pos[j]))[0]
-        return out
+        memo = {} if memo is None else memo
+        todo = np.unique(rows[[int(r) not in memo for r in rows]]) if len(rows) else rows
+        if len(todo):
+            for _, idx in flight_slices(X):
+                pos = np.searchsorted(idx, todo)
+                mine = np.flatnonzero((pos < len(idx)) & (idx[np.minimum(pos, len(idx) - 1)] == todo))
+                if len(mine):
+                    f = self.prepare(X.iloc[idx])
+                    for j in mine:
+                        memo[int(todo[j])] = self.type_at(f, int(pos[j]))[0]
+        return np.array([memo.get(int(r), UNTYPED) for r in rows], dtype=object)
 
     def type_at(self, f: FlightShapes, k: int) -> tuple[str, dict[str, float]]:
         """(type, cost of each kind) at step k of a flight; ``UNTYPED`` and no costs where the
@@ -164,10 +168,22 @@ class ShapeTyper:
             costs["replay"] = min(fixed(np.clip(rows - int(round(dly / dt)), 0, None), on)
                                   for dly in self.delays) + 5 * pen
         if "freeze" in self.kinds:
-            # the fix held is the last honest one, the step before the onset
-            costs["freeze"] = min(fixed(np.full(n, max(k0 + o - 1, 0)), on[i:i + 1])
-                                  for i, o in enumerate(onsets)) + 4 * pen
+            # the fix held is the last honest one, the step before each onset
+            held = np.maximum(k0 + onsets - 1, 0)
+            T = np.concatenate([f.pos[held][:, None] - f.pos[rows][None], f.vel[held][:, None] - f.vel[rows][None]], -1)
+            costs["freeze"] = _best(Yw[None] - on[..., None] * T * W, on, zero, W) + 4 * pen
         return min(costs, key=costs.get), costs
+
+
+def alert_typer(X: pd.DataFrame, typing: str = "shape"):
+    """The ``typer`` argument of ``alerts_from_scores`` for rows X under ``typing`` (``TYPINGS``):
+    a ``ShapeTyper``'s ``type_rows`` where typing is ``shape`` and X carries its columns, else
+    None (the detector's own types)."""
+    if typing not in TYPINGS:
+        raise ValueError(f"typing: unknown {typing!r}; choose from {', '.join(TYPINGS)}")
+    if typing == "shape" and all(c in X.columns for c in TYPING_COLUMNS):
+        return ShapeTyper().type_rows
+    return None
 
 
 def _best(Yw: np.ndarray, dp: np.ndarray, dv: np.ndarray, W: np.ndarray) -> float:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -20,8 +21,8 @@ import numpy as np
 import pandas as pd
 
 from quadformer.dataset import Dataset, load_dataset
-from quadformer.detectors import alerts_frame, alerts_from_scores, get, runs
-from quadformer.detectors.alarms import run_starts
+from quadformer.detectors import alerts_frame, alerts_from_scores, flight_slices, get, runs
+from quadformer.detectors.attack_types import TYPING_COLUMNS, ShapeTyper
 from quadformer.evaluation.metrics import bootstrap_f1, evaluate, event_recall_by_type
 from quadformer.evaluation.protocol import TrainingBudget, split_flights
 from quadformer.experiments.cache import check_device, ensure_configs, ensure_tuned, model_dir_for, tuned_model
@@ -56,6 +57,9 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
     scores = test[["flight_id", "t", "label"]].copy()
     out: dict[str, Any] = {}
     alerts: list[pd.DataFrame] = []
+    typer = ShapeTyper()
+    typed: dict[int, str] = {}       # the typer's type of a test row, shared by the methods
+    typable = all(c in test.columns for c in TYPING_COLUMNS)
     for m in methods:
         t0 = time.perf_counter()
         tuned = tuned_model(m, parts.train, parts.y_train, parts.val, rate, budget_per_hour, model_dir, device=device,
@@ -68,7 +72,7 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
         alarms = s > det.threshold_
         res = evaluate(*args, alarms, gps_rate_hz=rate, offsets=offsets)
         at_budget = evaluate(*args, s > det.budget_threshold_, gps_rate_hz=rate, offsets=offsets, vus=False)
-        res.update(onset_and_types(det, test, alarms))
+        res.update(onset_and_types(det, test, alarms, typer, typed))
         res["event_recall_by_type"] = event_recall_by_type(args[0], args[2], alarms, true_types)
         ci = bootstrap_f1(args[0], args[2], alarms, n_boot=N_BOOTSTRAP, seed=seed)
         res["f1_ci95"] = list(ci) if ci is not None else None
@@ -85,7 +89,8 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
                 out[m]["tune_seconds"] = unit["seconds"]
         scores[f"score_{m}"] = s
         scores[f"alarm_{m}"] = alarms.astype(np.int8)
-        alerts.append(alerts_frame(alerts_from_scores(test, s, det)).assign(method=m))
+        alerts.append(alerts_frame(alerts_from_scores(test, s, det, typer=partial(typer.type_rows, memo=typed)
+                                                      if typable else None)).assign(method=m))
     split = {"train": len(sp.train), "val": len(sp.val), "test": len(sp.test), "labelled": len(sp.labelled)}
     return {"split": split, "methods": out, "alerts": pd.concat(alerts, ignore_index=True) if alerts else None}, scores
 
@@ -98,11 +103,16 @@ def training_budget_doc(budget: TrainingBudget | None, methods: list[str]) -> di
     return {**budget.describe(), "per_method": {m: budget.fixed(m) for m in methods}}
 
 
-def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray) -> dict[str, Any]:
+def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray,
+                    typer: ShapeTyper | None = None, typed: dict[int, str] | None = None) -> dict[str, Any]:
     """For detectors that estimate onsets: onset error of each detected window (estimated
-    minus true onset, s). For every detector: a confusion count of the type predicted at the
-    first alarm of each alarm run against the true type there (``none`` for a false alarm);
-    a detector that does not classify predicts ``attack``."""
+    minus true onset, s). Confusion counts of the attack type at each alarm run against the
+    true type at its first alarm (``none`` for a false alarm): ``type_confusion``, the
+    detector's own type at the first alarm (``attack`` from a detector that does not
+    classify); with a ``typer`` (and the columns it reads), the typer's type at the first
+    alarm (``type_confusion_shape``) and at the run's last alarm step, the alert's type
+    revised as the alarm goes on (``type_confusion_shape_end``). ``typed``: row -> type
+    already found for these rows (shared between detectors scored on the same flights)."""
     out: dict[str, Any] = {}
     if hasattr(det, "onset_times"):
         # attack windows (first and last attacked times) per flight, computed once
@@ -116,15 +126,34 @@ def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray) -> dict[str, An
             errors += [t_onset - s0 for s0, e0 in windows.get(fid, []) if s0 <= t_alarm <= e0]
         out["onset_error_median_s"] = float(np.median(errors)) if errors else None
         out["onset_error_p95_s"] = float(np.percentile(np.abs(errors), 95)) if errors else None
-    pred = det.predict_type(test) if hasattr(det, "predict_type") else np.full(len(test), "attack", dtype=object)
     true = np.where(test.label.to_numpy() == 1, test.attack_type.astype(str).to_numpy(), "none")
-    first = run_starts(test, alarms)
-    conf: dict[str, dict[str, int]] = {}
-    for tt, pp in zip(true[first], pred[first]):
-        conf.setdefault(tt, {}).setdefault(str(pp), 0)
-        conf[tt][str(pp)] += 1
-    out["type_confusion"] = conf
+    first, last = alarm_runs(test, alarms)
+    pred = det.predict_type(test) if hasattr(det, "predict_type") else np.full(len(test), "attack", dtype=object)
+    out["type_confusion"] = confusion(true[first], pred[first])
+    if typer is not None and all(c in test.columns for c in TYPING_COLUMNS):
+        out["type_confusion_shape"] = confusion(true[first], typer.type_rows(test, first, typed))
+        out["type_confusion_shape_end"] = confusion(true[first], typer.type_rows(test, last, typed))
     return out
+
+
+def alarm_runs(X: pd.DataFrame, alarms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Row positions of the first and of the last step of each alarm run, flight by flight."""
+    first: list[int] = []
+    last: list[int] = []
+    for _, idx in flight_slices(X):
+        for s, e in runs(np.asarray(alarms, dtype=bool)[idx]):
+            first.append(int(idx[s]))
+            last.append(int(idx[e - 1]))
+    return np.array(first, dtype=int), np.array(last, dtype=int)
+
+
+def confusion(true, pred) -> dict[str, dict[str, int]]:
+    """Counts {true type: {predicted type: n}}."""
+    conf: dict[str, dict[str, int]] = {}
+    for tt, pp in zip(true, pred):
+        row = conf.setdefault(str(tt), {})
+        row[str(pp)] = row.get(str(pp), 0) + 1
+    return conf
 
 
 def run_benchmark(profile: str | Profile, methods: list[str], out: Path, cache_dir: Path,

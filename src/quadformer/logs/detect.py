@@ -78,9 +78,12 @@ def log_rows(log: FlightLog, residues: str = "ekf", config: FilterConfig = Filte
 
 
 def detect_log(log: FlightLog | str | Path, detector, residues: str = "ekf",
-               config: FilterConfig = FilterConfig(), format: str | None = None) -> LogDetection:
-    """Scores, alarms and alerts of a calibrated ``detector`` on every segment of ``log``."""
+               config: FilterConfig = FilterConfig(), format: str | None = None,
+               typing: str = "shape") -> LogDetection:
+    """Scores, alarms and alerts of a calibrated ``detector`` on every segment of ``log``;
+    ``typing``: where the alerts' attack types come from (``detectors.attack_types.TYPINGS``)."""
     from quadformer.detectors import alerts_from_scores
+    from quadformer.detectors.attack_types import alert_typer
 
     if not isinstance(log, FlightLog):
         log = read_log(log, format=format)
@@ -103,7 +106,7 @@ def detect_log(log: FlightLog | str | Path, detector, residues: str = "ekf",
               f"{flights[0].sensors if residues == 'ekf' else 'gps+imu+mag+baro'})")
     scores = detector.decision_function(rows)
     alarms = scores > detector.threshold_
-    alerts = alerts_from_scores(rows, scores, detector)
+    alerts = alerts_from_scores(rows, scores, detector, typer=alert_typer(rows, typing))
     return LogDetection(log, residues, rows, scores, alarms, alerts, flights[0].sensors, detector, notes)
 
 

@@ -134,11 +134,21 @@ def ablation_table(results: dict[str, Any]) -> pd.DataFrame | None:
     return df
 
 
-def confusion_table(results: dict[str, Any], method: str) -> pd.DataFrame | None:
+#: the attack-type confusions a run records per method (``experiments.detection.onset_and_types``)
+TYPE_CONFUSIONS = {
+    "type_confusion": "its own type at the first alarm",
+    "type_confusion_shape": "shape typer at the first alarm",
+    "type_confusion_shape_end": "shape typer at the last alarm step",
+}
+
+
+def confusion_table(results: dict[str, Any], method: str, key: str = "type_confusion") -> pd.DataFrame | None:
+    """Counts of true (rows) against predicted (columns) attack types at alarm runs, pooled over
+    the configurations; ``key``: one of ``TYPE_CONFUSIONS``."""
     total: dict[str, dict[str, int]] = {}
     found = False
     for c in results["configs"]:
-        conf = c["methods"].get(method, {}).get("type_confusion")
+        conf = c["methods"].get(method, {}).get(key)
         if conf is None:
             continue
         found = True
@@ -149,6 +159,30 @@ def confusion_table(results: dict[str, Any], method: str) -> pd.DataFrame | None
     if not found:
         return None
     return pd.DataFrame(total).T.fillna(0).astype(int)
+
+
+def typing_table(results: dict[str, Any]) -> pd.DataFrame | None:
+    """Share of alarm runs on attacked steps whose type is right: rows methods, columns the
+    typings of ``TYPE_CONFUSIONS`` (a detector that does not classify has no own-type cell),
+    cells "share (right/runs)" pooled over the configurations; None when nothing was typed."""
+    rows = {}
+    for m in results["methods_run"]:
+        row = {}
+        for key, what in TYPE_CONFUSIONS.items():
+            conf = confusion_table(results, m, key)
+            if conf is None:
+                continue
+            attacked = conf.drop(index="none", errors="ignore")
+            if attacked.empty or set(attacked.columns) <= {"attack"}:
+                continue
+            right = sum(int(attacked.at[t, t]) for t in attacked.index if t in attacked.columns)
+            row[what] = _ratio([right, int(attacked.to_numpy().sum())])
+        if row:
+            rows[m] = row
+    if not rows:
+        return None
+    cols = [w for w in TYPE_CONFUSIONS.values() if any(w in r for r in rows.values())]
+    return pd.DataFrame(rows).T.reindex(columns=cols).fillna("-")
 
 
 def type_recall_table(results: dict[str, Any]) -> pd.DataFrame | None:
@@ -368,13 +402,24 @@ def write_report(results: dict[str, Any], out: Path) -> Path:
         parts.append("<h2>Event recall per attack type (test flights)</h2><p>Attack windows holding an alarm "
                      "over the windows of that true type, all configurations pooled: recall (found/windows).</p>")
         parts.append(table(recall))
+    typing = typing_table(results)
+    if typing is not None:
+        atomic_write_text(out / "typing.csv", typing.to_csv(index_label="method"))
+        parts.append("<h2>Attack typing at alarms (test flights)</h2><p>Alarm runs whose first alarm falls on "
+                     "an attacked step, all configurations pooled: the share whose attack type is right "
+                     "(right/runs). Own type: the detector's classifier (trained on the labelled share of the "
+                     "training flights). Shape typer: each attack shape fitted to GPS minus the GPS-free "
+                     "reference, no labels (<code>detectors.attack_types</code>), at the first alarm and "
+                     "at the run's last alarm step (the alert's type revised while the alarm lasts).</p>")
+        parts.append(table(typing))
     for m in results["methods_run"]:
-        conf = confusion_table(results, m)
-        if conf is not None:
-            parts.append(f"<h2>{html.escape(m)}: attack type predicted at the first alarm of each alarm run</h2>"
-                         "<p>Rows: true type (none: a false alarm); columns: predicted type (attack: the "
-                         "detector does not classify); all test flights of all configurations.</p>")
-            parts.append(table(conf))
+        for key, what in TYPE_CONFUSIONS.items():
+            conf = confusion_table(results, m, key)
+            if conf is None or (key == "type_confusion" and set(conf.columns) <= {"attack"}):
+                continue
+            parts.append(f"<details><summary>{html.escape(m)}: attack types at alarm runs, {what}</summary>"
+                         "<p>Rows: true type at the run's first alarm (none: a false alarm); columns: "
+                         "predicted type; all test flights of all configurations.</p>" + table(conf) + "</details>")
     parts.append("<h2>Versions</h2><pre>" + html.escape(str(results.get("versions", {}))) + "</pre>")
     doc = page("quadformer report", parts)
     atomic_write_text(out / "report.html", doc)

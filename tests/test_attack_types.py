@@ -1,0 +1,141 @@
+"""Attack typing by shape fitting: each kind on a flight built by hand, simulated flights, alerts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from quadformer.detectors import ShapeTyper, alerts_from_scores
+from quadformer.detectors.attack_types import TYPING_COLUMNS, UNTYPED, alert_typer
+from quadformer.estimator.schema import ATTACK_TYPES, columns
+
+RATE = 10.0
+ONSET = 15.0
+
+
+def flight(kind: str, seed: int = 0, duration: float = 40.0, onset: float = ONSET) -> pd.DataFrame:
+    """One flight's typing columns, built as the reference residues are: a vehicle on a circle
+    (r 5 m, 0.3 rad/s), GPS = truth + white noise (0.3 m, 0.05 m/s) + the attack, a reference =
+    truth + a slow drift; their difference smoothed (1 s), minus an anchor 3 s behind that
+    freezes at the onset."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, duration, 1.0 / RATE)
+    w = 0.3
+    p = np.stack([5 * np.cos(w * t), 5 * np.sin(w * t), 10 + 0 * t], 1)
+    v = np.stack([-5 * w * np.sin(w * t), 5 * w * np.cos(w * t), 0 * t], 1)
+    fix = np.concatenate([p + rng.normal(0, 0.3, p.shape), v + rng.normal(0, 0.05, v.shape)], 1)
+    honest = fix.copy()
+    on = t >= onset
+    tau = np.where(on, t - onset, 0.0)
+    u = np.array([0.6, 0.8, 0.0])
+    k0 = int(round(onset * RATE))
+    if kind == "bias":
+        fix[on, :3] += 3.0 * u
+    elif kind == "ramp":
+        fix[on, :3] += (0.5 * tau[on])[:, None] * u
+        fix[on, 3:] += 0.5 * u
+    elif kind == "sinusoid":
+        f = 0.15
+        fix[on, :3] += (3.0 * np.sin(2 * np.pi * f * tau[on]))[:, None] * u
+        fix[on, 3:] += (3.0 * 2 * np.pi * f * np.cos(2 * np.pi * f * tau[on]))[:, None] * u
+    elif kind == "intermittent":
+        fix[on & (np.mod(tau, 4.0) < 2.0), :3] += 3.0 * u
+    elif kind == "replay":
+        src = np.arange(len(t)) - int(6.0 * RATE)
+        fix[on] = honest[src[on]]
+    elif kind == "freeze":
+        fix[on] = honest[k0 - 1]
+    ref = np.concatenate([p + 0.02 * t[:, None], v], 1)
+    raw = fix - ref
+    alpha = 1.0 - np.exp(-1.0 / RATE)
+    a = np.empty_like(raw)
+    a[0] = raw[0]
+    for i in range(1, len(t)):
+        a[i] = a[i - 1] + alpha * (raw[i] - a[i - 1])
+    lag = int(3 * RATE)
+    anchor = np.array([a[max(min(i, k0) - lag, 0)] for i in range(len(t))])
+    age = np.where(on, t - onset + 3.0, 3.0)
+    X = pd.DataFrame({"flight_id": seed, "t": t, "res_ref_age": age})
+    for i, c in enumerate(columns("res_ref_d")):
+        X[c] = a[:, i] - anchor[:, i]
+    for i, c in enumerate(columns("gps_vel")):
+        X[c] = fix[:, 3 + i]
+    return X
+
+
+@pytest.mark.parametrize("kind", ATTACK_TYPES)
+def test_each_kind_is_typed_from_its_shape(kind):
+    typer = ShapeTyper()
+    right = 0
+    for seed in range(3):
+        X = flight(kind, seed)
+        k = int((ONSET + 8.0) * RATE)
+        got, costs = typer.type_at(typer.prepare(X), k)
+        assert set(costs) == set(ATTACK_TYPES) and all(np.isfinite(list(costs.values())))
+        right += got == kind
+    assert right == 3, f"{kind}: typed right on {right} of 3 flights"
+
+
+def test_before_the_first_switch_an_intermittent_spoof_is_a_bias():
+    # 1.5 s after the onset an intermittent spoof (on for 2 s of every 4) has not switched yet
+    typer = ShapeTyper()
+    X = flight("intermittent", 0)
+    assert typer.type_at(typer.prepare(X), int((ONSET + 1.5) * RATE))[0] == "bias"
+    assert typer.type_at(typer.prepare(X), int((ONSET + 9.0) * RATE))[0] == "intermittent"
+
+
+def test_the_type_uses_the_flight_up_to_the_step_typed_only():
+    typer = ShapeTyper()
+    X = flight("ramp", 1)
+    k = int((ONSET + 6.0) * RATE)
+    whole = typer.type_at(typer.prepare(X), k)
+    cut = typer.type_at(typer.prepare(X.iloc[:k + 1]), k)
+    assert whole[0] == cut[0] == "ramp"
+    assert whole[1] == pytest.approx(cut[1], rel=1e-9)
+
+
+def test_simulated_bias_attacks_are_typed_bias(bias_dataset):
+    typer = ShapeTyper()
+    f, sc = bias_dataset.flights, bias_dataset.scenarios
+    attacked = sc[sc.attacked]
+    assert len(attacked) >= 2
+    rows = [int(np.flatnonzero((f.flight_id == s.flight_id).to_numpy() & (f.t.to_numpy() >= s.onset + 5.0))[0])
+            for s in attacked.itertuples()]
+    assert list(typer.type_rows(f, np.array(rows))) == ["bias"] * len(rows)
+
+
+def test_alerts_take_the_typer_types(bias_dataset):
+    f, sc = bias_dataset.flights, bias_dataset.scenarios
+    score = f.label.to_numpy(dtype=float)          # an alarm exactly on the attacked steps
+    typer = alert_typer(f)
+    alerts = alerts_from_scores(f, score, threshold=0.5, typer=typer)
+    assert len(alerts) == int(sc.attacked.sum())
+    starts = np.flatnonzero(np.diff(np.concatenate([[0], f.label.to_numpy()])) == 1)
+    assert [a.attack_type for a in alerts] == list(ShapeTyper().type_rows(f, starts))
+    assert all(a.attack_type in ATTACK_TYPES for a in alerts)
+    # without a typer an alert of a detector that does not classify says "attack"
+    assert {a.attack_type for a in alerts_from_scores(f, score, threshold=0.5)} == {"attack"}
+    # detector typing, or rows without the typer's columns: no typer
+    assert alert_typer(f, "detector") is None and alert_typer(f[["flight_id", "t"]]) is None
+
+
+def test_bad_input_is_named():
+    with pytest.raises(ValueError, match="typing: unknown 'labels'"):
+        alert_typer(pd.DataFrame(), "labels")
+    with pytest.raises(ValueError, match="needs the columns res_ref_age"):
+        ShapeTyper().prepare(flight("bias").drop(columns="res_ref_age"))
+    with pytest.raises(ValueError, match="kinds: unknown \\['spoof'\\]"):
+        ShapeTyper(kinds=("bias", "spoof"))
+    with pytest.raises(ValueError, match="max_window"):
+        ShapeTyper(min_window=10.0, max_window=5.0)
+    with pytest.raises(ValueError, match="delays"):
+        ShapeTyper(delays=())
+    # non-finite values in the window, or too short a flight: untyped, not a guess
+    typer = ShapeTyper()
+    X = flight("bias")
+    k = int((ONSET + 5.0) * RATE)
+    X.loc[k - 3, "res_ref_d_px"] = np.nan
+    assert typer.type_at(typer.prepare(X), k) == (UNTYPED, {})
+    assert typer.type_at(typer.prepare(X.iloc[:3]), 2) == (UNTYPED, {})
+    assert set(TYPING_COLUMNS) <= set(flight("bias").columns)
