@@ -18,7 +18,7 @@ def flight(kind: str, seed: int = 0, duration: float = 40.0, onset: float = ONSE
     """One flight's typing columns, built as the reference residues are: a vehicle on a circle
     (r 5 m, 0.3 rad/s), GPS = truth + white noise (0.3 m, 0.05 m/s) + the attack, a reference =
     truth + a slow drift; their difference smoothed (1 s), minus an anchor 3 s behind that
-    freezes at the onset."""
+    freezes at the onset, and whitened by a constant stated std."""
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, duration, 1.0 / RATE)
     w = 0.3
@@ -57,8 +57,10 @@ def flight(kind: str, seed: int = 0, duration: float = 40.0, onset: float = ONSE
     anchor = np.array([a[max(min(i, k0) - lag, 0)] for i in range(len(t))])
     age = np.where(on, t - onset + 3.0, 3.0)
     X = pd.DataFrame({"flight_id": seed, "t": t, "res_ref_age": age})
-    for i, c in enumerate(columns("res_ref_d")):
+    stated = [0.3, 0.3, 0.3, 0.05, 0.05, 0.05]          # the std the reference states (whitening)
+    for i, (c, cw) in enumerate(zip(columns("res_ref_d"), columns("res_ref_w"))):
         X[c] = a[:, i] - anchor[:, i]
+        X[cw] = X[c] / stated[i]
     for i, c in enumerate(columns("gps_vel")):
         X[c] = fix[:, 3 + i]
     return X

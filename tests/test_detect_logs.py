@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 from quadformer.cli import app
 from quadformer.dataset import load_dataset, write_dataset
 from quadformer.detectors import load
+from quadformer.estimator.schema import ATTACK_TYPES
 from quadformer.logs import read_log
 from quadformer.logs.replay import autopilot_rows
 
@@ -107,6 +108,7 @@ def test_detect_over_a_directory_keeps_going_past_a_bad_log(models, tmp_path):
     (["detect", "/nonexistent.ulg", "--model", "M"], "no such file or directory"),
     (["detect", str(EVENTS), "--model", "M", "--residues", "magic"], "unknown source 'magic'"),
     (["detect", str(EVENTS), "--model", "M", "--format", "dji"], "unknown format 'dji'"),
+    (["detect", str(EVENTS), "--model", "M", "--typing", "labels"], "typing: unknown 'labels'"),
     (["detect", str(EVENTS), "--model", "M", "--gps-rate", "0"], "gps_rate_hz must be a positive number"),
     (["logs", "import", str(EVENTS), "--out", "D", "--inject", "jamming"], "unknown attack 'jamming'"),
     (["logs", "info", str(FIX / "make_rosbags.py")], "unknown log format"),
@@ -249,6 +251,13 @@ def test_logs_import_injects_labelled_spoofs_the_residues_see(models, tmp_path):
     assert res.exit_code == 0, res.output
     r = json.loads((out / "results.json").read_text())
     assert r["metrics"]["event_recall"] > 0.5
+    # alerts typed by shape from the logs' own reference residues (IMU + barometer, no camera)
+    alerts = pd.read_csv(out / "alerts.csv")
+    assert len(alerts) and set(alerts.attack_type) <= set(ATTACK_TYPES)
+    res = runner.invoke(app, ["evaluate", "--model", str(models["chi2"]), "--data", str(ds_dir), "--out",
+                              str(tmp_path / "own"), "--typing", "detector"])
+    assert res.exit_code == 0, res.output
+    assert set(pd.read_csv(tmp_path / "own" / "alerts.csv").attack_type) == {"attack"}   # chi2 does not classify
 
 
 def test_a_log_without_gps_gets_a_report_saying_why(models, tmp_path):

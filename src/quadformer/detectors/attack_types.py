@@ -21,8 +21,10 @@ The vehicle's motion is taken from the GPS-free side: its velocity is the GPS ve
 the velocity part of d (the reference's velocity), its position changes that velocity summed.
 A shape's free amplitudes (one per axis, fitting that axis's position and velocity together)
 are least-squares fits; its nonlinear parameters (onset, frequency, period, delay) are
-searched on grids. Residuals are weighted by the white noise of d, a robust std of its step
-changes over the flight so far, per component. A kind's cost is its weighted squared error
+searched on grids. Residuals are weighted, per step and component, by the std of d: its
+white noise (a robust std of its step changes over the flight so far) and the std the
+reference states for it (``res_ref_d / res_ref_w``: the reference's growth since the anchor
+and the receiver's slow error) added in quadrature. A kind's cost is its weighted squared error
 plus ``penalty`` (default ``log n``, n the samples in the window: a BIC-like rule) per
 parameter: three amplitudes or offsets, the onset, and the frequency, period or delay. The
 cheapest kind is the type.
@@ -32,7 +34,10 @@ reference), clipped to ``[min_window, max_window]`` seconds, ending at the step 
 uses the flight up to the step typed only, so it can be given online at an alarm and revised
 while the alarm lasts. Early in an attack shapes can be alike (an intermittent spoof before its
 first switch is a bias; a slow sinusoid starts as a ramp): the type at the first alarm is
-the best guess then, the type later in the alarm is better informed.
+the best guess then, the type later in the alarm is better informed. Replay and freeze are
+told from the vehicle's motion: on a hovering vehicle they look like a bias. Without a camera
+the reference (IMU and barometer) drifts horizontally within seconds and its stated std is
+about a metre and a metre per second: the shapes are then seldom told apart.
 """
 
 from __future__ import annotations
@@ -47,7 +52,7 @@ from quadformer.estimator.reference import ReferenceConfig
 from quadformer.estimator.schema import ATTACK_TYPES, columns
 
 #: the columns the typer reads
-TYPING_COLUMNS = ["t", *columns("res_ref_d", "res_ref_age", "gps_vel")]
+TYPING_COLUMNS = ["t", *columns("res_ref_d", "res_ref_w", "res_ref_age", "gps_vel")]
 #: the type given where the typer cannot tell (too few samples, non-finite inputs, no columns)
 UNTYPED = "attack"
 #: where alerts take their type from: the shape typer (where the rows carry its columns; else
@@ -63,6 +68,7 @@ class FlightShapes:
     age: np.ndarray        # (n,) s, the anchor's age
     vel: np.ndarray        # (n,3) m/s, the vehicle's GPS-free velocity
     pos: np.ndarray        # (n,3) m, that velocity summed (position change since the first row)
+    stated: np.ndarray     # (n,6) the std the reference states for res_ref_d
 
 
 @dataclass(frozen=True)
@@ -107,8 +113,12 @@ class ShapeTyper:
         d = r.copy()          # undo a_k = a_(k-1) + alpha (d_k - a_(k-1))
         d[1:] = r[:-1] + np.diff(r, axis=0) / alpha
         vel = g[columns("gps_vel")].to_numpy(dtype=float) - d[:, 3:]
+        # the std the reference states for res_ref_d (its growth since the anchor, the GPS's slow error)
+        w = g[columns("res_ref_w")].to_numpy(dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            stated = pd.DataFrame(np.where(np.abs(w) > 1e-9, np.abs(r / w), np.nan)).ffill().fillna(0.0).to_numpy()
         steps = np.diff(t, prepend=t[:1])[:, None]
-        return FlightShapes(t, d, g["res_ref_age"].to_numpy(dtype=float), vel, np.cumsum(vel * steps, 0))
+        return FlightShapes(t, d, g["res_ref_age"].to_numpy(dtype=float), vel, np.cumsum(vel * steps, 0), stated)
 
     def type_rows(self, X: pd.DataFrame, rows: np.ndarray, memo: dict[int, str] | None = None) -> np.ndarray:
         """The type at each of ``rows`` (positions in X), each from its flight up to that row.
@@ -137,7 +147,8 @@ class ShapeTyper:
         hist = f.d[:k + 1]
         if n < 4 or not (np.isfinite(Y).all() and np.isfinite(f.vel[k0:k + 1]).all()):
             return UNTYPED, {}
-        W = 1.0 / _noise_std(hist[np.isfinite(hist).all(1)])
+        white = _noise_std(hist[np.isfinite(hist).all(1)])
+        W = 1.0 / np.sqrt(white ** 2 + f.stated[k0:k + 1] ** 2)
         Yw = Y * W
         onsets = np.arange(0, n - 1, max(1, int(round(self.onset_step / dt))))
         tau = (np.arange(n)[None, :] - onsets[:, None]) * dt              # (onsets, n)
@@ -151,7 +162,7 @@ class ShapeTyper:
             """Best cost of the honest fix of rows ``src`` (n,) after each onset of ``on_rows``,
             plus a free constant position offset."""
             T = np.concatenate([f.pos[src] - f.pos[rows], f.vel[src] - f.vel[rows]], -1)
-            return _best(Yw[None] - on_rows[..., None] * T[None] * W, on_rows, np.zeros_like(on_rows), W)
+            return _best(Yw[None] - on_rows[..., None] * T[None] * W[None], on_rows, np.zeros_like(on_rows), W)
 
         if "bias" in self.kinds:
             costs["bias"] = _best(Yw, on, zero, W) + 4 * pen
@@ -171,7 +182,7 @@ class ShapeTyper:
             # the fix held is the last honest one, the step before each onset
             held = np.maximum(k0 + onsets - 1, 0)
             T = np.concatenate([f.pos[held][:, None] - f.pos[rows][None], f.vel[held][:, None] - f.vel[rows][None]], -1)
-            costs["freeze"] = _best(Yw[None] - on[..., None] * T * W, on, zero, W) + 4 * pen
+            costs["freeze"] = _best(Yw[None] - on[..., None] * T * W[None], on, zero, W) + 4 * pen
         return min(costs, key=costs.get), costs
 
 
@@ -189,10 +200,10 @@ def alert_typer(X: pd.DataFrame, typing: str = "shape"):
 def _best(Yw: np.ndarray, dp: np.ndarray, dv: np.ndarray, W: np.ndarray) -> float:
     """Least weighted squared error over a set of templates (G,n): each axis a fits one
     amplitude c_a to its position (c_a dp) and velocity (c_a dv) together. Yw: the weighted
-    data, (n,6) or one per template (G,n,6); W: (6,) weights."""
+    data, (n,6) or one per template (G,n,6); W: (n,6) weights."""
     Yw = np.broadcast_to(Yw, dp.shape + (6,))
-    num = np.einsum("gn,gna->ga", dp, Yw[..., :3]) * W[:3] + np.einsum("gn,gna->ga", dv, Yw[..., 3:]) * W[3:]
-    den = (dp ** 2).sum(1)[:, None] * W[:3] ** 2 + (dv ** 2).sum(1)[:, None] * W[3:] ** 2
+    num = np.einsum("gn,na,gna->ga", dp, W[:, :3], Yw[..., :3]) + np.einsum("gn,na,gna->ga", dv, W[:, 3:], Yw[..., 3:])
+    den = np.einsum("gn,na->ga", dp ** 2, W[:, :3] ** 2) + np.einsum("gn,na->ga", dv ** 2, W[:, 3:] ** 2)
     explained = np.where(den > 0, num ** 2 / np.maximum(den, 1e-300), 0.0).sum(1)
     return float(((Yw ** 2).sum((1, 2)) - explained).min())
 
