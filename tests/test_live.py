@@ -22,6 +22,7 @@ from quadformer.cli import app
 from quadformer.config import AttackConfig, SimConfig
 from quadformer.evaluation.protocol import tune
 from quadformer.estimator.online import FilterConfig
+from quadformer.estimator.schema import ATTACK_TYPES
 from quadformer.geometry.frames import euler_to_quat, geodetic_to_enu, quat_ned_frd_to_enu_flu, quat_to_matrix
 from quadformer.live import mavlink as M
 from quadformer.live.monitor import Monitor, MonitorConfig
@@ -376,8 +377,12 @@ def test_e_cli_monitor_demo(tmp_path):
     with time_limit(150):
         res = CliRunner().invoke(app, ["monitor", "--demo", "--out", str(tmp_path / "demo"), "--duration", "120"])
     assert res.exit_code == 0, res.output
-    assert "ALERT" in res.output and "attack" in res.output
+    # alerts typed by shape: a kind at the start, revised at the end
+    assert re.search(rf"ALERT: ({'|'.join(ATTACK_TYPES)}), score", res.output), res.output
     summary = json.loads((tmp_path / "demo" / "summary.json").read_text())
+    events = [json.loads(x) for x in (tmp_path / "demo" / "alerts.jsonl").read_text().splitlines()]
+    ends = [e for e in events if e["event"] == "alert_end"]
+    assert ends and all(e["attack_type_revised"] in ATTACK_TYPES for e in ends)
     assert summary["alerts"] >= 1 and (tmp_path / "demo" / "demo-model.json").exists()
 
 
@@ -388,3 +393,5 @@ def test_cli_monitor_refuses_bad_input(tmp_path):
     assert r.exit_code == 2 and "stale_hold_s" in r.output
     r = CliRunner().invoke(app, ["monitor", "--model", str(tmp_path / "none.json"), "--connect", f"udpin:{LOCAL}:0"])
     assert r.exit_code == 2 and "no such model file" in r.output
+    with pytest.raises(ValueError, match="monitor.typing: unknown 'labels'"):
+        MonitorConfig(connect=f"udpin:{LOCAL}:0", typing="labels")

@@ -755,6 +755,8 @@ def monitor(
     demo: bool = typer.Option(False, "--demo", help="Fit a quick detector on simulated flights (unless --model), "
                               "stream a simulated spoofed flight from 127.0.0.1 to the monitor and show the alert."),
     speed: float = typer.Option(5.0, help="--demo: the flight is streamed at this many times real time."),
+    typing: str = typer.Option("shape", help=_TYPING_HELP + " The type at an alert's end is revised in "
+                               "alerts.jsonl."),
 ) -> None:
     """Watch a live vehicle's GPS over MAVLink: the filter and detector of `detect`, one message at a
     time; alerts on the console, as STATUSTEXT to the vehicle and in --out; with --act, switch the
@@ -785,7 +787,8 @@ def monitor(
     try:
         config = MonitorConfig(connect=connect, filter=filt, admission=adm, gps_instance=gps_instance, system=system,
                                act=act, act_source_set=act_source_set, statustext=statustext,
-                               request_rates=request_rates, out=out, duration_s=duration, max_messages=max_messages)
+                               request_rates=request_rates, out=out, duration_s=duration, max_messages=max_messages,
+                               typing=typing)
         mon = Monitor(det, config, echo=typer.echo, model=str(model))
         mon.open()
     except (ValueError, OSError) as e:

@@ -6,7 +6,9 @@ residue row (one per fused GPS fix) -> ``detector.stream(1).update(row)`` -> the
 ``resilience.Admission(["resilient"])`` -> actions (console, ``alerts.jsonl``, STATUSTEXT,
 and with ``act`` the EKF source set switch). Causal throughout; the only state is the
 residue stream's, the detector stream's (a recursion or ring buffers), the admission's,
-fixed-size counters and a fixed-size latency histogram: memory does not grow with time.
+fixed-size counters, a fixed-size latency histogram and the last fixes the attack typer
+reads (``detectors.attack_types``; ``typing="shape"``: an alert's type is the shape fitted at
+its first fix, revised at its last in the ``alert_end`` event): memory does not grow with time.
 
 The monitor's own filter always fuses GPS (it is the filter of ``detect``, so that its scores
 equal offline scoring of the same data); the admission decision is what the monitor asks of
@@ -54,6 +56,7 @@ import torch
 
 from quadformer.config import SENSOR_NAMES
 from quadformer.detectors.alarms import Alert
+from quadformer.detectors.attack_types import TYPING_COLUMNS, TYPINGS, UNTYPED, ShapeTyper
 from quadformer.estimator.online import FilterConfig, GapError, ResidueStream
 from quadformer.estimator.schema import GROUPS, SENSOR_GROUPS
 from quadformer.geometry.frames import geodetic_to_enu
@@ -116,6 +119,7 @@ class MonitorConfig:
     heartbeat_s: float = 1.0                       # own HEARTBEAT period (routers forward to known peers)
     source_system: int = 255                       # this monitor's MAVLink identity
     source_component: int = 191                    # MAV_COMP_ID_ONBOARD_COMPUTER
+    typing: str = "shape"                          # alert types: attack_types.TYPINGS
 
     def __post_init__(self) -> None:
         if not isinstance(self.connect, str) or not self.connect:
@@ -132,6 +136,8 @@ class MonitorConfig:
             raise ValueError(f"monitor.duration_s must be > 0, got {self.duration_s!r}")
         if self.max_messages is not None and not self.max_messages >= 1:
             raise ValueError(f"monitor.max_messages must be >= 1, got {self.max_messages!r}")
+        if self.typing not in TYPINGS:
+            raise ValueError(f"monitor.typing: unknown {self.typing!r}; choose from {', '.join(TYPINGS)}")
         if not (isinstance(self.restart_confirm, int) and self.restart_confirm >= 1):
             raise ValueError(f"monitor.restart_confirm must be an integer >= 1, got {self.restart_confirm!r}")
 
@@ -251,6 +257,8 @@ class _Segment:
         self.fixes = 0
         self.alert: Alert | None = None
         self.last_score = math.nan
+        # the last fixes' typing columns (bounded), for the shape typer at an alert's start and end
+        self.history: deque[dict[str, float]] = deque(maxlen=monitor.history_len)
 
     @property
     def state(self) -> int:
@@ -276,6 +284,10 @@ class Monitor:
         self.sensors = monitor_sensors(detector, config.filter)
         self.on_fix, self.on_alert = on_fix, on_alert
         self.echo = echo or (lambda line: None)
+        # alert types: the shape typer over the last fixes (its longest window and replay delay)
+        self.typer = ShapeTyper() if config.typing == "shape" else None
+        self.history_len = 0 if self.typer is None else \
+            int(math.ceil((self.typer.max_window + max(self.typer.delays) + 1.0) * config.filter.gps_rate_hz))
         self.conn = None
         self.link: VehicleLink | None = None
         self.records: Records | None = None
@@ -650,6 +662,10 @@ class Monitor:
                 continue
             score, alarm = float(step.score[0]), bool(step.alarm[0])
             kind = str(step.attack_type[0]) if step.attack_type is not None else None
+            if self.typer is not None and all(c in cols for c in TYPING_COLUMNS[1:]):
+                seg.history.append({"t": t, **{c: cols[c] for c in TYPING_COLUMNS[1:]}})
+                kind = (self._type(seg, -1) if alarm and seg.alert is None else
+                        seg.alert.attack_type if seg.alert is not None else None)
             r = row["res_gps_r"]
             w = torch.as_tensor(r / np.where(row["res_gps_s"] > 0, row["res_gps_s"], 1.0))
             before = seg.state
@@ -714,13 +730,30 @@ class Monitor:
                 self.link.set_source(1)
                 self.echo(f"[t {t:.1f} s] act: EKF source set 1 (GPS) requested")
 
+    def _type(self, seg: _Segment, pos: int) -> str:
+        """The shape typer's type at fix ``pos`` of the segment's history (``attack`` if it cannot tell)."""
+        if len(seg.history) < -pos:
+            return UNTYPED
+        import pandas as pd
+
+        try:
+            f = self.typer.prepare(pd.DataFrame(list(seg.history)))
+            return self.typer.type_at(f, len(seg.history) + pos)[0]
+        except ValueError:
+            return UNTYPED
+
     def _close_alert(self, seg: _Segment, t: float | None, state: int) -> None:
         alert = dataclasses.replace(seg.alert, end_s=t)
         seg.alert = None
         self.alerts.append(alert)
-        self._event("alert_end", seg, t, alert.score, alert.attack_type, state)
+        # the type revised at the alert's last alarmed fix (the one before this, or this at a segment's end)
+        revised = None
+        if self.typer is not None and seg.history:
+            revised = self._type(seg, -2 if t is not None else -1)
+        self._event("alert_end", seg, t, alert.score, alert.attack_type, state, revised)
 
-    def _event(self, name: str, seg: _Segment, t: float | None, score: float, kind: str, state: int) -> None:
+    def _event(self, name: str, seg: _Segment, t: float | None, score: float, kind: str, state: int,
+               revised: str | None = None) -> None:
         now = datetime.now(timezone.utc)
         event = {"event": name, "segment": seg.index, "vehicle_t": t,
                  "wall_time": now.isoformat(timespec="milliseconds"), "unix_time": now.timestamp(), "score": score, "attack_type": kind, "admission": STATES[state],
@@ -728,11 +761,15 @@ class Monitor:
         if name == "alert_end":
             a = self.alerts[-1]
             event.update(start_s=a.start_s, peak_score=a.score)
+            if revised is not None:
+                event["attack_type_revised"] = revised
         if self.records is not None:
             self.records.alert(event)
         if self.on_alert is not None:
             self.on_alert(event)
         when = f"t {t:.1f} s" if t is not None else "end of segment"
+        if revised is not None and revised != kind:
+            kind = f"{kind} (revised: {revised})"
         self.echo(f"[{when}] {'ALERT' if name == 'alert_start' else 'alert ended'}: {kind}, score {score:.3g} "
                   f"(threshold {self.detector.threshold_:.3g}), segment {seg.index}, {STATES[state]}")
 
