@@ -322,8 +322,15 @@ def test_benchmark_mixed_profile_reports_types(mixed_dir, tmp_path):
     assert "Attack typing at alarms" in html and "shape typer at the first alarm" in html
     typing = pd.read_csv(out / "typing.csv", index_col=0)
     assert list(typing.index) == ["chi2", "cusum"]
-    assert list(typing.columns) == ["shape typer at the first alarm", "shape typer at the last alarm step"]
-    assert "Attack type right at alarm runs" in res.output
+    assert list(typing.columns) == ["shape typer at the first alarm", "shape typer at the alarm run's end"]
+    assert "Attacks typed right, of the detected attacks" in res.output
+    # per detected attack: one per attacked test flight with an alarm on an attacked step
+    for c in r["configs"]:
+        t = c["methods"]["chi2"]["attack_typing"]
+        assert t["own"] is None and t["shape_first"]["attacks"] == t["shape_end"]["attacks"]
+        found = sum(v["found"] for v in c["methods"]["chi2"]["event_recall_by_type"].values())
+        assert 0 < t["shape_first"]["attacks"] <= min(len(test), found)
+        assert 0 <= t["shape_first"]["right"] <= t["shape_first"]["attacks"]
 
 
 def test_benchmark_over_seeds_keeps_each_run_and_the_spread(dataset_dir, tmp_path):

@@ -232,7 +232,7 @@ def _print_typing(results: dict) -> None:
 
     df = typing_table(results)
     if df is not None:
-        typer.echo("\nAttack type right at alarm runs on attacked steps (right/runs; shape: no labels)")
+        typer.echo("\nAttacks typed right, of the detected attacks on test flights (shape typer: no labels)")
         typer.echo(df.to_string())
 
 

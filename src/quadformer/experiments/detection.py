@@ -111,7 +111,10 @@ def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray,
     detector's own type at the first alarm (``attack`` from a detector that does not
     classify); with a ``typer`` (and the columns it reads), the typer's type at the first
     alarm (``type_confusion_shape``) and at the run's last alarm step, the alert's type
-    revised as the alarm goes on (``type_confusion_shape_end``). ``typed``: row -> type
+    revised as the alarm goes on (``type_confusion_shape_end``). ``attack_typing``: per
+    detected attack (``detected_attacks``), how many are typed right (``own``: by the
+    detector's classifier, None if it has none; ``shape_first``, ``shape_end``: by the typer at
+    the first alarm on the attack and at the end of that alarm run). ``typed``: row -> type
     already found for these rows (shared between detectors scored on the same flights)."""
     out: dict[str, Any] = {}
     if hasattr(det, "onset_times"):
@@ -128,12 +131,43 @@ def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray,
         out["onset_error_p95_s"] = float(np.percentile(np.abs(errors), 95)) if errors else None
     true = np.where(test.label.to_numpy() == 1, test.attack_type.astype(str).to_numpy(), "none")
     first, last = alarm_runs(test, alarms)
-    pred = det.predict_type(test) if hasattr(det, "predict_type") else np.full(len(test), "attack", dtype=object)
+    own = hasattr(det, "predict_type")
+    pred = det.predict_type(test) if own else np.full(len(test), "attack", dtype=object)
     out["type_confusion"] = confusion(true[first], pred[first])
+    # per detected attack: its first alarm on an attacked step, and the last step of that alarm run
+    a_first, a_last = detected_attacks(test, alarms)
+    typing = {"own": right_count(true[a_first], pred[a_first]) if own else None}
     if typer is not None and all(c in test.columns for c in TYPING_COLUMNS):
-        out["type_confusion_shape"] = confusion(true[first], typer.type_rows(test, first, typed))
-        out["type_confusion_shape_end"] = confusion(true[first], typer.type_rows(test, last, typed))
+        shape_first, shape_last = typer.type_rows(test, first, typed), typer.type_rows(test, last, typed)
+        out["type_confusion_shape"] = confusion(true[first], shape_first)
+        out["type_confusion_shape_end"] = confusion(true[first], shape_last)
+        typing["shape_first"] = right_count(true[a_first], typer.type_rows(test, a_first, typed))
+        typing["shape_end"] = right_count(true[a_first], typer.type_rows(test, a_last, typed))
+    out["attack_typing"] = typing
     return out
+
+
+def detected_attacks(X: pd.DataFrame, alarms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per flight with an alarm on an attacked step (a detected attack; a flight holds at most
+    one attack): the row of that first alarm, and the row of the last step of its alarm run."""
+    alarms = np.asarray(alarms, dtype=bool)
+    label = X["label"].to_numpy() == 1
+    first: list[int] = []
+    last: list[int] = []
+    for _, idx in flight_slices(X):
+        for s, e in runs(alarms[idx]):
+            on = np.flatnonzero(label[idx[s:e]])
+            if len(on):
+                first.append(int(idx[s + on[0]]))
+                last.append(int(idx[e - 1]))
+                break
+    return np.array(first, dtype=int), np.array(last, dtype=int)
+
+
+def right_count(true, pred) -> dict[str, int]:
+    """How many of the types ``pred`` equal ``true``: {"right", "attacks"}."""
+    true, pred = np.asarray(true, dtype=str), np.asarray(pred, dtype=str)
+    return {"right": int((true == pred).sum()), "attacks": int(len(true))}
 
 
 def alarm_runs(X: pd.DataFrame, alarms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -161,27 +161,32 @@ def confusion_table(results: dict[str, Any], method: str, key: str = "type_confu
     return pd.DataFrame(total).T.fillna(0).astype(int)
 
 
+#: the typings ``attack_typing`` counts per detected attack, and what the report calls them
+TYPINGS_COUNTED = {
+    "own": "own type at the first alarm",
+    "shape_first": "shape typer at the first alarm",
+    "shape_end": "shape typer at the alarm run's end",
+}
+
+
 def typing_table(results: dict[str, Any]) -> pd.DataFrame | None:
-    """Share of alarm runs on attacked steps whose type is right: rows methods, columns the
-    typings of ``TYPE_CONFUSIONS`` (a detector that does not classify has no own-type cell),
-    cells "share (right/runs)" pooled over the configurations; None when nothing was typed."""
+    """Share of detected attacks typed right: rows methods, columns the typings of
+    ``TYPINGS_COUNTED`` (a detector that does not classify has no own-type cell), cells
+    "share (right/detected attacks)" pooled over the configurations; None when nothing was typed."""
     rows = {}
     for m in results["methods_run"]:
-        row = {}
-        for key, what in TYPE_CONFUSIONS.items():
-            conf = confusion_table(results, m, key)
-            if conf is None:
-                continue
-            attacked = conf.drop(index="none", errors="ignore")
-            if attacked.empty or set(attacked.columns) <= {"attack"}:
-                continue
-            right = sum(int(attacked.at[t, t]) for t in attacked.index if t in attacked.columns)
-            row[what] = _ratio([right, int(attacked.to_numpy().sum())])
-        if row:
-            rows[m] = row
+        acc: dict[str, list[int]] = {}
+        for c in results["configs"]:
+            for key, v in (c["methods"].get(m, {}).get("attack_typing") or {}).items():
+                if v is not None:
+                    a = acc.setdefault(key, [0, 0])
+                    a[0] += v["right"]
+                    a[1] += v["attacks"]
+        if acc:
+            rows[m] = {TYPINGS_COUNTED[k]: _ratio(a) for k, a in acc.items()}
     if not rows:
         return None
-    cols = [w for w in TYPE_CONFUSIONS.values() if any(w in r for r in rows.values())]
+    cols = [w for w in TYPINGS_COUNTED.values() if any(w in r for r in rows.values())]
     return pd.DataFrame(rows).T.reindex(columns=cols).fillna("-")
 
 
@@ -405,12 +410,14 @@ def write_report(results: dict[str, Any], out: Path) -> Path:
     typing = typing_table(results)
     if typing is not None:
         atomic_write_text(out / "typing.csv", typing.to_csv(index_label="method"))
-        parts.append("<h2>Attack typing at alarms (test flights)</h2><p>Alarm runs whose first alarm falls on "
-                     "an attacked step, all configurations pooled: the share whose attack type is right "
-                     "(right/runs). Own type: the detector's classifier (trained on the labelled share of the "
-                     "training flights). Shape typer: each attack shape fitted to GPS minus the GPS-free "
-                     "reference, no labels (<code>detectors.attack_types</code>), at the first alarm and "
-                     "at the run's last alarm step (the alert's type revised while the alarm lasts).</p>")
+        parts.append("<h2>Attack typing at alarms (test flights)</h2><p>Detected attacks (an attacked test "
+                     "flight with an alarm on an attacked step), all configurations pooled: the share whose "
+                     "type is right (right/detected). Own type: the detector's classifier (trained on the "
+                     "labelled share of the training flights), at the first alarm on the attack. Shape "
+                     "typer: each attack shape fitted to GPS minus the GPS-free reference, no labels "
+                     "(<code>detectors.attack_types</code>), at that first alarm and at the last step of its "
+                     "alarm run (the alert's type revised while the alarm lasts). The confusion matrices "
+                     "below count every alarm run, false alarms (row none) included.</p>")
         parts.append(table(typing))
     for m in results["methods_run"]:
         for key, what in TYPE_CONFUSIONS.items():
