@@ -34,7 +34,8 @@ reference), clipped to ``[min_window, max_window]`` seconds, ending at the step 
 uses the flight up to the step typed only, so it can be given online at an alarm and revised
 while the alarm lasts. Early in an attack shapes can be alike (an intermittent spoof before its
 first switch is a bias; a slow sinusoid starts as a ramp): the type at the first alarm is
-the best guess then, the type later in the alarm is better informed. Replay and freeze are
+the best guess then, the type later in the alarm is better informed; an alarm run is best
+revised where GPS had disagreed with the reference longest (``evidence_rows``). Replay and freeze are
 told from the vehicle's motion: on a hovering vehicle they look like a bias. Without a camera
 the reference (IMU and barometer) drifts horizontally within seconds and its stated std is
 about a metre and a metre per second: the shapes are then seldom told apart.
@@ -119,6 +120,20 @@ class ShapeTyper:
             stated = pd.DataFrame(np.where(np.abs(w) > 1e-9, np.abs(r / w), np.nan)).ffill().fillna(0.0).to_numpy()
         steps = np.diff(t, prepend=t[:1])[:, None]
         return FlightShapes(t, d, g["res_ref_age"].to_numpy(dtype=float), vel, np.cumsum(vel * steps, 0), stated)
+
+    @staticmethod
+    def evidence_rows(X: pd.DataFrame, first: np.ndarray, last: np.ndarray) -> np.ndarray:
+        """For alarm runs from row ``first`` to row ``last`` (positions in X, one flight each):
+        the row where GPS had disagreed with the reference longest (the largest anchor age, the
+        latest of equal ones), where a run's type is best revised: after a spoof ends GPS
+        agrees again and the age falls back, so a run that outlasts its spoof is typed from the
+        spoof, not from what followed."""
+        age = X["res_ref_age"].to_numpy(dtype=float)
+        out = np.asarray(last, dtype=int).copy()
+        for j, (a, b) in enumerate(zip(np.asarray(first, dtype=int), out)):
+            seg = np.nan_to_num(age[a:b + 1], nan=-np.inf)[::-1]
+            out[j] = b - int(np.argmax(seg))
+        return out
 
     def type_rows(self, X: pd.DataFrame, rows: np.ndarray, memo: dict[int, str] | None = None) -> np.ndarray:
         """The type at each of ``rows`` (positions in X), each from its flight up to that row.

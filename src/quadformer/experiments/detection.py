@@ -110,11 +110,11 @@ def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray,
     true type at its first alarm (``none`` for a false alarm): ``type_confusion``, the
     detector's own type at the first alarm (``attack`` from a detector that does not
     classify); with a ``typer`` (and the columns it reads), the typer's type at the first
-    alarm (``type_confusion_shape``) and at the run's last alarm step, the alert's type
-    revised as the alarm goes on (``type_confusion_shape_end``). ``attack_typing``: per
+    alarm (``type_confusion_shape``) and revised by the run's end (``type_confusion_shape_end``:
+    at the run's step of longest disagreement, ``ShapeTyper.evidence_rows``). ``attack_typing``: per
     detected attack (``detected_attacks``), how many are typed right (``own``: by the
     detector's classifier, None if it has none; ``shape_first``, ``shape_end``: by the typer at
-    the first alarm on the attack and at the end of that alarm run). ``typed``: row -> type
+    the first alarm on the attack and revised by the end of that alarm run). ``typed``: row -> type
     already found for these rows (shared between detectors scored on the same flights)."""
     out: dict[str, Any] = {}
     if hasattr(det, "onset_times"):
@@ -138,11 +138,12 @@ def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray,
     a_first, a_last = detected_attacks(test, alarms)
     typing = {"own": right_count(true[a_first], pred[a_first]) if own else None}
     if typer is not None and all(c in test.columns for c in TYPING_COLUMNS):
-        shape_first, shape_last = typer.type_rows(test, first, typed), typer.type_rows(test, last, typed)
-        out["type_confusion_shape"] = confusion(true[first], shape_first)
-        out["type_confusion_shape_end"] = confusion(true[first], shape_last)
+        revised = typer.evidence_rows(test, first, last)
+        out["type_confusion_shape"] = confusion(true[first], typer.type_rows(test, first, typed))
+        out["type_confusion_shape_end"] = confusion(true[first], typer.type_rows(test, revised, typed))
         typing["shape_first"] = right_count(true[a_first], typer.type_rows(test, a_first, typed))
-        typing["shape_end"] = right_count(true[a_first], typer.type_rows(test, a_last, typed))
+        typing["shape_end"] = right_count(true[a_first], typer.type_rows(test, typer.evidence_rows(
+            test, a_first, a_last), typed))
     out["attack_typing"] = typing
     return out
 

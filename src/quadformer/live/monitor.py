@@ -8,7 +8,8 @@ and with ``act`` the EKF source set switch). Causal throughout; the only state i
 residue stream's, the detector stream's (a recursion or ring buffers), the admission's,
 fixed-size counters, a fixed-size latency histogram and the last fixes the attack typer
 reads (``detectors.attack_types``; ``typing="shape"``: an alert's type is the shape fitted at
-its first fix, revised at its last in the ``alert_end`` event): memory does not grow with time.
+its first fix, revised in the ``alert_end`` event at its fix of longest disagreement between
+GPS and the reference): memory does not grow with time.
 
 The monitor's own filter always fuses GPS (it is the filter of ``detect``, so that its scores
 equal offline scoring of the same data); the admission decision is what the monitor asks of
@@ -746,10 +747,15 @@ class Monitor:
         alert = dataclasses.replace(seg.alert, end_s=t)
         seg.alert = None
         self.alerts.append(alert)
-        # the type revised at the alert's last alarmed fix (the one before this, or this at a segment's end)
+        # the type revised from the alert's fixes (up to the last alarmed one: the one before this, or
+        # this at a segment's end), at the fix where GPS had disagreed with the reference longest
         revised = None
-        if self.typer is not None and seg.history:
-            revised = self._type(seg, -2 if t is not None else -1)
+        alarmed = [i for i, r in enumerate(seg.history) if r["t"] >= alert.start_s]
+        if t is not None:
+            alarmed = alarmed[:-1]
+        if self.typer is not None and alarmed:
+            i = max(alarmed, key=lambda j: (np.nan_to_num(seg.history[j]["res_ref_age"], nan=-np.inf), j))
+            revised = self._type(seg, i - len(seg.history))
         self._event("alert_end", seg, t, alert.score, alert.attack_type, state, revised)
 
     def _event(self, name: str, seg: _Segment, t: float | None, score: float, kind: str, state: int,
