@@ -97,19 +97,15 @@ def test_the_type_uses_the_flight_up_to_the_step_typed_only():
     assert whole[1] == pytest.approx(cut[1], rel=1e-9)
 
 
-def test_a_run_is_revised_where_gps_disagreed_longest():
-    X = pd.DataFrame({"res_ref_age": [3.0, 3.0, 4.0, 5.0, 6.0, 3.0, 3.0, 7.0, 7.0, 3.0]})
-    # run 1..6: the age peaks at row 4, then GPS agrees again; run 7..9: the later of equal ages
-    assert list(ShapeTyper.evidence_rows(X, np.array([1, 7]), np.array([6, 9]))) == [4, 8]
-    # a spoof that ended 6 s before the run's end: typed from the spoof, not from what followed
-    X = flight("ramp", 2, duration=40.0)
-    end = int((ONSET + 12.0) * RATE)
-    clean = flight("none", 2, duration=40.0)
-    X.iloc[end:, 1:] = clean.iloc[end:, 1:].to_numpy()     # GPS agrees again: age back to 3 s
-    X.loc[end:, "res_ref_age"] = 3.0
-    k = end + 60
-    row = ShapeTyper.evidence_rows(X, np.array([int((ONSET + 2) * RATE)]), np.array([k]))[0]
-    assert row == end - 1 and ShapeTyper().type_rows(X, np.array([row]))[0] == "ramp"
+def test_a_type_is_confirmed_five_seconds_later_within_its_flight():
+    X = pd.concat([flight("ramp", 0, duration=25.0), flight("bias", 1, duration=25.0)], ignore_index=True)
+    typer = ShapeTyper()
+    rows = np.array([int((ONSET + 1.0) * RATE), 250 + 30, 250 + 230])
+    got = typer.confirm_rows(X, rows)
+    # 5 s later at 10 Hz; the last row of the second flight when it ends sooner
+    assert list(got) == [rows[0] + 50, 330, 499]
+    assert list(X.flight_id.iloc[got]) == [0, 1, 1]
+    assert typer.type_rows(X, got[:1])[0] == "ramp"
 
 
 def test_simulated_bias_attacks_are_typed_bias(bias_dataset):

@@ -309,12 +309,12 @@ def test_benchmark_mixed_profile_reports_types(mixed_dir, tmp_path):
         assert sum(v["windows"] for v in c["methods"]["chi2"]["event_recall_by_type"].values()) >= len(test)
     recall = pd.read_csv(out / "event_recall_by_type.csv", index_col=0)
     assert list(recall.index) == ["chi2", "cusum"] and set(recall.columns) == set(test.attack_type)
-    # every detector's alarms typed by shape, at the first and the last step of each alarm run
+    # every detector's alarms typed by shape, at the first step of each alarm run and 5 s later
     for c in r["configs"]:
         for m in ("chi2", "cusum"):
             got = c["methods"][m]
             assert set(got["type_confusion"]) == set(got["type_confusion_shape"]) == \
-                set(got["type_confusion_shape_end"])
+                set(got["type_confusion_shape_confirmed"])
             assert sum(map(sum, (row.values() for row in got["type_confusion_shape"].values()))) == \
                 sum(map(sum, (row.values() for row in got["type_confusion"].values())))
             assert all(set(row) <= set(ATTACK_TYPES) for row in got["type_confusion_shape"].values())
@@ -322,12 +322,12 @@ def test_benchmark_mixed_profile_reports_types(mixed_dir, tmp_path):
     assert "Attack typing at alarms" in html and "shape typer at the first alarm" in html
     typing = pd.read_csv(out / "typing.csv", index_col=0)
     assert list(typing.index) == ["chi2", "cusum"]
-    assert list(typing.columns) == ["shape typer at the first alarm", "shape typer at the alarm run's end"]
+    assert list(typing.columns) == ["shape typer at the first alarm", "shape typer, confirmed 5 s later"]
     assert "Attacks typed right, of the detected attacks" in res.output
     # per detected attack: one per attacked test flight with an alarm on an attacked step
     for c in r["configs"]:
         t = c["methods"]["chi2"]["attack_typing"]
-        assert t["own"] is None and t["shape_first"]["attacks"] == t["shape_end"]["attacks"]
+        assert t["own"] is None and t["shape_first"]["attacks"] == t["shape_confirmed"]["attacks"]
         found = sum(v["found"] for v in c["methods"]["chi2"]["event_recall_by_type"].values())
         assert 0 < t["shape_first"]["attacks"] <= min(len(test), found)
         assert 0 <= t["shape_first"]["right"] <= t["shape_first"]["attacks"]

@@ -377,12 +377,19 @@ def test_e_cli_monitor_demo(tmp_path):
     with time_limit(150):
         res = CliRunner().invoke(app, ["monitor", "--demo", "--out", str(tmp_path / "demo"), "--duration", "120"])
     assert res.exit_code == 0, res.output
-    # alerts typed by shape: a kind at the start, revised at the end
+    # alerts typed by shape: a kind when raised, confirmed 5 s later (vehicle time) for every alert
     assert re.search(rf"ALERT: ({'|'.join(ATTACK_TYPES)}), score", res.output), res.output
     summary = json.loads((tmp_path / "demo" / "summary.json").read_text())
     events = [json.loads(x) for x in (tmp_path / "demo" / "alerts.jsonl").read_text().splitlines()]
-    ends = [e for e in events if e["event"] == "alert_end"]
-    assert ends and all(e["attack_type_revised"] in ATTACK_TYPES for e in ends)
+    starts = [e for e in events if e["event"] == "alert_start"]
+    typed = [e for e in events if e["event"] == "alert_type"]
+    assert [e["start_s"] for e in typed] == [e["vehicle_t"] for e in starts]
+    assert [e["raised_as"] for e in typed] == [e["attack_type"] for e in starts]
+    assert all(e["attack_type"] in ATTACK_TYPES for e in typed)
+    # (those still pending when the stream ends are confirmed from its last fix)
+    assert all(e["vehicle_t"] >= e["start_s"] + 5.0 - 1e-9 or e["vehicle_t"] == typed[-1]["vehicle_t"]
+               for e in typed)
+    assert "type" in res.output and "alert of t" in res.output
     assert summary["alerts"] >= 1 and (tmp_path / "demo" / "demo-model.json").exists()
 
 

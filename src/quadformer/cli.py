@@ -755,8 +755,8 @@ def monitor(
     demo: bool = typer.Option(False, "--demo", help="Fit a quick detector on simulated flights (unless --model), "
                               "stream a simulated spoofed flight from 127.0.0.1 to the monitor and show the alert."),
     speed: float = typer.Option(5.0, help="--demo: the flight is streamed at this many times real time."),
-    typing: str = typer.Option("shape", help=_TYPING_HELP + " The type at an alert's end is revised in "
-                               "alerts.jsonl."),
+    typing: str = typer.Option("shape", help=_TYPING_HELP + " With shape, each alert's type is confirmed "
+                               "5 s after it was raised (console, alerts.jsonl)."),
 ) -> None:
     """Watch a live vehicle's GPS over MAVLink: the filter and detector of `detect`, one message at a
     time; alerts on the console, as STATUSTEXT to the vehicle and in --out; with --act, switch the

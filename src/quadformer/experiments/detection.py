@@ -110,11 +110,11 @@ def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray,
     true type at its first alarm (``none`` for a false alarm): ``type_confusion``, the
     detector's own type at the first alarm (``attack`` from a detector that does not
     classify); with a ``typer`` (and the columns it reads), the typer's type at the first
-    alarm (``type_confusion_shape``) and revised by the run's end (``type_confusion_shape_end``:
-    at the run's step of longest disagreement, ``ShapeTyper.evidence_rows``). ``attack_typing``: per
-    detected attack (``detected_attacks``), how many are typed right (``own``: by the
-    detector's classifier, None if it has none; ``shape_first``, ``shape_end``: by the typer at
-    the first alarm on the attack and revised by the end of that alarm run). ``typed``: row -> type
+    alarm (``type_confusion_shape``) and confirmed ``typer.confirm_s`` later
+    (``type_confusion_shape_confirmed``). ``attack_typing``: per detected attack
+    (``detected_attacks``), how many are typed right (``own``: by the detector's classifier,
+    None if it has none; ``shape_first``, ``shape_confirmed``: by the typer at the first alarm
+    on the attack and ``confirm_s`` later). ``typed``: row -> type
     already found for these rows (shared between detectors scored on the same flights)."""
     out: dict[str, Any] = {}
     if hasattr(det, "onset_times"):
@@ -135,34 +135,24 @@ def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray,
     pred = det.predict_type(test) if own else np.full(len(test), "attack", dtype=object)
     out["type_confusion"] = confusion(true[first], pred[first])
     # per detected attack: its first alarm on an attacked step, and the last step of that alarm run
-    a_first, a_last = detected_attacks(test, alarms)
+    a_first = detected_attacks(test, alarms)
     typing = {"own": right_count(true[a_first], pred[a_first]) if own else None}
     if typer is not None and all(c in test.columns for c in TYPING_COLUMNS):
-        revised = typer.evidence_rows(test, first, last)
         out["type_confusion_shape"] = confusion(true[first], typer.type_rows(test, first, typed))
-        out["type_confusion_shape_end"] = confusion(true[first], typer.type_rows(test, revised, typed))
+        out["type_confusion_shape_confirmed"] = confusion(
+            true[first], typer.type_rows(test, typer.confirm_rows(test, first), typed))
         typing["shape_first"] = right_count(true[a_first], typer.type_rows(test, a_first, typed))
-        typing["shape_end"] = right_count(true[a_first], typer.type_rows(test, typer.evidence_rows(
-            test, a_first, a_last), typed))
+        typing["shape_confirmed"] = right_count(
+            true[a_first], typer.type_rows(test, typer.confirm_rows(test, a_first), typed))
     out["attack_typing"] = typing
     return out
 
 
-def detected_attacks(X: pd.DataFrame, alarms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per flight with an alarm on an attacked step (a detected attack; a flight holds at most
-    one attack): the row of that first alarm, and the row of the last step of its alarm run."""
-    alarms = np.asarray(alarms, dtype=bool)
-    label = X["label"].to_numpy() == 1
-    first: list[int] = []
-    last: list[int] = []
-    for _, idx in flight_slices(X):
-        for s, e in runs(alarms[idx]):
-            on = np.flatnonzero(label[idx[s:e]])
-            if len(on):
-                first.append(int(idx[s + on[0]]))
-                last.append(int(idx[e - 1]))
-                break
-    return np.array(first, dtype=int), np.array(last, dtype=int)
+def detected_attacks(X: pd.DataFrame, alarms: np.ndarray) -> np.ndarray:
+    """Rows of the first alarm on an attacked step of each flight that has one: one per detected
+    attack (a flight holds at most one attack)."""
+    hit = np.asarray(alarms, dtype=bool) & (X["label"].to_numpy() == 1)
+    return np.array([int(idx[np.argmax(hit[idx])]) for _, idx in flight_slices(X) if hit[idx].any()], dtype=int)
 
 
 def right_count(true, pred) -> dict[str, int]:

@@ -8,8 +8,8 @@ and with ``act`` the EKF source set switch). Causal throughout; the only state i
 residue stream's, the detector stream's (a recursion or ring buffers), the admission's,
 fixed-size counters, a fixed-size latency histogram and the last fixes the attack typer
 reads (``detectors.attack_types``; ``typing="shape"``: an alert's type is the shape fitted at
-its first fix, revised in the ``alert_end`` event at its fix of longest disagreement between
-GPS and the reference): memory does not grow with time.
+its first fix, confirmed ``confirm_s`` (5 s) later in an ``alert_type`` event): memory does not
+grow with time.
 
 The monitor's own filter always fuses GPS (it is the filter of ``detect``, so that its scores
 equal offline scoring of the same data); the admission decision is what the monitor asks of
@@ -94,6 +94,7 @@ STATES = {FUSING: "fusing", EXCLUDED: "GPS excluded", BLENDING: "re-admitting GP
 STREAMS = ("imu", "gps", "mag", "baro", "vio", "attitude")
 EPOCH_S = 1e9                     # s, a stamp larger than this is UNIX time, not time since boot
 MAX_ALERTS = 1000                 # alerts kept in memory (all are in alerts.jsonl)
+MAX_PENDING = 100                 # alerts awaiting their confirmed type (one per alarm start within confirm_s)
 MAX_SEGMENTS = 100                # segment descriptions kept in memory
 
 
@@ -258,8 +259,10 @@ class _Segment:
         self.fixes = 0
         self.alert: Alert | None = None
         self.last_score = math.nan
-        # the last fixes' typing columns (bounded), for the shape typer at an alert's start and end
+        # the last fixes' typing columns (bounded), for the shape typer; alerts whose type is yet
+        # to be confirmed: (start, type raised with)
         self.history: deque[dict[str, float]] = deque(maxlen=monitor.history_len)
+        self.pending: deque[tuple[float, str]] = deque(maxlen=MAX_PENDING)
 
     @property
     def state(self) -> int:
@@ -665,8 +668,11 @@ class Monitor:
             kind = str(step.attack_type[0]) if step.attack_type is not None else None
             if self.typer is not None and all(c in cols for c in TYPING_COLUMNS[1:]):
                 seg.history.append({"t": t, **{c: cols[c] for c in TYPING_COLUMNS[1:]}})
+                self._confirm(seg, t)
                 kind = (self._type(seg, -1) if alarm and seg.alert is None else
                         seg.alert.attack_type if seg.alert is not None else None)
+                if alarm and seg.alert is None:
+                    seg.pending.append((t, kind))
             r = row["res_gps_r"]
             w = torch.as_tensor(r / np.where(row["res_gps_s"] > 0, row["res_gps_s"], 1.0))
             before = seg.state
@@ -747,19 +753,26 @@ class Monitor:
         alert = dataclasses.replace(seg.alert, end_s=t)
         seg.alert = None
         self.alerts.append(alert)
-        # the type revised from the alert's fixes (up to the last alarmed one: the one before this, or
-        # this at a segment's end), at the fix where GPS had disagreed with the reference longest
-        revised = None
-        alarmed = [i for i, r in enumerate(seg.history) if r["t"] >= alert.start_s]
-        if t is not None:
-            alarmed = alarmed[:-1]
-        if self.typer is not None and alarmed:
-            i = max(alarmed, key=lambda j: (np.nan_to_num(seg.history[j]["res_ref_age"], nan=-np.inf), j))
-            revised = self._type(seg, i - len(seg.history))
-        self._event("alert_end", seg, t, alert.score, alert.attack_type, state, revised)
+        self._event("alert_end", seg, t, alert.score, alert.attack_type, state)
 
-    def _event(self, name: str, seg: _Segment, t: float | None, score: float, kind: str, state: int,
-               revised: str | None = None) -> None:
+    def _confirm(self, seg: _Segment, t: float | None) -> None:
+        """Confirm the types of the alerts raised ``confirm_s`` or more before vehicle time t (all
+        of them at a segment's end, t None) from the last fix: an ``alert_type`` event each."""
+        while seg.pending and (t is None or t >= seg.pending[0][0] + self.typer.confirm_s):
+            start, raised = seg.pending.popleft()
+            kind = self._type(seg, -1)
+            now = datetime.now(timezone.utc)
+            event = {"event": "alert_type", "segment": seg.index, "vehicle_t": seg.history[-1]["t"],
+                     "wall_time": now.isoformat(timespec="milliseconds"), "unix_time": now.timestamp(),
+                     "start_s": start, "attack_type": kind, "raised_as": raised}
+            if self.records is not None:
+                self.records.alert(event)
+            if self.on_alert is not None:
+                self.on_alert(event)
+            self.echo(f"[t {event['vehicle_t']:.1f} s] alert of t {start:.1f} s: type {kind}"
+                      + (f" (raised as {raised})" if kind != raised else " confirmed"))
+
+    def _event(self, name: str, seg: _Segment, t: float | None, score: float, kind: str, state: int) -> None:
         now = datetime.now(timezone.utc)
         event = {"event": name, "segment": seg.index, "vehicle_t": t,
                  "wall_time": now.isoformat(timespec="milliseconds"), "unix_time": now.timestamp(), "score": score, "attack_type": kind, "admission": STATES[state],
@@ -767,15 +780,11 @@ class Monitor:
         if name == "alert_end":
             a = self.alerts[-1]
             event.update(start_s=a.start_s, peak_score=a.score)
-            if revised is not None:
-                event["attack_type_revised"] = revised
         if self.records is not None:
             self.records.alert(event)
         if self.on_alert is not None:
             self.on_alert(event)
         when = f"t {t:.1f} s" if t is not None else "end of segment"
-        if revised is not None and revised != kind:
-            kind = f"{kind} (revised: {revised})"
         self.echo(f"[{when}] {'ALERT' if name == 'alert_start' else 'alert ended'}: {kind}, score {score:.3g} "
                   f"(threshold {self.detector.threshold_:.3g}), segment {seg.index}, {STATES[state]}")
 
@@ -786,6 +795,8 @@ class Monitor:
             return
         if seg.alert is not None:
             self._close_alert(seg, None, seg.state)
+        if seg.pending and seg.history:
+            self._confirm(seg, None)
         self.segments.append({"segment": seg.index, "started": seg.reason, "ended": why, "fixes": seg.fixes,
                               "first_imu_t": seg.first_imu, "last_imu_t": seg.last_imu})
 

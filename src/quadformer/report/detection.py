@@ -138,7 +138,7 @@ def ablation_table(results: dict[str, Any]) -> pd.DataFrame | None:
 TYPE_CONFUSIONS = {
     "type_confusion": "its own type at the first alarm",
     "type_confusion_shape": "shape typer at the first alarm",
-    "type_confusion_shape_end": "shape typer at the last alarm step",
+    "type_confusion_shape_confirmed": "shape typer, confirmed 5 s after the first alarm",
 }
 
 
@@ -165,7 +165,7 @@ def confusion_table(results: dict[str, Any], method: str, key: str = "type_confu
 TYPINGS_COUNTED = {
     "own": "own type at the first alarm",
     "shape_first": "shape typer at the first alarm",
-    "shape_end": "shape typer at the alarm run's end",
+    "shape_confirmed": "shape typer, confirmed 5 s later",
 }
 
 
@@ -415,8 +415,8 @@ def write_report(results: dict[str, Any], out: Path) -> Path:
                      "type is right (right/detected). Own type: the detector's classifier (trained on the "
                      "labelled share of the training flights), at the first alarm on the attack. Shape "
                      "typer: each attack shape fitted to GPS minus the GPS-free reference, no labels "
-                     "(<code>detectors.attack_types</code>), at that first alarm and at the last step of its "
-                     "alarm run (the alert's type revised while the alarm lasts). The confusion matrices "
+                     "(<code>detectors.attack_types</code>), at that first alarm and confirmed 5 s later "
+                     "(whether or not the alarm still stands). The confusion matrices "
                      "below count every alarm run, false alarms (row none) included.</p>")
         parts.append(table(typing))
     for m in results["methods_run"]:
