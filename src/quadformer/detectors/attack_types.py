@@ -40,7 +40,8 @@ simulated apart from the benchmark's, ``benchmarks/attack_types.py``: about 0.89
 typed right 2 s after their onset, 0.94 after 5 s, 0.96 after 10 s). Replay and freeze are
 told from the vehicle's motion: on a hovering vehicle they look like a bias. Without a camera
 the reference (IMU and barometer) drifts horizontally within seconds and its stated std is
-about a metre and a metre per second: the shapes are then seldom told apart.
+about a metre and a metre per second: the shapes are told apart less often, and less often the
+longer the window. Rows are taken as evenly spaced at the flight's median GPS step.
 """
 
 from __future__ import annotations
