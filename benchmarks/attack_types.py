@@ -1,14 +1,14 @@
 """Attack typing by shape: how often the type is right, some seconds into each attack, and its cost.
 
 On a dataset with mixed attacks (simulated: every flight attacked, each kind drawn from all
-six, Model and noise as given; or ``--data``), the shape typer (``detectors.attack_types``)
+six, Model and noise as given; or the datasets of ``--data``, pooled), the shape typer (``detectors.attack_types``)
 types every attacked flight ``--lags`` seconds after the first attacked step, from the flight
 up to that step. Printed: per lag, the share typed right and the confusion matrix (rows true,
 columns typed); the median and p99 time of one typing (one thread). The last line printed is
 one JSON object. The typer learns nothing, so the whole dataset is its test set.
 
     python benchmarks/attack_types.py [--flights 160] [--model I] [--noise exponential]
-                                      [--seed 9001] [--lags 2,5,10] [--data DIR]
+                                      [--seed 9001] [--lags 2,5,10] [--data DIR ...]
 """
 
 from __future__ import annotations
@@ -31,7 +31,8 @@ def main() -> None:
     ap.add_argument("--sensors", default="gps+imu+vio")
     ap.add_argument("--seed", type=int, default=9001)
     ap.add_argument("--lags", default="2,5,10", help="seconds after the first attacked step, comma-separated")
-    ap.add_argument("--data", type=Path, default=None, help="existing dataset directory (else simulated)")
+    ap.add_argument("--data", type=Path, nargs="+", default=None,
+                    help="existing dataset directories, pooled (else simulated)")
     args = ap.parse_args()
     torch.set_num_threads(1)
 
@@ -41,18 +42,19 @@ def main() -> None:
 
     lags = [float(x) for x in args.lags.split(",")]
     if args.data is not None:
-        ds = load_dataset(args.data)
-        what = str(args.data)
+        sets = [load_dataset(d) for d in args.data]
+        what = ", ".join(map(str, args.data))
     else:
         cfg = SimConfig(model=args.model, noise=args.noise, sensors=args.sensors, flights=args.flights,
                         duration=60.0, seed=args.seed, attack=AttackConfig(kind="mix", fraction=1.0))
         t0 = time.perf_counter()
-        ds = simulate(cfg)
+        sets = [simulate(cfg)]
         what = f"simulated: {args.flights} flights, model {args.model}, {args.noise}, {args.sensors}, seed {args.seed}"
         print(f"simulated {args.flights} flights in {time.perf_counter() - t0:.0f} s")
     typer = ShapeTyper()
     rows, seconds = [], []
-    for fid, g in ds.flights.groupby("flight_id", sort=False):
+    flights = (g for ds in sets for _, g in ds.flights.groupby("flight_id", sort=False))
+    for g in flights:
         g = g.reset_index(drop=True)
         attacked = np.flatnonzero(g.label.to_numpy() == 1)
         if not len(attacked):
