@@ -666,13 +666,6 @@ class Monitor:
                 continue
             score, alarm = float(step.score[0]), bool(step.alarm[0])
             kind = str(step.attack_type[0]) if step.attack_type is not None else None
-            if self.typer is not None and all(c in cols for c in TYPING_COLUMNS[1:]):
-                seg.history.append({"t": t, **{c: cols[c] for c in TYPING_COLUMNS[1:]}})
-                self._confirm(seg, t)
-                kind = (self._type(seg, -1) if alarm and seg.alert is None else
-                        seg.alert.attack_type if seg.alert is not None else None)
-                if alarm and seg.alert is None:
-                    seg.pending.append((t, kind))
             r = row["res_gps_r"]
             w = torch.as_tensor(r / np.where(row["res_gps_s"] > 0, row["res_gps_s"], 1.0))
             before = seg.state
@@ -681,6 +674,14 @@ class Monitor:
             after = seg.state
             latency = time.perf_counter() - t_in
             self.latency.add(latency)
+            # attack typing after the admission decision, which never waits for it
+            if self.typer is not None and all(c in cols for c in TYPING_COLUMNS[1:]):
+                seg.history.append({"t": t, **{c: cols[c] for c in TYPING_COLUMNS[1:]}})
+                self._confirm(seg, t)
+                kind = (self._type(seg, -1) if alarm and seg.alert is None else
+                        seg.alert.attack_type if seg.alert is not None else None)
+                if alarm and seg.alert is None:
+                    seg.pending.append((t, kind))
             seg.fixes += 1
             self.fixes += 1
             seg.last_score = score
