@@ -22,6 +22,7 @@ import pandas as pd
 
 from quadformer.dataset import Dataset, load_dataset
 from quadformer.detectors import alerts_frame, alerts_from_scores, flight_slices, get, runs
+from quadformer.detectors.alarms import run_starts
 from quadformer.detectors.attack_types import TYPING_COLUMNS, ShapeTyper
 from quadformer.evaluation.metrics import bootstrap_f1, evaluate, event_recall_by_type
 from quadformer.evaluation.protocol import TrainingBudget, split_flights
@@ -114,8 +115,8 @@ def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray,
     (``type_confusion_shape_confirmed``). ``attack_typing``: per detected attack
     (``detected_attacks``), how many are typed right (``own``: by the detector's classifier,
     None if it has none; ``shape_first``, ``shape_confirmed``: by the typer at the first alarm
-    on the attack and ``confirm_s`` later). ``typed``: row -> type
-    already found for these rows (shared between detectors scored on the same flights)."""
+    on the attack and ``confirm_s`` later). ``typed``: row -> type already found for these
+    rows (shared between detectors scored on the same flights)."""
     out: dict[str, Any] = {}
     if hasattr(det, "onset_times"):
         # attack windows (first and last attacked times) per flight, computed once
@@ -130,11 +131,11 @@ def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray,
         out["onset_error_median_s"] = float(np.median(errors)) if errors else None
         out["onset_error_p95_s"] = float(np.percentile(np.abs(errors), 95)) if errors else None
     true = np.where(test.label.to_numpy() == 1, test.attack_type.astype(str).to_numpy(), "none")
-    first, last = alarm_runs(test, alarms)
+    first = np.flatnonzero(run_starts(test, alarms))
     own = hasattr(det, "predict_type")
     pred = det.predict_type(test) if own else np.full(len(test), "attack", dtype=object)
     out["type_confusion"] = confusion(true[first], pred[first])
-    # per detected attack: its first alarm on an attacked step, and the last step of that alarm run
+    # per detected attack: its first alarm on an attacked step
     a_first = detected_attacks(test, alarms)
     typing = {"own": right_count(true[a_first], pred[a_first]) if own else None}
     if typer is not None and all(c in test.columns for c in TYPING_COLUMNS):
@@ -159,17 +160,6 @@ def right_count(true, pred) -> dict[str, int]:
     """How many of the types ``pred`` equal ``true``: {"right", "attacks"}."""
     true, pred = np.asarray(true, dtype=str), np.asarray(pred, dtype=str)
     return {"right": int((true == pred).sum()), "attacks": int(len(true))}
-
-
-def alarm_runs(X: pd.DataFrame, alarms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Row positions of the first and of the last step of each alarm run, flight by flight."""
-    first: list[int] = []
-    last: list[int] = []
-    for _, idx in flight_slices(X):
-        for s, e in runs(np.asarray(alarms, dtype=bool)[idx]):
-            first.append(int(idx[s]))
-            last.append(int(idx[e - 1]))
-    return np.array(first, dtype=int), np.array(last, dtype=int)
 
 
 def confusion(true, pred) -> dict[str, dict[str, int]]:
