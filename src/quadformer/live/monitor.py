@@ -53,6 +53,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+import pandas as pd
 import torch
 
 from quadformer.config import SENSOR_NAMES
@@ -742,8 +743,6 @@ class Monitor:
         """The shape typer's type at fix ``pos`` of the segment's history (``attack`` if it cannot tell)."""
         if len(seg.history) < -pos:
             return UNTYPED
-        import pandas as pd
-
         try:
             f = self.typer.prepare(pd.DataFrame(list(seg.history)))
             return self.typer.type_at(f, len(seg.history) + pos)[0]
