@@ -31,8 +31,8 @@ cheapest kind is the type.
 
 The window is the anchor's age (``res_ref_age``: the time since GPS last agreed with the
 reference), clipped to ``[min_window, max_window]`` seconds, ending at the step typed. A type
-uses the flight up to the step typed only, so it can be given online at an alarm and revised
-while the alarm lasts. Early in an attack shapes can be alike (an intermittent spoof before its
+uses the flight up to the step typed only, so it can be given online at an alarm and
+confirmed later. Early in an attack shapes can be alike (an intermittent spoof before its
 first switch is a bias; a slow sinusoid starts as a ramp): the type at the first alarm is
 the best guess then; ``confirm_s`` (5 s) later, whether or not the alarm still stands, the
 type is confirmed from the evidence gathered since (``confirm_rows``; on mixed attacks
