@@ -58,9 +58,10 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
     scores = test[["flight_id", "t", "label"]].copy()
     out: dict[str, Any] = {}
     alerts: list[pd.DataFrame] = []
-    typer = ShapeTyper()
-    typed: dict[int, str] = {}       # the typer's type of a test row, shared by the methods
-    typable = all(c in test.columns for c in TYPING_COLUMNS)
+    # the shape typer, where the test flights carry its columns; its type of a test row is
+    # shared by the methods
+    typer = ShapeTyper() if all(c in test.columns for c in TYPING_COLUMNS) else None
+    typed: dict[int, str] = {}
     for m in methods:
         t0 = time.perf_counter()
         tuned = tuned_model(m, parts.train, parts.y_train, parts.val, rate, budget_per_hour, model_dir, device=device,
@@ -91,7 +92,7 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
         scores[f"score_{m}"] = s
         scores[f"alarm_{m}"] = alarms.astype(np.int8)
         alerts.append(alerts_frame(alerts_from_scores(test, s, det, typer=partial(typer.type_rows, memo=typed)
-                                                      if typable else None)).assign(method=m))
+                                                      if typer is not None else None)).assign(method=m))
     split = {"train": len(sp.train), "val": len(sp.val), "test": len(sp.test), "labelled": len(sp.labelled)}
     return {"split": split, "methods": out, "alerts": pd.concat(alerts, ignore_index=True) if alerts else None}, scores
 
@@ -110,7 +111,7 @@ def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray,
     minus true onset, s). Confusion counts of the attack type at each alarm run against the
     true type at its first alarm (``none`` for a false alarm): ``type_confusion``, the
     detector's own type at the first alarm (``attack`` from a detector that does not
-    classify); with a ``typer`` (and the columns it reads), the typer's type at the first
+    classify); with a ``typer`` (X carrying the columns it reads), the typer's type at the first
     alarm (``type_confusion_shape``) and confirmed ``typer.confirm_s`` later
     (``type_confusion_shape_confirmed``). ``attack_typing``: per detected attack
     (``detected_attacks``), how many are typed right (``own``: by the detector's classifier,
@@ -138,7 +139,7 @@ def onset_and_types(det, test: pd.DataFrame, alarms: np.ndarray,
     # per detected attack: its first alarm on an attacked step
     a_first = detected_attacks(test, alarms)
     typing = {"own": right_count(true[a_first], pred[a_first]) if own else None}
-    if typer is not None and all(c in test.columns for c in TYPING_COLUMNS):
+    if typer is not None:
         out["type_confusion_shape"] = confusion(true[first], typer.type_rows(test, first, typed))
         out["type_confusion_shape_confirmed"] = confusion(
             true[first], typer.type_rows(test, typer.confirm_rows(test, first), typed))

@@ -11,6 +11,7 @@ import numpy as np
 import pandas as pd
 
 from quadformer.dataset import load_dataset
+from quadformer.detectors.attack_types import ShapeTyper
 from quadformer.evaluation.metrics import flight_events
 from quadformer.io import atomic_write_text
 from quadformer.report.html import img, page, png, table
@@ -138,7 +139,7 @@ def ablation_table(results: dict[str, Any]) -> pd.DataFrame | None:
 TYPE_CONFUSIONS = {
     "type_confusion": "its own type at the first alarm",
     "type_confusion_shape": "shape typer at the first alarm",
-    "type_confusion_shape_confirmed": "shape typer, confirmed 5 s after the first alarm",
+    "type_confusion_shape_confirmed": f"shape typer, confirmed {ShapeTyper.confirm_s:g} s after the first alarm",
 }
 
 
@@ -165,7 +166,7 @@ def confusion_table(results: dict[str, Any], method: str, key: str = "type_confu
 TYPINGS_COUNTED = {
     "own": "own type at the first alarm",
     "shape_first": "shape typer at the first alarm",
-    "shape_confirmed": "shape typer, confirmed 5 s later",
+    "shape_confirmed": f"shape typer, confirmed {ShapeTyper.confirm_s:g} s later",
 }
 
 
@@ -415,7 +416,8 @@ def write_report(results: dict[str, Any], out: Path) -> Path:
                      "type is right (right/detected). Own type: the detector's classifier (trained on the "
                      "labelled share of the training flights), at the first alarm on the attack. Shape "
                      "typer: each attack shape fitted to GPS minus the GPS-free reference, no labels "
-                     "(<code>detectors.attack_types</code>), at that first alarm and confirmed 5 s later "
+                     "(<code>detectors.attack_types</code>), at that first alarm and confirmed "
+                     f"{ShapeTyper.confirm_s:g} s later "
                      "(whether or not the alarm still stands). The confusion matrices "
                      "below count every alarm run, false alarms (row none) included.</p>")
         parts.append(table(typing))
