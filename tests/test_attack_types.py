@@ -7,18 +7,20 @@ import pandas as pd
 import pytest
 
 from quadformer.detectors import ShapeTyper, alerts_from_scores
-from quadformer.detectors.attack_types import TYPING_COLUMNS, UNTYPED, alert_typer
+from quadformer.detectors.attack_types import TYPING_COLUMNS, UNTYPED, Unanchored, alert_typer
 from quadformer.estimator.schema import ATTACK_TYPES, columns
 
 RATE = 10.0
 ONSET = 15.0
 
 
-def flight(kind: str, seed: int = 0, duration: float = 40.0, onset: float = ONSET) -> pd.DataFrame:
+def flight(kind: str, seed: int = 0, duration: float = 40.0, onset: float = ONSET, rate: float = 0.5,
+           follows: bool = False) -> pd.DataFrame:
     """One flight's typing columns, built as the reference residues are: a vehicle on a circle
     (r 5 m, 0.3 rad/s), GPS = truth + white noise (0.3 m, 0.05 m/s) + the attack, a reference =
     truth + a slow drift; their difference smoothed (1 s), minus an anchor 3 s behind that
-    freezes at the onset, and whitened by a constant stated std."""
+    freezes at the onset (``follows``: goes on following, as it does for a drift too slow to
+    disagree), and whitened by a constant stated std. ``rate``: a ramp's, m/s."""
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, duration, 1.0 / RATE)
     w = 0.3
@@ -33,8 +35,8 @@ def flight(kind: str, seed: int = 0, duration: float = 40.0, onset: float = ONSE
     if kind == "bias":
         fix[on, :3] += 3.0 * u
     elif kind == "ramp":
-        fix[on, :3] += (0.5 * tau[on])[:, None] * u
-        fix[on, 3:] += 0.5 * u
+        fix[on, :3] += (rate * tau[on])[:, None] * u
+        fix[on, 3:] += rate * u
     elif kind == "sinusoid":
         f = 0.15
         fix[on, :3] += (3.0 * np.sin(2 * np.pi * f * tau[on]))[:, None] * u
@@ -54,8 +56,9 @@ def flight(kind: str, seed: int = 0, duration: float = 40.0, onset: float = ONSE
     for i in range(1, len(t)):
         a[i] = a[i - 1] + alpha * (raw[i] - a[i - 1])
     lag = int(3 * RATE)
-    anchor = np.array([a[max(min(i, k0) - lag, 0)] for i in range(len(t))])
-    age = np.where(on, t - onset + 3.0, 3.0)
+    frozen_at = len(t) if follows else k0
+    anchor = np.array([a[max(min(i, frozen_at) - lag, 0)] for i in range(len(t))])
+    age = np.where(on & ~follows, t - onset + 3.0, 3.0)
     X = pd.DataFrame({"flight_id": seed, "t": t, "res_ref_age": age})
     stated = [0.3, 0.3, 0.3, 0.05, 0.05, 0.05]          # the std the reference states (whitening)
     for i, (c, cw) in enumerate(zip(columns("res_ref_d"), columns("res_ref_w"))):
@@ -85,6 +88,38 @@ def test_before_the_first_switch_an_intermittent_spoof_is_a_bias():
     X = flight("intermittent", 0)
     assert typer.type_at(typer.prepare(X), int((ONSET + 1.5) * RATE))[0] == "bias"
     assert typer.type_at(typer.prepare(X), int((ONSET + 9.0) * RATE))[0] == "intermittent"
+
+
+def test_a_drift_too_slow_to_freeze_the_anchor_is_typed_ramp():
+    # 0.1 m/s: the anchor follows it 3 s behind, so the anchored difference holds 0.3 m and no
+    # velocity; the velocity without the anchor keeps the drift's 0.1 m/s from its onset
+    typer = ShapeTyper()
+    for seed in range(3):
+        X = flight("ramp", seed, rate=0.1, follows=True)
+        assert X.res_ref_age.max() == 3.0
+        f = typer.prepare(X)
+        assert f.dv[int((ONSET + 2) * RATE):, :2].mean(0) - f.dv[:int(ONSET * RATE), :2].mean(0) == \
+            pytest.approx([0.06, 0.08], abs=0.02)     # 4 std of the two means
+        assert typer.type_at(f, int((ONSET + 10.0) * RATE))[0] == "ramp"
+    # the same flight without the drift: no velocity step, typed as nothing but noise would be
+    clean = typer.prepare(flight("bias", 0, onset=1e9, follows=True))
+    assert np.abs(clean.dv[50:, :2].mean(0) - clean.dv[50:150, :2].mean(0)).max() < 0.02
+
+
+def test_streaming_rows_give_the_unanchored_difference_of_the_whole_flight():
+    # a bounded history (the live monitor's) with Unanchored carried over every row equals the
+    # arrays prepared from the whole flight
+    typer = ShapeTyper()
+    X = flight("ramp", 2, rate=0.1, follows=True)
+    u = Unanchored(step=1.0 / RATE)
+    pushed = [u.push(r, age) for r, age in zip(X[columns("res_ref_d")].to_numpy(), X.res_ref_age.to_numpy())]
+    a, j = (np.array(x) for x in zip(*pushed))
+    whole = typer.prepare(X)
+    keep = slice(len(X) - 300, len(X))
+    part = typer.prepare(X.iloc[keep].reset_index(drop=True), unanchored=a[keep], anchor=j[keep] - keep.start)
+    np.testing.assert_allclose(part.dv[1:], whole.dv[keep][1:], atol=1e-9)
+    # the same type (the white noise is estimated from the rows at hand: costs differ slightly)
+    assert typer.type_at(part, 299)[0] == typer.type_at(whole, len(X) - 1)[0] == "ramp"
 
 
 def test_the_type_uses_the_flight_up_to_the_step_typed_only():
@@ -140,8 +175,8 @@ def test_bad_input_is_named():
         ShapeTyper().prepare(flight("bias").drop(columns="res_ref_age"))
     with pytest.raises(ValueError, match="kinds: unknown \\['spoof'\\]"):
         ShapeTyper(kinds=("bias", "spoof"))
-    with pytest.raises(ValueError, match="max_window"):
-        ShapeTyper(min_window=10.0, max_window=5.0)
+    with pytest.raises(ValueError, match="window must be > 0"):
+        ShapeTyper(window=0.0)
     with pytest.raises(ValueError, match="delays"):
         ShapeTyper(delays=())
     # non-finite values in the window, or too short a flight: untyped, not a guess

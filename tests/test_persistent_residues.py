@@ -19,7 +19,7 @@ from quadformer.config import AttackConfig, EKFConfig, GPSConfig, IMUConfig, Sim
 from quadformer.estimator.eskf import init_state, noise_model
 from quadformer.estimator.reference import GpsFreeReference, ReferenceConfig
 from quadformer.estimator.schema import PERSISTENT, groups_for
-from quadformer.simulation.closed_loop import simulate_batch
+from quadformer.simulation.closed_loop import simulate_groups
 
 FLIGHTS = np.array([0, 1, 2, 0, 1, 2])
 ATTACKED = np.array([True, True, True, False, False, False])
@@ -28,34 +28,43 @@ CLEAN_FROM = 50                  # clean levels from step 50 (5 s) on
 SEGMENT = 20                     # steps (2 s)
 
 
-def _pair(attack: AttackConfig, sensors: str = "gps+imu+vio", duration: float = 28.0, gps: GPSConfig = GPSConfig()):
-    cfg = SimConfig(model="I", noise="gaussian", flights=3, duration=duration, seed=5, sensors=sensors,
-                    attack=attack, gps=gps)
-    return simulate_batch(cfg, FLIGHTS, ATTACKED)
+def _pairs(*attacks: AttackConfig, sensors: str = "gps+imu+vio", duration: float = 28.0,
+           gps: GPSConfig = GPSConfig()):
+    """Each attack's flights, attacked and clean copies, all flown in one batch (each equals its
+    batch flown alone)."""
+    cfgs = [SimConfig(model="I", noise="gaussian", flights=3, duration=duration, seed=5, sensors=sensors,
+                      attack=a, gps=gps) for a in attacks]
+    return simulate_groups([(c, FLIGHTS, ATTACKED) for c in cfgs])
 
 
 OFFSET = AttackConfig(kind="bias", onset=(ONSET, ONSET), duration=(DURATION, DURATION), magnitude=(1.0, 1.0),
                       fraction=1.0, axes="xy")
+DRIFT = AttackConfig(kind="ramp", onset=(ONSET, ONSET), duration=(DURATION, DURATION), rate=(0.05, 0.05),
+                     fraction=1.0)
 
 
 @pytest.fixture(scope="module")
-def bias():
-    """A 1 m position offset in the horizontal plane; the simulated receiver's own error wanders
-    (Gauss-Markov, 0.5 m, 30 s)."""
-    return _pair(OFFSET)
+def flown():
+    """A 1 m position offset in the horizontal plane and a 0.05 m/s drift with the matching
+    velocity (a coordinated ramp); the simulated receiver's own error wanders (Gauss-Markov,
+    0.5 m, 30 s)."""
+    return _pairs(OFFSET, DRIFT)
+
+
+@pytest.fixture(scope="module")
+def bias(flown):
+    return flown[0]
 
 
 @pytest.fixture(scope="module")
 def white_bias():
-    """The same offset seen by a receiver whose error is white (no slowly wandering part)."""
-    return _pair(OFFSET, gps=GPSConfig(gm_std=0.0))
+    """The offset seen by a receiver whose error is white (no slowly wandering part)."""
+    return _pairs(OFFSET, gps=GPSConfig(gm_std=0.0))[0]
 
 
 @pytest.fixture(scope="module")
-def drift():
-    """A 0.05 m/s drift with the matching velocity (a coordinated ramp)."""
-    return _pair(AttackConfig(kind="ramp", onset=(ONSET, ONSET), duration=(DURATION, DURATION),
-                              rate=(0.05, 0.05), fraction=1.0))
+def drift(flown):
+    return flown[1]
 
 
 def _segments(r, magnitude, settle: float) -> tuple[np.ndarray, float]:
@@ -200,8 +209,8 @@ def test_a_position_spoof_without_its_velocity_stays_in_gps_velocity_against_pos
 
 
 def test_without_camera_the_features_are_produced_and_finite():
-    r = _pair(AttackConfig(kind="bias", onset=(3.0, 3.0), duration=(3.0, 3.0), magnitude=(1.0, 1.0),
-                           fraction=1.0), sensors="gps+imu+mag+baro", duration=8.0)
+    (r,) = _pairs(AttackConfig(kind="bias", onset=(3.0, 3.0), duration=(3.0, 3.0), magnitude=(1.0, 1.0),
+                               fraction=1.0), sensors="gps+imu+mag+baro", duration=8.0)
     names = [g.name for g in groups_for("gps+imu+mag+baro")]
     for g in PERSISTENT:
         assert g in names and g in r, g

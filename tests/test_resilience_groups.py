@@ -10,7 +10,7 @@ import pytest
 from quadformer.config import AttackConfig, SimConfig
 from quadformer.detectors import StreamGroup, make
 from quadformer.experiments.resilience import batches_of, run_config, run_configs
-from quadformer.simulation import simulate
+from quadformer.simulation import simulate_many
 
 
 @pytest.fixture(scope="module")
@@ -20,7 +20,7 @@ def two_configs():
                   attack=AttackConfig(kind="bias", onset=(3.0, 5.0), duration=(4.0, 6.0)))
     b = SimConfig(model="II", noise="laplace", flights=10, duration=14.0, seed=22,
                   attack=AttackConfig(kind="ramp", onset=(3.0, 5.0), duration=(4.0, 6.0)))
-    return simulate(a), simulate(b)
+    return tuple(simulate_many([a, b]))          # flown in one batch; each equals simulate() alone
 
 
 def test_configurations_flown_together_equal_each_flown_alone(two_configs):

@@ -1,11 +1,21 @@
 """What kind of spoof an alarm is: each attack shape fitted to GPS minus the GPS-free reference.
 
 No labels are needed, so any detector's alarms can be typed, on any source of flights that
-records the reference residues. While a spoof lasts, ``res_ref_d`` (GPS minus the GPS-free
-reference, smoothed, minus its anchor from before the disagreement) holds the injected offset
-in position and velocity. The typer first undoes the smoothing (a first-order lag of
-``smooth_tau``; exact while the anchor stands still, as it does during a disagreement), which
-gives the raw difference d, then fits each attack kind's shape to d after an onset t0:
+records the reference residues. The estimator's reference (``estimator/reference.py``)
+compares GPS with a reference that never fuses it: D = GPS - reference in position and
+velocity, smoothed (``smooth_tau``) into a, and ``res_ref_d`` = a - A, A the anchor: the value
+of a ``res_ref_age`` seconds earlier (3 s while GPS agrees, frozen at the last agreement while
+it disagrees). The typer reads two things from the rows:
+
+- the anchored difference d (``res_ref_d`` with the smoothing undone) in position: a spoof's
+  offset since each row's anchor;
+- the unanchored velocity difference (``Unanchored``: a_k = res_ref_d_k + a_j, j the row the
+  anchor was taken at, from the flight's first row; smoothing undone), known up to a constant:
+  with a camera the reference's velocity is absolute, so a drift spoofed with its matching
+  velocity stays in it for the whole attack, even one too slow for the anchor to stop following
+  (0.05-0.2 m/s), whose anchored difference holds only its last 3 s and no velocity.
+
+Each attack kind's shape, with an onset t0, is fitted to both over the last ``window`` seconds:
 
 - ``bias``: a constant position offset, no velocity offset;
 - ``ramp``: a position offset growing linearly, and the matching constant velocity offset;
@@ -17,31 +27,32 @@ gives the raw difference d, then fits each attack kind's shape to d after an ons
 - ``freeze``: the fix held at the onset: ``p(t0) - p(t)`` and ``v(t0) - v(t)``, plus a
   constant position offset (the receiver error frozen in the held fix).
 
-The vehicle's motion is taken from the GPS-free side: its velocity is the GPS velocity minus
-the velocity part of d (the reference's velocity), its position changes that velocity summed.
-A shape's free amplitudes (one per axis, fitting that axis's position and velocity together)
-are least-squares fits; its nonlinear parameters (onset, frequency, period, delay) are
-searched on grids. Residuals are weighted, per step and component, by the std of d: its
-white noise (a robust std of its step changes over the flight so far) and the std the
-reference states for it (``res_ref_d / res_ref_w``: the reference's growth since the anchor
-and the receiver's slow error) added in quadrature. A kind's cost is its weighted squared error
-plus ``penalty`` (default ``log n``, n the samples in the window: a BIC-like rule) per
-parameter: three amplitudes or offsets, the onset, and the frequency, period or delay. The
-cheapest kind is the type.
+A kind's position offset P(t) is compared with d as the anchor sees it: P(t) - P(t_anchor) at
+each row (a bias that began before the anchor's time is in the anchor, a ramp's growth since
+then is not); its velocity offset with the unanchored velocity, whose constant is free. The
+vehicle's motion is taken from the GPS-free side: the GPS velocity minus the unanchored
+velocity difference, its position changes that velocity summed. A shape's free amplitudes
+(one per axis, fitting that axis's position and velocity together) are least-squares fits; its
+nonlinear parameters (onset, frequency, period, delay) are searched on grids. Residuals are
+weighted, per step and component, by the std of the data: its white noise (a robust std of its
+step changes over the flight so far) and the std the reference states for it (``res_ref_d /
+res_ref_w``: the reference's growth since the anchor and the receiver's slow error) added in
+quadrature. A kind's cost is its weighted squared error plus ``penalty`` (default ``log n``, n
+the samples in the window: a BIC-like rule) per parameter: three amplitudes or offsets, the
+onset, and the frequency, period or delay. The cheapest kind is the type.
 
-The window is the anchor's age (``res_ref_age``: the time since GPS last agreed with the
-reference), clipped to ``[min_window, max_window]`` seconds, ending at the step typed. A type
-uses the flight up to the step typed only, so it can be given online at an alarm and
+A type uses the flight up to the step typed only, so it can be given online at an alarm and
 confirmed later. Early in an attack shapes can be alike (an intermittent spoof before its
 first switch is a bias; a slow sinusoid starts as a ramp): the type at the first alarm is
 the best guess then; ``confirm_s`` (5 s) later, whether or not the alarm still stands, the
 type is confirmed from the evidence gathered since (``confirm_rows``; on mixed attacks
 simulated apart from the benchmark's, ``benchmarks/attack_types.py``: about 0.89 of attacks
-typed right 2 s after their onset, 0.94 after 5 s, 0.96 after 10 s). Replay and freeze are
-told from the vehicle's motion: on a hovering vehicle they look like a bias. Without a camera
-the reference (IMU and barometer) drifts horizontally within seconds and its stated std is
-about a metre and a metre per second: the shapes are told apart less often, and less often the
-longer the window. Rows are taken as evenly spaced at the flight's median GPS step.
+typed right 2 s after their onset, 0.94-0.97 after 5 s, 0.97-0.99 after 10 s). Replay and
+freeze are told from the vehicle's motion: on a hovering vehicle they look like a bias.
+Without a camera the reference (IMU and barometer) drifts horizontally within seconds and its
+stated std is about a metre and a metre per second: the shapes are told apart less often.
+Rows are taken as evenly spaced at the flight's median GPS step; the anchor's rows follow
+``res_ref_age``, which advances by the reference's GPS step per row.
 """
 
 from __future__ import annotations
@@ -68,19 +79,50 @@ TYPINGS = ("shape", "detector")
 class FlightShapes:
     """One flight's arrays for typing (``ShapeTyper.prepare``), one row per GPS step."""
     t: np.ndarray          # (n,) s
-    d: np.ndarray          # (n,6) raw GPS minus reference, minus the anchor (m, m/s)
-    age: np.ndarray        # (n,) s, the anchor's age
-    vel: np.ndarray        # (n,3) m/s, the vehicle's GPS-free velocity
+    d: np.ndarray          # (n,6) raw GPS minus reference, minus each row's anchor (m, m/s)
+    anchor: np.ndarray     # (n,) int, the row each row's anchor was taken at (negative: before the rows)
+    dv: np.ndarray         # (n,3) m/s, raw GPS minus reference velocity without the anchor (up to a constant)
+    vel: np.ndarray        # (n,3) m/s, the vehicle's GPS-free velocity (up to a constant)
     pos: np.ndarray        # (n,3) m, that velocity summed (position change since the first row)
     stated: np.ndarray     # (n,6) the std the reference states for res_ref_d
+
+
+class Unanchored:
+    """GPS minus the reference, smoothed, without its anchor, row by row from a flight's first
+    row: a_k = res_ref_d_k + a_j, j = k - age_k / step the row the anchor was taken at (the
+    anchor is the smoothed difference of that row). ``step``: the reference's GPS step, which
+    ``res_ref_age`` advances by per row (inferred from the first increase of the age where
+    None); ``keep``: rows remembered (the anchor of a frozen disagreement is held however old)."""
+
+    def __init__(self, step: float | None = None, keep: int = 1 << 30):
+        self.step, self.keep = step, keep
+        self.rows: dict[int, np.ndarray] = {}
+        self.k, self.last_age = 0, None
+        self.held: tuple[int, np.ndarray] = (-1, np.zeros(6))
+
+    def push(self, r: np.ndarray, age: float) -> tuple[np.ndarray, int]:
+        """(a of this row, the row its anchor was taken at) for a row's res_ref_d (6,) and res_ref_age."""
+        if self.step is None and self.last_age is not None and 0.0 < age - self.last_age < 1.0:
+            self.step = age - self.last_age
+        self.last_age = age
+        k = self.k
+        lag = max(1, int(round(age / self.step))) if self.step and np.isfinite(age) else 1
+        j = k - lag
+        base = self.rows.get(j, self.held[1] if self.held[0] == j else np.zeros(6) if j < 0 else None)
+        a = np.asarray(r, dtype=float) + (base if base is not None else np.nan)
+        if j in self.rows:
+            self.held = (j, self.rows[j])
+        self.rows[k] = a
+        self.rows.pop(k - self.keep, None)
+        self.k += 1
+        return a, j
 
 
 @dataclass(frozen=True)
 class ShapeTyper:
     """Attack typing by shape fitting (see the module text). Times in s, frequencies in Hz."""
     smooth_tau: float = ReferenceConfig.smooth_tau     # the smoothing of res_ref_d
-    min_window: float = 4.0
-    max_window: float = 30.0
+    window: float = 30.0                               # s of flight up to the step typed
     onset_step: float = 0.5                            # grid of onsets
     frequencies: tuple[float, ...] = field(default=tuple(float(f) for f in np.geomspace(0.04, 0.6, 14)))
     periods: tuple[float, ...] = field(default=tuple(float(p) for p in np.arange(1.5, 7.01, 0.5)))
@@ -90,12 +132,10 @@ class ShapeTyper:
     kinds: tuple[str, ...] = ATTACK_TYPES
 
     def __post_init__(self) -> None:
-        for name in ("smooth_tau", "min_window", "max_window", "onset_step", "confirm_s"):
+        for name in ("smooth_tau", "window", "onset_step", "confirm_s"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"ShapeTyper.{name} must be > 0, got {v!r}")
-        if self.max_window < self.min_window:
-            raise ValueError(f"ShapeTyper.max_window ({self.max_window}) is below min_window ({self.min_window})")
         for name in ("frequencies", "periods", "delays"):
             grid = np.asarray(getattr(self, name), dtype=float)
             if grid.size == 0 or not np.all(np.isfinite(grid) & (grid > 0)):
@@ -106,24 +146,31 @@ class ShapeTyper:
         if self.penalty is not None and not self.penalty >= 0:
             raise ValueError(f"ShapeTyper.penalty must be >= 0, got {self.penalty!r}")
 
-    def prepare(self, g: pd.DataFrame) -> FlightShapes:
-        """The arrays of one flight's rows (in time order) that typing reads."""
+    def prepare(self, g: pd.DataFrame, unanchored: np.ndarray | None = None,
+                anchor: np.ndarray | None = None) -> FlightShapes:
+        """The arrays of one flight's rows (in time order) that typing reads. ``unanchored``,
+        ``anchor``: ``Unanchored``'s rows (n,6) and anchor rows (n,) where kept while streaming
+        (a bounded history of rows); else computed from the rows, which then start at the
+        flight's first."""
         missing = [c for c in TYPING_COLUMNS if c not in g.columns]
         if missing:
             raise ValueError(f"attack typing needs the columns {', '.join(missing)}")
         t = g["t"].to_numpy(dtype=float)
         r = g[columns("res_ref_d")].to_numpy(dtype=float)
-        dt = _step(t)
-        alpha = 1.0 - np.exp(-dt / self.smooth_tau)
-        d = r.copy()          # undo a_k = a_(k-1) + alpha (d_k - a_(k-1))
-        d[1:] = r[:-1] + np.diff(r, axis=0) / alpha
-        vel = g[columns("gps_vel")].to_numpy(dtype=float) - d[:, 3:]
+        age = g["res_ref_age"].to_numpy(dtype=float)
+        if unanchored is None:
+            u = Unanchored(_age_step(age, t))
+            unanchored, anchor = (np.array(x) for x in zip(*(u.push(r[i], age[i]) for i in range(len(r))))) \
+                if len(r) else (np.zeros((0, 6)), np.zeros(0, dtype=int))
+        anchor = np.asarray(anchor, dtype=int)
+        d, dv = _unsmooth(r, t, self.smooth_tau), _unsmooth(np.asarray(unanchored)[:, 3:], t, self.smooth_tau)
+        vel = g[columns("gps_vel")].to_numpy(dtype=float) - dv
         # the std the reference states for res_ref_d (its growth since the anchor, the GPS's slow error)
         w = g[columns("res_ref_w")].to_numpy(dtype=float)
         with np.errstate(divide="ignore", invalid="ignore"):
             stated = pd.DataFrame(np.where(np.abs(w) > 1e-9, np.abs(r / w), np.nan)).ffill().fillna(0.0).to_numpy()
         steps = np.diff(t, prepend=t[:1])[:, None]
-        return FlightShapes(t, d, g["res_ref_age"].to_numpy(dtype=float), vel, np.cumsum(vel * steps, 0), stated)
+        return FlightShapes(t, d, anchor, dv, vel, np.nancumsum(vel * steps, 0), stated)
 
     def confirm_rows(self, X: pd.DataFrame, rows: np.ndarray) -> np.ndarray:
         """The row ``confirm_s`` seconds after each of ``rows`` (positions in X) in its flight, or
@@ -158,49 +205,54 @@ class ShapeTyper:
         """(type, cost of each kind) at step k of a flight; ``UNTYPED`` and no costs where the
         window holds fewer than 4 samples or non-finite values."""
         dt = _step(f.t)
-        span = float(np.clip(f.age[k], self.min_window, self.max_window)) if np.isfinite(f.age[k]) else self.min_window
-        k0 = max(0, k - int(round(span / dt)))
+        k0 = max(0, k - int(round(self.window / dt)))
         n = k - k0 + 1
-        Y, rows = f.d[k0:k + 1], np.arange(k0, k + 1)
-        hist = f.d[:k + 1]
-        if n < 4 or not (np.isfinite(Y).all() and np.isfinite(f.vel[k0:k + 1]).all()):
+        rows = np.arange(k0, k + 1)
+        Yp, Yv = f.d[rows, :3], f.dv[rows]
+        if n < 4 or not (np.isfinite(Yp).all() and np.isfinite(Yv).all() and np.isfinite(f.vel[rows]).all()):
             return UNTYPED, {}
+        hist = np.concatenate([f.d[:k + 1, :3], f.dv[:k + 1]], 1)
         white = _noise_std(hist[np.isfinite(hist).all(1)])
-        W = 1.0 / np.sqrt(white ** 2 + f.stated[k0:k + 1] ** 2)
-        Yw = Y * W
+        W = 1.0 / np.sqrt(white ** 2 + f.stated[rows] ** 2)
+        Wp, Wv = W[:, :3], W[:, 3:]
+        # each row's anchor, as a position in the window (negative: before it)
+        back = np.clip(f.anchor[rows] - k0, -10 * n, n - 1)
         onsets = np.arange(0, n - 1, max(1, int(round(self.onset_step / dt))))
-        tau = (np.arange(n)[None, :] - onsets[:, None]) * dt              # (onsets, n)
-        on = (tau >= 0).astype(float)
-        tau = np.maximum(tau, 0.0)
-        zero = np.zeros_like(tau)
+        tau = (np.arange(n)[None, :] - onsets[:, None]) * dt             # (onsets, n)
+        tau_a = (back[None, :] - onsets[:, None]) * dt                   # the same at each row's anchor
+        on, on_a = (tau >= 0).astype(float), (tau_a >= 0).astype(float)
+        tau, tau_a = np.maximum(tau, 0.0), np.maximum(tau_a, 0.0)
         pen = np.log(n) if self.penalty is None else self.penalty
+        fit = _Fit(Yp, Yv, Wp, Wv)
         costs: dict[str, float] = {}
 
-        def fixed(src: np.ndarray, on_rows: np.ndarray) -> float:
-            """Best cost of the honest fix of rows ``src`` (n,) after each onset of ``on_rows``,
-            plus a free constant position offset."""
-            T = np.concatenate([f.pos[src] - f.pos[rows], f.vel[src] - f.vel[rows]], -1)
-            return _best(Yw[None] - on_rows[..., None] * T[None] * W[None], on_rows, np.zeros_like(on_rows), W)
+        pa = np.clip(k0 + back, 0, None)
 
         if "bias" in self.kinds:
-            costs["bias"] = _best(Yw, on, zero, W) + 4 * pen
+            costs["bias"] = fit(on - on_a, None) + 4 * pen
         if "ramp" in self.kinds:
-            costs["ramp"] = _best(Yw, tau, on, W) + 4 * pen
+            costs["ramp"] = fit(tau - tau_a, on) + 4 * pen
         if "sinusoid" in self.kinds:
-            w = 2 * np.pi * np.asarray(self.frequencies)[:, None, None]
-            costs["sinusoid"] = min(_best(Yw, on * np.sin(wi * tau), on * wi * np.cos(wi * tau), W)
-                                    for wi in w) + 5 * pen
+            costs["sinusoid"] = min(fit(on * np.sin(w * tau) - on_a * np.sin(w * tau_a), on * w * np.cos(w * tau))
+                                    for w in 2 * np.pi * np.asarray(self.frequencies)) + 5 * pen
         if "intermittent" in self.kinds:
-            costs["intermittent"] = min(_best(Yw, on * (np.mod(tau, p) < 0.5 * p), zero, W)
+            costs["intermittent"] = min(fit(on * (np.mod(tau, p) < 0.5 * p) - on_a * (np.mod(tau_a, p) < 0.5 * p), None)
                                         for p in self.periods) + 5 * pen
+        # replay and freeze: the honest fix of other rows (a known offset), plus a free constant
+        # position offset (the receiver's slow error then against now)
+        no_cv = np.zeros((len(onsets), 3))
         if "replay" in self.kinds:
-            costs["replay"] = min(fixed(np.clip(rows - int(round(dly / dt)), 0, None), on)
-                                  for dly in self.delays) + 5 * pen
+            def replay(lag: int) -> float:
+                src, src_a = np.clip(rows - lag, 0, None), np.clip(pa - lag, 0, None)
+                return fit(on - on_a, None, on, on_a, f.pos[src] - f.pos[rows], f.pos[src_a] - f.pos[pa],
+                           f.vel[src] - f.vel[rows], no_cv)
+            costs["replay"] = min(replay(int(round(dly / dt))) for dly in self.delays) + 5 * pen
         if "freeze" in self.kinds:
-            # the fix held is the last honest one, the step before each onset
+            # the fix held is the last honest one, the step before each onset; its position is
+            # a constant offset after the onset, which the free one takes
             held = np.maximum(k0 + onsets - 1, 0)
-            T = np.concatenate([f.pos[held][:, None] - f.pos[rows][None], f.vel[held][:, None] - f.vel[rows][None]], -1)
-            costs["freeze"] = _best(Yw[None] - on[..., None] * T * W[None], on, zero, W) + 4 * pen
+            costs["freeze"] = fit(on - on_a, None, on, on_a, -f.pos[rows], -f.pos[pa], -f.vel[rows],
+                                  f.vel[held]) + 4 * pen
         return min(costs, key=costs.get), costs
 
 
@@ -215,15 +267,55 @@ def alert_typer(X: pd.DataFrame, typing: str = "shape"):
     return None
 
 
-def _best(Yw: np.ndarray, dp: np.ndarray, dv: np.ndarray, W: np.ndarray) -> float:
-    """Least weighted squared error over a set of templates (G,n): each axis a fits one
-    amplitude c_a to its position (c_a dp) and velocity (c_a dv) together. Yw: the weighted
-    data, (n,6) or one per template (G,n,6); W: (n,6) weights."""
-    Yw = np.broadcast_to(Yw, dp.shape + (6,))
-    num = np.einsum("gn,na,gna->ga", dp, W[:, :3], Yw[..., :3]) + np.einsum("gn,na,gna->ga", dv, W[:, 3:], Yw[..., 3:])
-    den = np.einsum("gn,na->ga", dp ** 2, W[:, :3] ** 2) + np.einsum("gn,na->ga", dv ** 2, W[:, 3:] ** 2)
-    explained = np.where(den > 0, num ** 2 / np.maximum(den, 1e-300), 0.0).sum(1)
-    return float(((Yw ** 2).sum((1, 2)) - explained).min())
+class _Fit:
+    """Least weighted squared error of a window's data over a set of G templates. Data:
+    position, the anchored difference Yp (n,3) with weights Wp; velocity, the unanchored
+    difference Yv (n,3) with weights Wv and a free constant per axis (its weighted mean is
+    taken out). A template gives a position shape dp (G,n) and a velocity shape dv (G,n) of one
+    amplitude per axis, fitted to that axis's position and velocity together; optionally after
+    taking a known offset from the data first: on * P1 - on_a * P2 in position, on * (V1 + cv)
+    in velocity (on, on_a (G,n); P1, P2, V1 (n,3); cv (G,3)). Every sum over the window is a
+    (G,n) by (n,3) product."""
+
+    def __init__(self, Yp: np.ndarray, Yv: np.ndarray, Wp: np.ndarray, Wv: np.ndarray):
+        self.Yp, self.Yv = Yp, Yv
+        self.Ap, self.Av = Wp ** 2, Wv ** 2
+        self.S = self.Av.sum(0)
+        self.w2 = self.Av / self.S
+        self.ApYp, self.AvYv = self.Ap * Yp, self.Av * Yv
+        self.m0 = (self.w2 * Yv).sum(0)
+        self.base = (self.ApYp * Yp).sum(0) + (self.AvYv * Yv).sum(0)    # (3,)
+
+    def __call__(self, dp: np.ndarray, dv: np.ndarray | None, on: np.ndarray | None = None,
+                 on_a: np.ndarray | None = None, P1=None, P2=None, V1=None, cv=None) -> float:
+        Ap, Av, S = self.Ap, self.Av, self.S
+        num_p = dp @ self.ApYp
+        den = (dp * dp) @ Ap
+        E = np.broadcast_to(self.base, num_p.shape).copy()
+        M = np.broadcast_to(self.m0, num_p.shape).copy()          # weighted mean of the velocity data
+        sdv = 0.0                                                  # sum of dv Av Yv'
+        mdv = 0.0                                                  # weighted mean of dv
+        if dv is not None:
+            sdv = dv @ self.AvYv
+            mdv = dv @ self.w2
+            den = den + (dv * dv) @ Av
+        if on is not None:
+            E = E - 2 * on @ (self.ApYp * P1) + 2 * on_a @ (self.ApYp * P2) + on @ (Ap * P1 * P1) \
+                + on_a @ (Ap * P2 * P2) - 2 * (on * on_a) @ (Ap * P1 * P2)
+            num_p = num_p - (dp * on) @ (Ap * P1) + (dp * on_a) @ (Ap * P2)
+            onAv, onAvYv = on @ Av, on @ self.AvYv
+            E = E - 2 * on @ (self.AvYv * V1) - 2 * cv * onAvYv + on @ (Av * V1 * V1) \
+                + 2 * cv * (on @ (Av * V1)) + cv * cv * onAv
+            M = M - on @ (self.w2 * V1) - cv * (on @ self.w2)
+            if dv is not None:
+                don = dv * on
+                sdv = sdv - don @ (Av * V1) - cv * (don @ Av)
+        E = E - S * M * M
+        num = num_p + (sdv - S * mdv * M if dv is not None else 0.0)
+        if dv is not None:
+            den = den - S * mdv * mdv
+        explained = np.where(den > 1e-12, num * num / np.maximum(den, 1e-300), 0.0)
+        return float((E - explained).sum(1).min())
 
 
 def _step(t: np.ndarray) -> float:
@@ -231,6 +323,22 @@ def _step(t: np.ndarray) -> float:
     steps = np.diff(t)
     steps = steps[np.isfinite(steps) & (steps > 0)]
     return float(np.median(steps)) if len(steps) else 0.1
+
+
+def _age_step(age: np.ndarray, t: np.ndarray) -> float:
+    """The reference's GPS step: what ``res_ref_age`` advances by per row (while the anchor
+    stands), else the rows' step."""
+    inc = np.diff(age)
+    inc = inc[np.isfinite(inc) & (inc > 1e-9) & (inc < 1.0)]
+    return float(np.median(inc)) if len(inc) else _step(t)
+
+
+def _unsmooth(a: np.ndarray, t: np.ndarray, tau: float) -> np.ndarray:
+    """The raw rows d of rows a smoothed by a first-order lag of tau: undo a_k = a_(k-1) + alpha (d_k - a_(k-1))."""
+    alpha = 1.0 - np.exp(-_step(t) / tau)
+    d = np.array(a, dtype=float, copy=True)
+    d[1:] = a[:-1] + np.diff(a, axis=0) / alpha
+    return d
 
 
 def _noise_std(d: np.ndarray) -> np.ndarray:

@@ -58,9 +58,9 @@ import torch
 
 from quadformer.config import SENSOR_NAMES
 from quadformer.detectors.alarms import Alert
-from quadformer.detectors.attack_types import TYPING_COLUMNS, TYPINGS, UNTYPED, ShapeTyper
+from quadformer.detectors.attack_types import TYPING_COLUMNS, TYPINGS, UNTYPED, ShapeTyper, Unanchored
 from quadformer.estimator.online import FilterConfig, GapError, ResidueStream
-from quadformer.estimator.schema import GROUPS, SENSOR_GROUPS
+from quadformer.estimator.schema import GROUPS, SENSOR_GROUPS, columns
 from quadformer.geometry.frames import geodetic_to_enu
 from quadformer.io import package_versions, write_json
 from quadformer.live.actions import Records, VehicleLink, autopilot_name
@@ -95,6 +95,7 @@ STATES = {FUSING: "fusing", EXCLUDED: "GPS excluded", BLENDING: "re-admitting GP
 STREAMS = ("imu", "gps", "mag", "baro", "vio", "attitude")
 EPOCH_S = 1e9                     # s, a stamp larger than this is UNIX time, not time since boot
 MAX_ALERTS = 1000                 # alerts kept in memory (all are in alerts.jsonl)
+REF_D = columns("res_ref_d")      # GPS minus the GPS-free reference, anchored
 MAX_PENDING = 100                 # alerts awaiting their confirmed type (one per alarm start within confirm_s)
 MAX_SEGMENTS = 100                # segment descriptions kept in memory
 
@@ -260,9 +261,12 @@ class _Segment:
         self.fixes = 0
         self.alert: Alert | None = None
         self.last_score = math.nan
-        # the last fixes' typing columns (bounded), for the shape typer; alerts whose type is yet
-        # to be confirmed: (start, type raised with)
+        # the last fixes' typing columns (bounded), for the shape typer, with GPS minus the
+        # reference without its anchor carried over every fix of the segment (and the fix its
+        # anchor was taken at); alerts whose type is yet to be confirmed: (start, type raised with)
         self.history: deque[dict[str, float]] = deque(maxlen=monitor.history_len)
+        self.unanchored = Unanchored(step=1.0 / monitor.filter_config.gps_rate_hz, keep=monitor.history_len)
+        self.history_a: deque[tuple[np.ndarray, int]] = deque(maxlen=monitor.history_len)
         self.pending: deque[tuple[float, str]] = deque(maxlen=MAX_PENDING)
 
     @property
@@ -292,7 +296,7 @@ class Monitor:
         # alert types: the shape typer over the last fixes (its longest window and replay delay)
         self.typer = ShapeTyper() if config.typing == "shape" else None
         self.history_len = 0 if self.typer is None else \
-            int(math.ceil((self.typer.max_window + max(self.typer.delays) + 1.0) * config.filter.gps_rate_hz))
+            int(math.ceil((self.typer.window + max(self.typer.delays) + 1.0) * config.filter.gps_rate_hz))
         self.conn = None
         self.link: VehicleLink | None = None
         self.records: Records | None = None
@@ -678,6 +682,7 @@ class Monitor:
             # attack typing after the admission decision, which never waits for it
             if self.typer is not None and all(c in cols for c in TYPING_COLUMNS[1:]):
                 seg.history.append({"t": t, **{c: cols[c] for c in TYPING_COLUMNS[1:]}})
+                seg.history_a.append(seg.unanchored.push(np.array([cols[c] for c in REF_D]), cols["res_ref_age"]))
                 self._confirm(seg, t)
                 kind = (self._type(seg, -1) if alarm and seg.alert is None else
                         seg.alert.attack_type if seg.alert is not None else None)
@@ -744,7 +749,9 @@ class Monitor:
         if len(seg.history) < -pos:
             return UNTYPED
         try:
-            f = self.typer.prepare(pd.DataFrame(list(seg.history)))
+            a, j = (np.array(x) for x in zip(*seg.history_a))
+            first = seg.unanchored.k - len(seg.history_a)            # the fix of the first row kept
+            f = self.typer.prepare(pd.DataFrame(list(seg.history)), unanchored=a, anchor=j - first)
             return self.typer.type_at(f, len(seg.history) + pos)[0]
         except ValueError:
             return UNTYPED
