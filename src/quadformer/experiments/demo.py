@@ -28,12 +28,13 @@ CALIBRATION_CORES = 2
 #: on top (QUADFormer scored online included).
 COSTS = {
     "sim_step": 0.0045,
-    "sim_flight_step": 0.000165,
+    "sim_flight_step": 0.0001,
     "tune_statistic": 0.2,      # chi2, cusum, sprt, bht and the reference tests (chi2-vref, cusum-vref, cusum-ref)
     "tune_windows": 2.2,        # pca, svm
     "tune_network": 3.2,        # cnn, lstm (per method)
     "tune_quadformer": 21.0,    # quadformer and its ablations (training and the alarm-rule scorings)
-    "evaluate": 2.0,            # scoring one configuration's test flights with every method
+    "evaluate": 12.0,           # scoring one configuration's test flights with every method and typing
+                                # every alarm run by shape (the demo's detectors raise many)
     "fly_step": 0.0045,
     "fly_flight_step": 0.00026,
     "overhead": 5.0,            # worker start-up, imports, reports
