@@ -187,3 +187,15 @@ def test_bad_input_is_named():
     assert typer.type_at(typer.prepare(X), k) == (UNTYPED, {})
     assert typer.type_at(typer.prepare(X.iloc[:3]), 2) == (UNTYPED, {})
     assert set(TYPING_COLUMNS) <= set(flight("bias").columns)
+
+
+def test_a_non_finite_row_leaves_the_rest_of_the_flight_typable():
+    # one damaged row of residues: typed `attack` while it is in the window, the ramp afterwards
+    typer = ShapeTyper(window=5.0)
+    X = flight("ramp", 0)
+    bad = int((ONSET - 3.0) * RATE)
+    X.loc[bad, columns("res_ref_d")] = np.nan
+    f = typer.prepare(X)
+    assert typer.type_at(f, bad + 10)[0] == UNTYPED
+    assert np.isfinite(f.dv[bad + 2:]).all()          # the row and the next (smoothing undone) only
+    assert typer.type_at(f, int((ONSET + 4.0) * RATE))[0] == "ramp"

@@ -112,7 +112,9 @@ class Unanchored:
         a = np.asarray(r, dtype=float) + (base if base is not None else np.nan)
         if j in self.rows:
             self.held = (j, self.rows[j])
-        self.rows[k] = a
+        # a row that cannot be rebuilt (non-finite) is NaN; the rows anchored on it later take
+        # the last finite row instead (one step's change off, not NaN for the rest of the flight)
+        self.rows[k] = a if np.isfinite(a).all() else self.rows.get(k - 1, np.zeros(6))
         self.rows.pop(k - self.keep, None)
         self.k += 1
         return a, j
