@@ -162,8 +162,14 @@ def test_alerts_take_the_typer_types(bias_dataset):
     starts = np.flatnonzero(np.diff(np.concatenate([[0], f.label.to_numpy()])) == 1)
     assert [a.attack_type for a in alerts] == list(ShapeTyper().type_rows(f, starts))
     assert all(a.attack_type in ATTACK_TYPES for a in alerts)
-    # without a typer an alert of a detector that does not classify says "attack"
-    assert {a.attack_type for a in alerts_from_scores(f, score, threshold=0.5)} == {"attack"}
+    # each confirmed 5 s after its start: every one a bias, as the dataset's attacks are
+    later = ShapeTyper().confirm_rows(f, starts)
+    assert np.allclose(f.t.to_numpy()[later] - f.t.to_numpy()[starts], 5.0)
+    assert [a.confirmed_type for a in alerts] == ["bias"] * len(alerts)
+    assert "confirmed bias" in str(alerts[0])
+    # without a typer an alert of a detector that does not classify says "attack", unconfirmed
+    plain = alerts_from_scores(f, score, threshold=0.5)
+    assert {a.attack_type for a in plain} == {"attack"} and {a.confirmed_type for a in plain} == {None}
     # detector typing, or rows without the typer's columns: no typer
     assert alert_typer(f, "detector") is None and alert_typer(f[["flight_id", "t"]]) is None
 

@@ -247,8 +247,9 @@ def _same_as_offline(detector, fixes, summary, record, config):
     np.testing.assert_allclose(scores, res.scores, rtol=0, atol=1e-9)
     np.testing.assert_array_equal([f.alarm for f in fixes], res.alarms)
     live_alerts = [tuple(a.values()) for a in summary["alert_list"]]
-    offline = [(a.flight_id, a.start_s, a.onset_s, a.attack_type, a.score, a.end_s) for a in res.alerts]
-    assert live_alerts == offline
+    offline = [(a.flight_id, a.start_s, a.onset_s, a.attack_type, a.score, a.end_s, a.confirmed_type)
+               for a in res.alerts]
+    assert live_alerts == offline         # the type confirmed 5 s later too
     return res
 
 
@@ -256,6 +257,7 @@ def test_a_simulated_spoofed_flight_scores_as_offline_detection(detector, sim_st
     fixes, summary, report, _ = run_monitor(detector, sim_streams, SenderConfig(record=True), filter=FILTER)
     assert report.lost == report.stalls == 0 and summary["link"]["lost_packets"] == 0
     res = _same_as_offline(detector, fixes, summary, report.record, FILTER)
+    assert res.alerts and all(a.confirmed_type in ATTACK_TYPES for a in res.alerts)
     assert summary["vehicle"]["origin_source"] == "first fix" and summary["vehicle"]["gps_receiver"] == 0
     assert summary["alerts"] >= 1                       # the bias attack is seen
     onset = float(flight["attacks"].onset[0]) + 1.0     # vehicle clock: 1 s at the first sample

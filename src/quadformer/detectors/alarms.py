@@ -20,7 +20,7 @@ import pandas as pd
 from quadformer.detectors.base import flight_slices
 from quadformer.io import atomic_path
 
-ALERT_COLUMNS = ["flight_id", "start_s", "onset_s", "attack_type", "score", "end_s"]
+ALERT_COLUMNS = ["flight_id", "start_s", "onset_s", "attack_type", "score", "end_s", "confirmed_type"]
 
 
 def runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -48,22 +48,26 @@ class Alert:
     attack_type: str
     score: float             # peak score during the alarm run
     end_s: float | None      # time of the first step after the run (None: still alarmed)
+    confirmed_type: str | None = None   # the shape typer's type confirm_s after the start (None: not typed by shape)
 
     def __str__(self) -> str:
         end = f"{self.end_s:.1f} s" if self.end_s is not None else "open"
+        confirmed = f", confirmed {self.confirmed_type}" if self.confirmed_type is not None else ""
         return (f"flight {self.flight_id}: {self.attack_type} alert at {self.start_s:.1f} s "
-                f"(onset ~{self.onset_s:.1f} s, until {end}, peak score {self.score:.3g})")
+                f"(onset ~{self.onset_s:.1f} s, until {end}, peak score {self.score:.3g}{confirmed})")
 
 
 def alerts_from_scores(X: pd.DataFrame, scores: np.ndarray, detector=None, *,
                        threshold: float | None = None,
-                       typer: Callable[[pd.DataFrame, np.ndarray], np.ndarray] | None = None) -> list[Alert]:
+                       typer=None, memo: dict[int, str] | None = None) -> list[Alert]:
     """Alerts of the flights in X (rows grouped by ``flight_id``, time ``t``) for per-step
     ``scores``, under the detector's alarm rule (``score > detector.threshold_``), or under
     ``threshold`` for scores that come without a detector.
 
-    The attack type of an alert is ``typer(X, rows)`` at its first row when a typer is given
-    (e.g. ``ShapeTyper().type_rows``), else the detector's own classifier's, else ``attack``."""
+    The attack type of an alert is the typer's at its first row when a typer is given (a
+    ``ShapeTyper``: ``type_rows``, with ``memo`` shared between calls on the same X), and its
+    ``confirmed_type`` the typer's at ``typer.confirm_rows`` (``confirm_s`` later, or the
+    flight's last row); else the detector's own classifier's, else ``attack``, unconfirmed."""
     scores = np.asarray(scores, dtype=float)
     if len(scores) != len(X):
         raise ValueError(f"{len(scores)} scores for {len(X)} rows")
@@ -78,21 +82,24 @@ def alerts_from_scores(X: pd.DataFrame, scores: np.ndarray, detector=None, *,
     t = X["t"].to_numpy(dtype=float)
     found = [(fid, idx, s, e) for fid, idx in flight_slices(X) for s, e in runs(alarms[idx])]
     starts = np.array([idx[s] for _, idx, s, _ in found], dtype=int)
+    confirmed = np.full(len(found), None, dtype=object)
     if typer is not None:
-        types = typer(X, starts)
+        types = typer.type_rows(X, starts, memo)
+        confirmed = typer.type_rows(X, typer.confirm_rows(X, starts), memo)
     elif detector is not None and hasattr(detector, "predict_type"):
         types = detector.predict_type(X)[starts]
     else:
         types = np.full(len(found), "attack", dtype=object)
     out = []
-    for (fid, idx, s, e), kind in zip(found, types):
+    for (fid, idx, s, e), kind, sure in zip(found, types, confirmed):
         t0 = float(t[idx[s]])
         out.append(Alert(
             flight_id=fid.item() if hasattr(fid, "item") else fid, start_s=t0,
             onset_s=float(onsets.get((fid, t0), t0)),
             attack_type=str(kind),
             score=float(scores[idx[s:e]].max()),
-            end_s=float(t[idx[e]]) if e < len(idx) else None))
+            end_s=float(t[idx[e]]) if e < len(idx) else None,
+            confirmed_type=None if sure is None else str(sure)))
     return out
 
 

@@ -260,12 +260,12 @@ class ShapeTyper:
 
 def alert_typer(X: pd.DataFrame, typing: str = "shape"):
     """The ``typer`` argument of ``alerts_from_scores`` for rows X under ``typing`` (``TYPINGS``):
-    a ``ShapeTyper``'s ``type_rows`` where typing is ``shape`` and X carries its columns, else
-    None (the detector's own types)."""
+    a ``ShapeTyper`` where typing is ``shape`` and X carries its columns, else None (the
+    detector's own types)."""
     if typing not in TYPINGS:
         raise ValueError(f"typing: unknown {typing!r}; choose from {', '.join(TYPINGS)}")
     if typing == "shape" and all(c in X.columns for c in TYPING_COLUMNS):
-        return ShapeTyper().type_rows
+        return ShapeTyper()
     return None
 
 

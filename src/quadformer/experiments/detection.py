@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -91,8 +90,7 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
                 out[m]["tune_seconds"] = unit["seconds"]
         scores[f"score_{m}"] = s
         scores[f"alarm_{m}"] = alarms.astype(np.int8)
-        alerts.append(alerts_frame(alerts_from_scores(test, s, det, typer=partial(typer.type_rows, memo=typed)
-                                                      if typer is not None else None)).assign(method=m))
+        alerts.append(alerts_frame(alerts_from_scores(test, s, det, typer=typer, memo=typed)).assign(method=m))
     split = {"train": len(sp.train), "val": len(sp.val), "test": len(sp.test), "labelled": len(sp.labelled)}
     return {"split": split, "methods": out, "alerts": pd.concat(alerts, ignore_index=True) if alerts else None}, scores
 

@@ -768,6 +768,14 @@ class Monitor:
         while seg.pending and (t is None or t >= seg.pending[0][0] + self.typer.confirm_s):
             start, raised = seg.pending.popleft()
             kind = self._type(seg, -1)
+            if seg.alert is not None and seg.alert.start_s == start:
+                seg.alert = dataclasses.replace(seg.alert, confirmed_type=kind)
+            else:
+                for i in range(len(self.alerts) - 1, -1, -1):
+                    a = self.alerts[i]
+                    if a.flight_id == seg.index and a.start_s == start:
+                        self.alerts[i] = dataclasses.replace(a, confirmed_type=kind)
+                        break
             now = datetime.now(timezone.utc)
             event = {"event": "alert_type", "segment": seg.index, "vehicle_t": seg.history[-1]["t"],
                      "wall_time": now.isoformat(timespec="milliseconds"), "unix_time": now.timestamp(),
