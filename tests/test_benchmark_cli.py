@@ -106,6 +106,8 @@ def test_resilience_cli_flies_four_policies_and_reuses_tuned_detectors(short_dat
     html = (out / "report.html").read_text()
     assert html.count("data:image/png;base64,") >= 1 and "oracle" in html
     assert (out / "alerts.csv").exists() and (out / "overall.csv").exists()
+    # the resilient flights' alerts (none on these short flights), with the type confirmed 5 s later
+    assert "confirmed_type" in pd.read_csv(out / "alerts.csv").columns
 
 
 def test_fit_then_evaluate_round_trip(dataset_dir, tmp_path):

@@ -20,7 +20,9 @@ import pandas as pd
 
 from quadformer.dataset import Dataset, load_dataset
 from quadformer.detectors import StreamGroup, alerts_frame, alerts_from_scores, get
-from quadformer.estimator.schema import RESIDUES
+from quadformer.detectors.alarms import ALERT_COLUMNS
+from quadformer.detectors.attack_types import alert_typer
+from quadformer.estimator.schema import GROUPS, RESIDUES
 from quadformer.evaluation.protocol import TrainingBudget, split_flights
 from quadformer.evaluation.resilience import flight_metrics, summarize_policy
 from quadformer.experiments.cache import batch_count, check_device, ensure_datasets, ensure_tuned, model_dir_for, tuned_model
@@ -131,10 +133,12 @@ def _outcome(p: dict[str, Any], r, detector: str, threshold: str, policies: tupl
     alerts = pd.DataFrame()
     if "resilient" in policies:
         sel = np.nonzero(pol == "resilient")[0]
-        cols = {c: r[g.name][sel][..., i].reshape(-1) for g in RESIDUES if g.name in r
+        cols = {c: r[g.name][sel][..., i].reshape(-1) for g in (*RESIDUES, GROUPS["gps_vel"]) if g.name in r
                 for i, c in enumerate(g.columns)}
         X = pd.DataFrame({"flight_id": np.repeat(flights[sel], n), "t": np.tile(t, len(sel)), **cols})
-        alerts = alerts_frame(alerts_from_scores(X, r["admission"]["score"][sel].reshape(-1), det))
+        # typed by shape (first step and 5 s later), as the live monitor types its alerts
+        alerts = alerts_frame(alerts_from_scores(X, r["admission"]["score"][sel].reshape(-1), det,
+                                                 typer=alert_typer(X)))
         results["alerts"] = int(len(alerts))
     return results, traj, alerts
 
@@ -202,7 +206,7 @@ def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: 
         configs.append({"name": name, "model": model, "noise": noise, "attack": attack,
                         "dataset": str(paths[name]), **res})
     alerts_all = pd.concat(all_alerts, ignore_index=True) if all_alerts else pd.DataFrame(
-        columns=["config", "flight_id", "start_s", "onset_s", "attack_type", "score", "end_s"])
+        columns=["config", *ALERT_COLUMNS])
     with atomic_path(out / "alerts.csv") as tmp:
         alerts_all.to_csv(tmp, index=False)
     results = {
