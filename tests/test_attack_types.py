@@ -205,3 +205,13 @@ def test_a_non_finite_row_leaves_the_rest_of_the_flight_typable():
     assert typer.type_at(f, bad + 10)[0] == UNTYPED
     assert np.isfinite(f.dv[bad + 2:]).all()          # the row and the next (smoothing undone) only
     assert typer.type_at(f, int((ONSET + 4.0) * RATE))[0] == "ramp"
+
+
+def test_a_receiver_slower_than_the_filter_rate_is_unsmoothed_at_the_filter_step():
+    # a log's 5 Hz fixes under a filter at 10 Hz: the reference smooths and ages 0.1 s per fix
+    # while the rows are 0.2 s apart; the raw differences come out the same as at 10 Hz
+    typer = ShapeTyper()
+    X = flight("bias", 1)
+    slow = X.assign(t=X.t * 2.0)
+    np.testing.assert_allclose(typer.prepare(slow).d, typer.prepare(X).d, atol=1e-9)
+    assert typer.type_at(typer.prepare(slow), int((ONSET + 8.0) * RATE))[0] == "bias"

@@ -51,8 +51,9 @@ typed right 2 s after their onset, 0.94-0.97 after 5 s, 0.97-0.99 after 10 s). R
 freeze are told from the vehicle's motion: on a hovering vehicle they look like a bias.
 Without a camera the reference (IMU and barometer) drifts horizontally within seconds and its
 stated std is about a metre and a metre per second: the shapes are told apart less often.
-Rows are taken as evenly spaced at the flight's median GPS step; the anchor's rows follow
-``res_ref_age``, which advances by the reference's GPS step per row.
+Rows are taken as evenly spaced at the flight's median GPS step for the shapes' times; the
+anchor's rows and the smoothing follow the reference's own step per row (``res_ref_age``
+advances by it), which differs where a log's receiver is slower than the filter's GPS rate.
 """
 
 from __future__ import annotations
@@ -160,12 +161,13 @@ class ShapeTyper:
         t = g["t"].to_numpy(dtype=float)
         r = g[columns("res_ref_d")].to_numpy(dtype=float)
         age = g["res_ref_age"].to_numpy(dtype=float)
+        step = _age_step(age, t)         # the reference's own step per row (its smoothing is per row)
         if unanchored is None:
-            u = Unanchored(_age_step(age, t))
+            u = Unanchored(step)
             unanchored, anchor = (np.array(x) for x in zip(*(u.push(r[i], age[i]) for i in range(len(r))))) \
                 if len(r) else (np.zeros((0, 6)), np.zeros(0, dtype=int))
         anchor = np.asarray(anchor, dtype=int)
-        d, dv = _unsmooth(r, t, self.smooth_tau), _unsmooth(np.asarray(unanchored)[:, 3:], t, self.smooth_tau)
+        d, dv = _unsmooth(r, step, self.smooth_tau), _unsmooth(np.asarray(unanchored)[:, 3:], step, self.smooth_tau)
         vel = g[columns("gps_vel")].to_numpy(dtype=float) - dv
         # the std the reference states for res_ref_d (its growth since the anchor, the GPS's slow error)
         w = g[columns("res_ref_w")].to_numpy(dtype=float)
@@ -329,15 +331,17 @@ def _step(t: np.ndarray) -> float:
 
 def _age_step(age: np.ndarray, t: np.ndarray) -> float:
     """The reference's GPS step: what ``res_ref_age`` advances by per row (while the anchor
-    stands), else the rows' step."""
+    stands), else the rows' step. It is 1 / the filter's ``gps_rate_hz`` whatever the rate of
+    the fixes: a log's 5 Hz receiver under the 10 Hz default advances it 0.1 s per fix."""
     inc = np.diff(age)
     inc = inc[np.isfinite(inc) & (inc > 1e-9) & (inc < 1.0)]
     return float(np.median(inc)) if len(inc) else _step(t)
 
 
-def _unsmooth(a: np.ndarray, t: np.ndarray, tau: float) -> np.ndarray:
-    """The raw rows d of rows a smoothed by a first-order lag of tau: undo a_k = a_(k-1) + alpha (d_k - a_(k-1))."""
-    alpha = 1.0 - np.exp(-_step(t) / tau)
+def _unsmooth(a: np.ndarray, step: float, tau: float) -> np.ndarray:
+    """The raw rows d of rows a smoothed by a first-order lag of tau at ``step`` seconds per
+    row: undo a_k = a_(k-1) + alpha (d_k - a_(k-1))."""
+    alpha = 1.0 - np.exp(-step / tau)
     d = np.array(a, dtype=float, copy=True)
     d[1:] = a[:-1] + np.diff(a, axis=0) / alpha
     return d
