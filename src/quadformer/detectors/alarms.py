@@ -9,7 +9,6 @@ during the run and when the run ended (``None`` while still alarmed at the end o
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
