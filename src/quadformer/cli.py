@@ -492,8 +492,8 @@ def _print_resilience(results: dict) -> None:
     typer.echo(overall_table(results).to_string(index=False, na_rep="-", float_format=lambda v: f"{v:.2f}"))
     typer.echo("exclusion P / R / F1: every GPS step a prediction, GPS excluded, against GPS spoofed (point-wise)")
     n = sum(c.get("alerts", 0) for c in results["configs"])
-    typer.echo(f"{n} alert(s) raised on the resilient flights (start, estimated onset, type, peak score, end) "
-               "in alerts.csv")
+    typer.echo(f"{n} alert(s) raised on the resilient flights (start, estimated onset, type, peak score, end, "
+               "type confirmed 5 s later) in alerts.csv")
 
 
 @app.command()
