@@ -92,22 +92,19 @@ class Unanchored:
     """GPS minus the reference, smoothed, without its anchor, row by row from a flight's first
     row: a_k = res_ref_d_k + a_j, j = k - age_k / step the row the anchor was taken at (the
     anchor is the smoothed difference of that row). ``step``: the reference's GPS step, which
-    ``res_ref_age`` advances by per row (inferred from the first increase of the age where
-    None); ``keep``: rows remembered (the anchor of a frozen disagreement is held however old)."""
+    ``res_ref_age`` advances by per row; ``keep``: rows remembered (the anchor of a frozen
+    disagreement is held however old)."""
 
-    def __init__(self, step: float | None = None, keep: int = 1 << 30):
+    def __init__(self, step: float, keep: int = 1 << 30):
         self.step, self.keep = step, keep
         self.rows: dict[int, np.ndarray] = {}
-        self.k, self.last_age = 0, None
+        self.k = 0
         self.held: tuple[int, np.ndarray] = (-1, np.zeros(6))
 
     def push(self, r: np.ndarray, age: float) -> tuple[np.ndarray, int]:
         """(a of this row, the row its anchor was taken at) for a row's res_ref_d (6,) and res_ref_age."""
-        if self.step is None and self.last_age is not None and 0.0 < age - self.last_age < 1.0:
-            self.step = age - self.last_age
-        self.last_age = age
         k = self.k
-        lag = max(1, int(round(age / self.step))) if self.step and np.isfinite(age) else 1
+        lag = max(1, int(round(age / self.step))) if np.isfinite(age) else 1
         j = k - lag
         base = self.rows.get(j, self.held[1] if self.held[0] == j else np.zeros(6) if j < 0 else None)
         a = np.asarray(r, dtype=float) + (base if base is not None else np.nan)
@@ -220,7 +217,7 @@ class ShapeTyper:
         W = 1.0 / np.sqrt(white ** 2 + f.stated[rows] ** 2)
         Wp, Wv = W[:, :3], W[:, 3:]
         # each row's anchor, as a position in the window (negative: before it)
-        back = np.clip(f.anchor[rows] - k0, -10 * n, n - 1)
+        back = f.anchor[rows] - k0
         onsets = np.arange(0, n - 1, max(1, int(round(self.onset_step / dt))))
         tau = (np.arange(n)[None, :] - onsets[:, None]) * dt             # (onsets, n)
         tau_a = (back[None, :] - onsets[:, None]) * dt                   # the same at each row's anchor
@@ -282,7 +279,6 @@ class _Fit:
     (G,n) by (n,3) product."""
 
     def __init__(self, Yp: np.ndarray, Yv: np.ndarray, Wp: np.ndarray, Wv: np.ndarray):
-        self.Yp, self.Yv = Yp, Yv
         self.Ap, self.Av = Wp ** 2, Wv ** 2
         self.S = self.Av.sum(0)
         self.w2 = self.Av / self.S
