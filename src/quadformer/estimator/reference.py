@@ -149,6 +149,7 @@ class GpsFreeReference:
         self.size = max(self.lag, *self.h_steps) + 1
         z = lambda *s: torch.zeros(*s, dtype=torch.float64)  # noqa: E731
         self.a, self.vmean = z(n, 6), z(n, 3)
+        self.vm_extra = z(n, 3)                 # std of the reference errors resets shifted into vmean
         self.A, self.GA = z(n, 6), z(n, 6)      # anchor: smoothed difference, covariance growth
         self.age = torch.full((n,), c.anchor_lag, dtype=torch.float64)
         self.count = torch.zeros(n, dtype=torch.long)        # consecutive agreeing steps
@@ -210,6 +211,7 @@ class GpsFreeReference:
         else:
             self.a = self.a + self.alpha * (d - self.a)
             self.vmean = self.vmean + self.alpha_v * (d[:, 3:] - self.vmean)
+            self.vm_extra = self.vm_extra * (1.0 - self.alpha_v)
         Gt = self._growth()
         slot = self.steps % self.size
         self.hist[:, slot] = torch.cat([self.a, Gt], -1)
@@ -236,7 +238,11 @@ class GpsFreeReference:
             k = max(0, min(h, self.steps - 1 - self.settle))      # never back into the smoothing's start
             then = self.hist[:, (self.steps - 1 - k) % self.size]
             out[name] = whiten(self.a - then[:, :6], then[:, 6:], torch.full((self.n,), k / self.rate))
-        var_m = std[:, 3:] ** 2 * (self.alpha_v / (2.0 - self.alpha_v)) + Pvv
+        # the reference's error in the average: its current velocity variance, plus what a reset
+        # shifted in (the errors averaged before it, up to the std the reference had then), fading
+        # as the average renews
+        e = self.vm_extra
+        var_m = std[:, 3:] ** 2 * (self.alpha_v / (2.0 - self.alpha_v)) + Pvv + e * (2.0 * torch.sqrt(Pvv) + e)
         out["res_ref_vmean"] = self.vmean / torch.sqrt(var_m)
         out["res_ref_age"] = self.age.unsqueeze(-1)
         k = min(self.pv_steps, self.steps - 1)
@@ -286,6 +292,7 @@ class GpsFreeReference:
         jump = torch.cat([x[..., 0] - self.x[..., 0], x[..., 1] - self.x[..., 1]], -1)
         jump = torch.where(m, jump, torch.zeros_like(jump))
         before = self._growth()
+        self.vm_extra = torch.where(m, self.vm_extra + torch.sqrt(self.C[..., 1, 1]), self.vm_extra)
         self.x = torch.where(mask.view(-1, 1, 1), x, self.x)
         self.C = torch.where(mask.view(-1, 1, 1, 1), C, self.C)
         self.drop = self.drop + torch.where(m, before - self._growth(), torch.zeros_like(before))
