@@ -196,6 +196,27 @@ def test_replaying_a_simulated_flight_from_a_ros_bag_recovers_the_simulators_res
     assert np.abs(r_px - sim["res_gps_r"][0, :, 0])[late].max() < 0.3          # m, of an innovation rms 0.45 m
 
 
+def test_the_simulations_tuning_trusts_a_receiver_as_little_as_it_states():
+    """``sample_log_small.ulg`` is a real flight whose receiver states 2.8 m / 5.9 m of position
+    error (eph / epv, medians), where the default simulation's GPS has 0.5 m of white noise.
+    Replayed with that simulation's tuning (what ``detect --filter model`` uses for a model fit
+    on it), each fix is weighted by the larger of the simulated noise and the receiver's stated
+    accuracy, as the autopilot weights it: the clean flight's NIS stays below 5. With the
+    simulated noise alone the receiver's own error reads as a spoof (NIS above 10, and every
+    simulation-trained detector alerted on this clean log)."""
+    from quadformer.config import SimConfig
+    from quadformer.estimator.online import FilterConfig
+    from quadformer.logs.replay import ekf_rows
+
+    log = read_log(FIX / "sample_log_small.ulg")
+    assert log.gps.eph.median() > 2.5
+    sim = SimConfig(sensors="gps+imu+mag+baro").to_dict()
+    stated = ekf_rows(log, config=FilterConfig.matching(sim)).rows
+    assert stated.res_gps_nis.max() < 5.0
+    floor = ekf_rows(log, config=FilterConfig.matching(sim, receiver_accuracy=False)).rows
+    assert floor.res_gps_nis.max() > 10.0
+
+
 def test_detect_with_the_replayed_filter_on_px4_and_ardupilot_logs(models, tmp_path):
     out = tmp_path / "det"
     res = runner.invoke(app, ["detect", str(EVENTS), str(COPTER), "--model", str(models["chi2"]),

@@ -167,7 +167,10 @@ class FilterConfig:
     def matching(cls, sim: dict[str, Any], **overrides: Any) -> "FilterConfig":
         """The filter tuning of simulated data (a dataset's resolved ``SimConfig`` as a dict):
         the residues of a replayed log then have the scale of the residues a detector was
-        fit on. The receiver's own accuracies are not used (the simulated filter has none)."""
+        fit on. The simulated noise is each fix's floor; a receiver that states a worse
+        accuracy (eph, epv, speed accuracy) is trusted that much less, as the autopilot trusts
+        it, so the whitened residues keep the scale the detector expects: with the floor
+        alone, a receiver of 3 m reads as a 3 m spoof to a detector fit on a simulated 0.5 m."""
         from quadformer.config import SimConfig
         from quadformer.estimator.eskf import noise_model
 
@@ -183,8 +186,7 @@ class FilterConfig:
             baro_noise=float(nm.baro_std[0]), heading_noise=float(nm.mag_std[0]),
             vio_vel_noise=v[0], vio_att_noise_deg=float(np.rad2deg(v[3])),
             init_vel_std=cfg.ekf.init_vel_std, init_att_std_deg=cfg.ekf.init_att_std_deg,
-            accel_bias_std=cfg.imu.accel_bias_std, gyro_bias_std=cfg.imu.gyro_bias_std,
-            receiver_accuracy=False)
+            accel_bias_std=cfg.imu.accel_bias_std, gyro_bias_std=cfg.imu.gyro_bias_std)
         values.update(overrides)
         return cls(**values)
 
