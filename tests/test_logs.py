@@ -216,6 +216,8 @@ def test_px4_logs_streams_rates_and_invariants(name, logs):
     log = logs(name)
     present, imu_hz, gps_hz, origin_source = EXPECTED_PX4[name]
     assert log.source == "px4-ulog" and log.vehicle["autopilot"] == "PX4"
+    # the receiver latency EKF2 compensates (EKF2_GPS_DELAY, ms), where the log has the parameter
+    assert log.vehicle.get("gps_delay_s", 0.11) == pytest.approx(0.11)
     assert set(log.streams) == present
     assert log.origin_source == origin_source
     assert 1 / np.median(np.diff(log.imu["t"])) == pytest.approx(imu_hz, rel=0.05)
@@ -414,6 +416,8 @@ def test_dataflash_streams_rates_and_vehicle(logs):
     # instance 1 shares instance 0's TimeUS: had it been kept, samples would be dropped as repeats
     assert not _has(log.notes, "imu: dropped")
     assert _has(log.notes, "ARM events", "armed 11.99 s")
+    # GPS_DELAY_MS 0: the driver's own latency, not in the log; said, and nothing assumed
+    assert "gps_delay_s" not in log.vehicle and _has(log.notes, "GPS_DELAY_MS is 0")
 
 
 def test_dataflash_values_and_frames(logs):

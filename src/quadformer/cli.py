@@ -23,6 +23,9 @@ _TYPING_HELP = ("Where alerts take their attack type from: shape (each attack sh
 _FILTER_HELP = ("The replayed filter's tuning: ekf2 (PX4 EKF2's default noise, the receiver's own accuracy), or "
                 "a simulated dataset directory (its filter's tuning, so that the residues have the scale of that "
                 "data's).")
+_GPS_DELAY_HELP = ("Seconds before its stamp that a fix was measured (the receiver's latency); each fix is fused "
+                   "at that time. Default: the autopilot's own setting where the log records it (PX4 "
+                   "EKF2_GPS_DELAY, ArduPilot GPS_DELAY_MS), else 0.")
 _RESIDUES_HELP = ("ekf: replay the project's filter over the log's sensors; autopilot: the autopilot's own "
                   "logged GPS innovations, whitened by its logged variances.")
 
@@ -556,14 +559,14 @@ def resilience(
 
 
 def _replay_config(sensors: Optional[str], imu_rate: Optional[float], gps_rate: Optional[float],
-                   min_segment: float, filter: str, det=None):
+                   min_segment: float, filter: str, det=None, gps_delay: Optional[float] = None):
     """The replay's filter tuning: EKF2's defaults, the simulation a model was fit on, or a
     simulated dataset's; explicit rates override it."""
     from quadformer.dataset import DatasetError, load_dataset
     from quadformer.estimator.online import FilterConfig
 
     over = {k: v for k, v in (("sensors", sensors), ("imu_rate_hz", imu_rate), ("gps_rate_hz", gps_rate),
-                              ("min_segment_s", min_segment)) if v is not None}
+                              ("min_segment_s", min_segment), ("gps_delay_s", gps_delay)) if v is not None}
     try:
         if filter == "ekf2":
             return FilterConfig(**over)
@@ -624,6 +627,7 @@ def detect(
     gps_rate: Optional[float] = typer.Option(None, help="At most this many fixes per second are fused (Hz; "
                                              "default 10, or the matched simulation's)."),
     min_segment: float = typer.Option(3.0, help="Seconds of GPS a segment needs to be replayed."),
+    gps_delay: Optional[float] = typer.Option(None, help=_GPS_DELAY_HELP),
     typing: str = typer.Option("shape", help=_TYPING_HELP),
     quiet: bool = typer.Option(False, help="No progress bar."),
 ) -> None:
@@ -643,7 +647,7 @@ def detect(
     if residues not in ("ekf", "autopilot"):
         _fail(f"residues: unknown source {residues!r}; choose from ekf, autopilot")
     _typing(typing)
-    config = _replay_config(sensors, imu_rate, gps_rate, min_segment, filter, det)
+    config = _replay_config(sensors, imu_rate, gps_rate, min_segment, filter, det, gps_delay)
     paths = _log_paths(logs, format)
     set_threads(1)
     bar = None
@@ -737,6 +741,9 @@ def monitor(
                                "(EKF2's defaults when the model does not say)."),
     imu_rate: Optional[float] = typer.Option(None, help="IMU averaged down to at most this rate (Hz)."),
     gps_rate: Optional[float] = typer.Option(None, help="At most this many fixes per second are fused (Hz)."),
+    gps_delay: Optional[float] = typer.Option(None, help="Seconds before its arrival that a fix was measured (the "
+                                              "receiver's latency, as the autopilot's EKF2_GPS_DELAY or GPS_DELAY_MS; "
+                                              "default 0): the filter runs that far behind the newest IMU sample."),
     gps_instance: Optional[int] = typer.Option(None, help="GPS receiver: 0 (GPS_RAW_INT) or 1 (GPS2_RAW); "
                                                "default: the first with a 3D fix."),
     system: Optional[int] = typer.Option(None, help="Vehicle system id (default: the first sending sensor data)."),
@@ -783,7 +790,7 @@ def monitor(
         _fail("--model is required (or --demo)")
     if connect is None:
         _fail("--connect is required, e.g. --connect udpin:127.0.0.1:14550")
-    filt = _replay_config(sensors, imu_rate, gps_rate, 3.0, filter, det)
+    filt = _replay_config(sensors, imu_rate, gps_rate, 3.0, filter, det, gps_delay)
     try:
         config = MonitorConfig(connect=connect, filter=filt, admission=adm, gps_instance=gps_instance, system=system,
                                act=act, act_source_set=act_source_set, statustext=statustext,
@@ -857,6 +864,7 @@ def logs_import(
     gps_rate: Optional[float] = typer.Option(None, help="At most this many fixes per second are fused (Hz; "
                                              "default 10)."),
     min_segment: float = typer.Option(3.0, help="Seconds of GPS a segment needs to be replayed."),
+    gps_delay: Optional[float] = typer.Option(None, help=_GPS_DELAY_HELP),
     overwrite: bool = typer.Option(False, help="Replace DIR if it exists."),
 ) -> None:
     """A dataset (the format of `quadformer simulate`) from flight logs: one flight per log segment,
@@ -882,7 +890,7 @@ def logs_import(
                                      if v is not None})
         except (ConfigError, TypeError) as e:
             _fail(str(e))
-    config = _replay_config(sensors, imu_rate, gps_rate, min_segment, filter)
+    config = _replay_config(sensors, imu_rate, gps_rate, min_segment, filter, gps_delay=gps_delay)
     paths = _log_paths(logs, format)
     set_threads(1)
     try:

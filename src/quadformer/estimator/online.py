@@ -54,6 +54,7 @@ from quadformer.estimator.residues import ResidueTracker
 
 AIDING = ("vio", "mag", "baro")     # applied in this order, then GPS
 EPS = 1e-9                           # s, stamps this close count as simultaneous
+MAX_GPS_DELAY = 0.5                  # s, the largest receiver latency the stream compensates
 
 #: the order in which a source calls ``ResidueStream`` for samples with equal stamps (the log
 #: replay sorts its events by (stamp, this order); a live link's sender streams in it)
@@ -162,6 +163,10 @@ class FilterConfig:
     receiver_accuracy: bool = True  # use the receiver's eph/epv/speed accuracy when above the floors
     max_gap_s: float = 0.5          # s, the longest IMU gap the filter propagates across
     min_segment_s: float = 3.0      # s of GPS a segment needs to be replayed
+    #: s, how long before its stamp a fix was measured (the receiver's latency; PX4
+    #: EKF2_GPS_DELAY, ArduPilot GPS_DELAY_MS). None: a log's own autopilot setting where it
+    #: records one, else 0 (a live link: 0)
+    gps_delay_s: float | None = None
 
     @classmethod
     def matching(cls, sim: dict[str, Any], **overrides: Any) -> "FilterConfig":
@@ -191,6 +196,9 @@ class FilterConfig:
         return cls(**values)
 
     def __post_init__(self) -> None:
+        d = self.gps_delay_s
+        if d is not None and not (isinstance(d, (int, float)) and math.isfinite(d) and 0.0 <= d <= MAX_GPS_DELAY):
+            raise ValueError(f"filter.gps_delay_s must be a number of seconds from 0 to {MAX_GPS_DELAY:g}, got {d!r}")
         for name in ("imu_rate_hz", "gps_rate_hz", "accel_noise", "gyro_noise", "gps_pos_noise",
                      "gps_alt_noise", "gps_vel_noise", "baro_noise", "heading_noise", "vio_vel_noise",
                      "vio_att_noise_deg", "init_vel_std", "init_att_std_deg", "init_yaw_std_deg",
@@ -253,7 +261,12 @@ class ResidueStream:
     few IMU steps; samples with equal stamps in ``CALL_ORDER``, as the log replay does).
     ``imu`` returns the rows of the fixes it let the filter apply, each a dict with ``t``, the
     fix as fused (``gps_pos``, ``gps_vel``), ``est_pos``, ``est_vel`` and the residue groups,
-    values (n, k). ``flush`` ends the stream (the last IMU bin)."""
+    values (n, k). ``flush`` ends the stream (the last IMU bin).
+
+    A receiver's latency (``FilterConfig.gps_delay_s`` = D > 0) is compensated as PX4 EKF2 does,
+    on a delayed horizon: each fix is fused at its measurement time (its stamp minus D), so the
+    filter runs D behind the newest IMU sample (IMU samples are held back D) and a fix's row
+    is returned up to D later; rows keep the fix's stamp as ``t``."""
 
     INIT_WINDOW = 1.0     # s before the first fix from which the start's attitude, tilt and field come
     BARO_SETTLE = 5.0     # s after the start over which the barometer's offset to the filter's height is
@@ -274,6 +287,8 @@ class ResidueStream:
         self._baro_offset: np.ndarray | None = None             # barometric altitude minus the filter's height
         self._baro_diffs: list[np.ndarray] = []
         self._dt: float | None = None
+        self.delay = float(config.gps_delay_s or 0.0)
+        self._held: deque = deque()                             # IMU samples within D of the newest
         self.notes: list[str] = []
 
     # -- raw samples ----------------------------------------------------------------------
@@ -285,6 +300,15 @@ class ResidueStream:
     def imu(self, t: float, x: np.ndarray) -> list[dict[str, Any]]:
         """Specific force and body rate (n, 6) or (6,), FLU."""
         x = np.broadcast_to(np.asarray(x, dtype=float), (self.n, 6))
+        if self.delay <= 0.0:
+            return self._imu(t, x)
+        self._held.append((t, x))
+        rows: list[dict[str, Any]] = []
+        while self._held and self._held[0][0] <= t - self.delay + EPS:
+            rows += self._imu(*self._held.popleft())
+        return rows
+
+    def _imu(self, t: float, x: np.ndarray) -> list[dict[str, Any]]:
         if self.filter is None:
             self._keep("imu", t, x[0])
         rate = self.config.imu_rate_hz
@@ -327,11 +351,12 @@ class ResidueStream:
                 std_n[:, 3:] = np.where(bad, np.maximum(std_n[:, 3:], derived), std_n[:, 3:])
         self._last_fix = (t, pos.copy(), std)
         fix = np.concatenate([pos, vel], axis=1)
+        measured = t - self.delay
         if self.filter is None:
-            self._start(t, fix, std)
+            self._start(measured, fix, std)
         else:
-            self._fused[t] = fix
-            self.filter.push("gps", t, torch.as_tensor(fix),
+            self._fused[measured] = (fix, t)
+            self.filter.push("gps", measured, torch.as_tensor(fix),
                              torch.as_tensor(std).expand(self.n, 6) if std_n is None else torch.as_tensor(std_n))
 
     def mag(self, t: float, x: np.ndarray) -> None:
@@ -367,8 +392,11 @@ class ResidueStream:
             self.filter.push("vio", t, torch.as_tensor(np.array(np.broadcast_to(np.asarray(x, float), (self.n, 7)))))
 
     def flush(self) -> list[dict[str, Any]]:
-        """The rows of the last IMU bin (end of the stream)."""
-        return self._step() if self._bin else []
+        """The rows of the IMU samples held back and of the last IMU bin (end of the stream)."""
+        rows: list[dict[str, Any]] = []
+        while self._held:
+            rows += self._imu(*self._held.popleft())
+        return rows + (self._step() if self._bin else [])
 
     # -- internals ----------------------------------------------------------------------
     def _keep(self, key: str, t: float, v: np.ndarray) -> None:
@@ -386,8 +414,8 @@ class ResidueStream:
             return []
         out = []
         for stamp, row in self.filter.imu(t, torch.as_tensor(np.array(x))):
-            fix = self._fused.pop(stamp)
-            out.append({"t": stamp, "gps_pos": fix[:, :3], "gps_vel": fix[:, 3:], **as_numpy(row)})
+            fix, t_fix = self._fused.pop(stamp)
+            out.append({"t": t_fix, "gps_pos": fix[:, :3], "gps_vel": fix[:, 3:], **as_numpy(row)})
         return out
 
     def _start(self, t0: float, fix: np.ndarray, std: np.ndarray) -> None:
@@ -421,7 +449,7 @@ class ResidueStream:
         nm = noise_model_for(c, dt, field)
         self.filter = OnlineFilter(ekf0, nm, dt, t0, c.gps_rate_hz, self.aiding, c.max_gap_s)
         self.t0 = t0
-        self._fused: dict[float, np.ndarray] = {}
+        self._fused: dict[float, tuple[np.ndarray, float]] = {}   # measurement time -> (fix, stamp)
         self._recent = {k: deque() for k in self._recent}
 
     def _set_field(self, body: np.ndarray) -> None:

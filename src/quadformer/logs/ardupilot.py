@@ -73,6 +73,7 @@ _WANTED = {
     "VER": ("BT", "BST", "Maj", "Min", "Pat", "FWT", "GH", "FWS", "APJ"),
     "MSG": ("Message",),
     "NKF3": (),
+    "PARM": ("Name", "Value"),
 }
 
 
@@ -245,6 +246,16 @@ class _DataflashReader:
             if text.startswith("Frame:") and "frame" not in out:
                 out["frame"] = text.split(":", 1)[1].strip()
         out["messages"] = texts[:20]
+        params: dict = {}
+        for r in self.rows["PARM"]:                              # the values at the log's start
+            if "Name" in r and "Value" in r:
+                params.setdefault(r["Name"], r["Value"])
+        delay = params.get("GPS1_DELAY_MS", params.get("GPS_DELAY_MS"))
+        if isinstance(delay, (int, float)) and math.isfinite(delay) and delay > 0:
+            out["gps_delay_s"] = float(delay) / 1000.0      # the receiver latency EKF3 compensates
+        elif delay is not None:
+            self.notes.append("gps: GPS_DELAY_MS is 0 (the receiver driver's own latency, which the log does not "
+                              "record); fixes are fused at their stamps unless --gps-delay says otherwise")
         return out
 
     def arming(self) -> None:

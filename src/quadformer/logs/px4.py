@@ -243,6 +243,9 @@ class _UlogReader:
             release = self.ulog.get_version_info_str()
             if release:
                 out["ver_sw_release"] = release
+        delay = self.ulog.initial_parameters.get("EKF2_GPS_DELAY")
+        if isinstance(delay, (int, float)) and math.isfinite(delay) and delay >= 0:
+            out["gps_delay_s"] = float(delay) / 1000.0      # the receiver latency EKF2 compensates
         return out
 
     def imu(self):

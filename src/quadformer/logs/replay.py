@@ -25,7 +25,7 @@ open loop, the recorded vehicle does not react to it (it flew on its honest esti
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -193,14 +193,21 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
     in time order, through the same ``ResidueStream`` a live link feeds."""
     part = log.segment(seg) if len(log.segments) > 1 else log
     sensors = _sensors_of(part, config)
+    delay_notes = []
+    if config.gps_delay_s is None:                     # the autopilot's own setting, where logged
+        delay = log.vehicle.get("gps_delay_s", 0.0)
+        config = replace(config, gps_delay_s=delay)
+        if delay > 0:
+            delay_notes.append(f"gps: each fix fused {delay * 1e3:.0f} ms before its stamp (the autopilot's "
+                               "GPS delay setting)")
     imu, gps = part.imu, part.gps
     if imu is None or gps is None:
         raise LogError(f"{log.path}: segment {seg} has no {'IMU' if imu is None else 'GPS'} samples; the ekf "
                        "replay needs both (use --residues autopilot for the autopilot's innovations)")
     gps = gps[np.isfinite(gps[["x", "y", "z"]].to_numpy()).all(axis=1)].reset_index(drop=True)
     keep = _decimate(gps["t"].to_numpy(), config.gps_rate_hz)
-    notes = [f"gps: {len(gps)} fixes decimated to {len(keep)} (at most {config.gps_rate_hz:g} Hz)"] \
-        if len(keep) < len(gps) else []
+    notes = delay_notes + ([f"gps: {len(gps)} fixes decimated to {len(keep)} (at most {config.gps_rate_hz:g} Hz)"]
+                           if len(keep) < len(gps) else [])
     gps = gps.iloc[keep].reset_index(drop=True)
     gt = gps["t"].to_numpy()
     span = gt[-1] - gt[0] if len(gt) else 0.0
