@@ -32,7 +32,7 @@ import numpy as np
 import pandas as pd
 
 from quadformer.config import SENSOR_NAMES
-from quadformer.estimator.online import CALL_ORDER, FilterConfig, GapError, ResidueStream, spaced
+from quadformer.estimator.online import CALL_ORDER, MAX_GPS_DELAY, FilterConfig, GapError, ResidueStream, spaced
 from quadformer.estimator.schema import GROUPS, RESIDUES
 from quadformer.logs.flightlog import FlightLog, LogError
 
@@ -196,6 +196,10 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
     delay_notes = []
     if config.gps_delay_s is None:                     # the autopilot's own setting, where logged
         delay = log.vehicle.get("gps_delay_s", 0.0)
+        if delay > MAX_GPS_DELAY:
+            delay_notes.append(f"gps: the autopilot's GPS delay setting ({delay * 1e3:.0f} ms) is longer than "
+                               f"{MAX_GPS_DELAY * 1e3:.0f} ms; {MAX_GPS_DELAY * 1e3:.0f} ms used")
+            delay = MAX_GPS_DELAY
         config = replace(config, gps_delay_s=delay)
         if delay > 0:
             delay_notes.append(f"gps: each fix fused {delay * 1e3:.0f} ms before its stamp (the autopilot's "
