@@ -196,7 +196,7 @@ def test_replaying_a_simulated_flight_from_a_ros_bag_recovers_the_simulators_res
     assert np.abs(r_px - sim["res_gps_r"][0, :, 0])[late].max() < 0.3          # m, of an innovation rms 0.45 m
 
 
-def test_the_simulations_tuning_trusts_a_receiver_as_little_as_it_states():
+def test_the_simulations_tuning_trusts_a_receiver_as_little_as_it_states(models, tmp_path):
     """``sample_log_small.ulg`` is a real flight whose receiver states 2.8 m / 5.9 m of position
     error (eph / epv, medians), where the default simulation's GPS has 0.5 m of white noise.
     Replayed with that simulation's tuning (what ``detect --filter model`` uses for a model fit
@@ -215,6 +215,14 @@ def test_the_simulations_tuning_trusts_a_receiver_as_little_as_it_states():
     assert stated.res_gps_nis.max() < 5.0
     floor = ekf_rows(log, config=FilterConfig.matching(sim, receiver_accuracy=False)).rows
     assert floor.res_gps_nis.max() > 10.0
+    # as a user runs it: the NIS test fit on simulated flights, on the clean log, both ways
+    peak = {}
+    for flag in ("--receiver-accuracy", "--no-receiver-accuracy"):
+        res = runner.invoke(app, ["detect", str(FIX / "sample_log_small.ulg"), "--model", str(models["chi2"]),
+                                  flag, "--out", str(tmp_path / flag), "--quiet"])
+        assert res.exit_code == 0, res.output
+        peak[flag] = pd.read_csv(tmp_path / flag / "sample_log_small.ulg" / "scores.csv").score.max()
+    assert peak["--no-receiver-accuracy"] > 3.0 * peak["--receiver-accuracy"], peak
 
 
 def test_a_fix_is_fused_at_its_measurement_time_the_autopilots_gps_delay_before_its_stamp():

@@ -26,6 +26,10 @@ _FILTER_HELP = ("The replayed filter's tuning: ekf2 (PX4 EKF2's default noise, t
 _GPS_DELAY_HELP = ("Seconds before its stamp that a fix was measured (the receiver's latency); each fix is fused "
                    "at that time. Default: the autopilot's own setting where the log records it (PX4 "
                    "EKF2_GPS_DELAY, ArduPilot GPS_DELAY_MS), else 0.")
+_RECEIVER_HELP = ("Weight each fix by the receiver's stated accuracy (eph, epv, speed accuracy) where it is worse "
+                  "than the tuning's GPS noise, as the autopilot does. --no-receiver-accuracy: the tuning's noise "
+                  "alone (more sensitive where the receiver overstates its error; a receiver's own meters of error "
+                  "then read as a spoof).")
 _RESIDUES_HELP = ("ekf: replay the project's filter over the log's sensors; autopilot: the autopilot's own "
                   "logged GPS innovations, whitened by its logged variances.")
 
@@ -559,14 +563,16 @@ def resilience(
 
 
 def _replay_config(sensors: Optional[str], imu_rate: Optional[float], gps_rate: Optional[float],
-                   min_segment: float, filter: str, det=None, gps_delay: Optional[float] = None):
+                   min_segment: float, filter: str, det=None, gps_delay: Optional[float] = None,
+                   receiver_accuracy: bool = True):
     """The replay's filter tuning: EKF2's defaults, the simulation a model was fit on, or a
     simulated dataset's; explicit rates override it."""
     from quadformer.dataset import DatasetError, load_dataset
     from quadformer.estimator.online import FilterConfig
 
     over = {k: v for k, v in (("sensors", sensors), ("imu_rate_hz", imu_rate), ("gps_rate_hz", gps_rate),
-                              ("min_segment_s", min_segment), ("gps_delay_s", gps_delay)) if v is not None}
+                              ("min_segment_s", min_segment), ("gps_delay_s", gps_delay),
+                              ("receiver_accuracy", receiver_accuracy)) if v is not None}
     try:
         if filter == "ekf2":
             return FilterConfig(**over)
@@ -628,6 +634,7 @@ def detect(
                                              "default 10, or the matched simulation's)."),
     min_segment: float = typer.Option(3.0, help="Seconds of GPS a segment needs to be replayed."),
     gps_delay: Optional[float] = typer.Option(None, help=_GPS_DELAY_HELP),
+    receiver_accuracy: bool = typer.Option(True, help=_RECEIVER_HELP),
     typing: str = typer.Option("shape", help=_TYPING_HELP),
     quiet: bool = typer.Option(False, help="No progress bar."),
 ) -> None:
@@ -647,7 +654,7 @@ def detect(
     if residues not in ("ekf", "autopilot"):
         _fail(f"residues: unknown source {residues!r}; choose from ekf, autopilot")
     _typing(typing)
-    config = _replay_config(sensors, imu_rate, gps_rate, min_segment, filter, det, gps_delay)
+    config = _replay_config(sensors, imu_rate, gps_rate, min_segment, filter, det, gps_delay, receiver_accuracy)
     paths = _log_paths(logs, format)
     set_threads(1)
     bar = None
@@ -744,6 +751,7 @@ def monitor(
     gps_delay: Optional[float] = typer.Option(None, help="Seconds before its arrival that a fix was measured (the "
                                               "receiver's latency, as the autopilot's EKF2_GPS_DELAY or GPS_DELAY_MS; "
                                               "default 0): the filter runs that far behind the newest IMU sample."),
+    receiver_accuracy: bool = typer.Option(True, help=_RECEIVER_HELP),
     gps_instance: Optional[int] = typer.Option(None, help="GPS receiver: 0 (GPS_RAW_INT) or 1 (GPS2_RAW); "
                                                "default: the first with a 3D fix."),
     system: Optional[int] = typer.Option(None, help="Vehicle system id (default: the first sending sensor data)."),
@@ -790,7 +798,7 @@ def monitor(
         _fail("--model is required (or --demo)")
     if connect is None:
         _fail("--connect is required, e.g. --connect udpin:127.0.0.1:14550")
-    filt = _replay_config(sensors, imu_rate, gps_rate, 3.0, filter, det, gps_delay)
+    filt = _replay_config(sensors, imu_rate, gps_rate, 3.0, filter, det, gps_delay, receiver_accuracy)
     try:
         config = MonitorConfig(connect=connect, filter=filt, admission=adm, gps_instance=gps_instance, system=system,
                                act=act, act_source_set=act_source_set, statustext=statustext,
@@ -865,6 +873,7 @@ def logs_import(
                                              "default 10)."),
     min_segment: float = typer.Option(3.0, help="Seconds of GPS a segment needs to be replayed."),
     gps_delay: Optional[float] = typer.Option(None, help=_GPS_DELAY_HELP),
+    receiver_accuracy: bool = typer.Option(True, help=_RECEIVER_HELP),
     overwrite: bool = typer.Option(False, help="Replace DIR if it exists."),
 ) -> None:
     """A dataset (the format of `quadformer simulate`) from flight logs: one flight per log segment,
@@ -890,7 +899,8 @@ def logs_import(
                                      if v is not None})
         except (ConfigError, TypeError) as e:
             _fail(str(e))
-    config = _replay_config(sensors, imu_rate, gps_rate, min_segment, filter, gps_delay=gps_delay)
+    config = _replay_config(sensors, imu_rate, gps_rate, min_segment, filter, gps_delay=gps_delay,
+                            receiver_accuracy=receiver_accuracy)
     paths = _log_paths(logs, format)
     set_threads(1)
     try:
