@@ -23,9 +23,11 @@ _TYPING_HELP = ("Where alerts take their attack type from: shape (each attack sh
 _FILTER_HELP = ("The replayed filter's tuning: ekf2 (PX4 EKF2's default noise, the receiver's own accuracy), or "
                 "a simulated dataset directory (its filter's tuning, so that the residues have the scale of that "
                 "data's).")
-_GPS_DELAY_HELP = ("Seconds before its stamp that a fix was measured (the receiver's latency); each fix is fused "
-                   "at that time. Default: the autopilot's own setting where the log records it (PX4 "
-                   "EKF2_GPS_DELAY, ArduPilot GPS_DELAY_MS), else 0.")
+_GPS_DELAY_HELP = ("Seconds before its stamp that a fix was measured (the receiver's latency, as the autopilot's "
+                   "EKF2_GPS_DELAY or GPS_DELAY_MS); each fix is fused at that time, the filter running that far "
+                   "behind the newest IMU sample.")
+_LOG_GPS_DELAY_HELP = _GPS_DELAY_HELP + " Default: the autopilot's own setting where the log records it, else 0."
+_LIVE_GPS_DELAY_HELP = _GPS_DELAY_HELP + " Default 0 (a link does not carry the autopilot's setting)."
 _RECEIVER_HELP = ("Weight each fix by the receiver's stated accuracy (eph, epv, speed accuracy) where it is worse "
                   "than the tuning's GPS noise, as the autopilot does. --no-receiver-accuracy: the tuning's noise "
                   "alone (more sensitive where the receiver overstates its error; a receiver's own meters of error "
@@ -633,7 +635,7 @@ def detect(
     gps_rate: Optional[float] = typer.Option(None, help="At most this many fixes per second are fused (Hz; "
                                              "default 10, or the matched simulation's)."),
     min_segment: float = typer.Option(3.0, help="Seconds of GPS a segment needs to be replayed."),
-    gps_delay: Optional[float] = typer.Option(None, help=_GPS_DELAY_HELP),
+    gps_delay: Optional[float] = typer.Option(None, help=_LOG_GPS_DELAY_HELP),
     receiver_accuracy: bool = typer.Option(True, help=_RECEIVER_HELP),
     typing: str = typer.Option("shape", help=_TYPING_HELP),
     quiet: bool = typer.Option(False, help="No progress bar."),
@@ -748,9 +750,7 @@ def monitor(
                                "(EKF2's defaults when the model does not say)."),
     imu_rate: Optional[float] = typer.Option(None, help="IMU averaged down to at most this rate (Hz)."),
     gps_rate: Optional[float] = typer.Option(None, help="At most this many fixes per second are fused (Hz)."),
-    gps_delay: Optional[float] = typer.Option(None, help="Seconds before its arrival that a fix was measured (the "
-                                              "receiver's latency, as the autopilot's EKF2_GPS_DELAY or GPS_DELAY_MS; "
-                                              "default 0): the filter runs that far behind the newest IMU sample."),
+    gps_delay: Optional[float] = typer.Option(None, help=_LIVE_GPS_DELAY_HELP),
     receiver_accuracy: bool = typer.Option(True, help=_RECEIVER_HELP),
     gps_instance: Optional[int] = typer.Option(None, help="GPS receiver: 0 (GPS_RAW_INT) or 1 (GPS2_RAW); "
                                                "default: the first with a 3D fix."),
@@ -872,7 +872,7 @@ def logs_import(
     gps_rate: Optional[float] = typer.Option(None, help="At most this many fixes per second are fused (Hz; "
                                              "default 10)."),
     min_segment: float = typer.Option(3.0, help="Seconds of GPS a segment needs to be replayed."),
-    gps_delay: Optional[float] = typer.Option(None, help=_GPS_DELAY_HELP),
+    gps_delay: Optional[float] = typer.Option(None, help=_LOG_GPS_DELAY_HELP),
     receiver_accuracy: bool = typer.Option(True, help=_RECEIVER_HELP),
     overwrite: bool = typer.Option(False, help="Replace DIR if it exists."),
 ) -> None:
