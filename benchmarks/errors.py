@@ -80,7 +80,10 @@ def main() -> None:
         print(f"{f.stem}")
         result[f.stem] = {}
         for m in methods:
-            c = breakdown(scores, m, args.early, args.after)
+            try:
+                c = breakdown(scores, m, args.early, args.after)
+            except KeyError as e:
+                ap.error(f"{f.name}: {e.args[0]}")
             result[f.stem][m] = c
             pooled.setdefault(m, dict.fromkeys(COUNTS, 0))
             for k in COUNTS:
