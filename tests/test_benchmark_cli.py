@@ -110,6 +110,46 @@ def test_resilience_cli_flies_four_policies_and_reuses_tuned_detectors(short_dat
     assert "confirmed_type" in pd.read_csv(out / "alerts.csv").columns
 
 
+def test_configs_selects_part_of_a_profile_with_the_whole_profiles_datasets_and_models(short_dataset_dir,
+                                                                                          tmp_path):
+    """--configs runs some configurations of a profile: only their datasets are needed (the
+    cache holds no other, and nothing is simulated), in the profile's order; the resilience
+    run flies the selection with the detector the benchmark tuned."""
+    whole = dict(profile_configs(PROFILES["demo"]))
+    picked = ["modelII-laplace-bias", "modelI-exponential-ramp"]
+    cache = tmp_path / "cache"
+    for name in picked:
+        shutil.copytree(short_dataset_dir, cache / f"{name}-{dataset_key(whole[name])}")
+    args = ["--profile", "demo", "--cache", str(cache), "--quiet", "--workers", "1", "--configs", ",".join(picked)]
+    res = runner.invoke(app, ["benchmark", "--methods", "cusum", "--out", str(tmp_path / "bench"), *args])
+    assert res.exit_code == 0, res.output
+    r = json.loads((tmp_path / "bench" / "results.json").read_text())
+    assert [c["name"] for c in r["configs"]] == ["modelI-exponential-ramp", "modelII-laplace-bias"]
+    assert sorted(p.name for p in cache.iterdir() if p.name != "models") == sorted(
+        f"{n}-{dataset_key(whole[n])}" for n in picked)
+    res = runner.invoke(app, ["resilience", "--detector", "cusum", "--out", str(tmp_path / "res"), *args[:-1],
+                              "modelII-laplace-bias", "--max-flights", "1"])
+    assert res.exit_code == 0, res.output
+    r = json.loads((tmp_path / "res" / "results.json").read_text())
+    assert [c["name"] for c in r["configs"]] == ["modelII-laplace-bias"]
+    assert r["configs"][0]["model_from_cache"] is True
+
+
+def test_select_configs_keeps_each_configuration_as_in_the_whole_profile():
+    from quadformer.experiments.grid import select_configs
+
+    demo = PROFILES["demo"]
+    part = select_configs(demo, "modelII-laplace-bias, modelI-exponential-ramp,modelII-laplace-bias")
+    assert part.grid == (("I", "exponential", "ramp"), ("II", "laplace", "bias"))
+    assert dict(profile_configs(part)) == {n: c for n, c in profile_configs(demo) if n in dict(profile_configs(part))}
+    # the resilience run flies the selected configurations of the profile's resilience grid,
+    # or the selection when it holds none of them
+    assert part.for_resilience().grid == (("II", "laplace", "bias"),)
+    assert select_configs(demo, "modelI-exponential-ramp").for_resilience().grid == (("I", "exponential", "ramp"),)
+    assert select_configs(PROFILES["quick"], "modelI-laplace-ramp").for_resilience().grid == (
+        ("I", "laplace", "ramp"),)
+
+
 def test_fit_then_evaluate_round_trip(dataset_dir, tmp_path):
     model = tmp_path / "cusum.json"
     res = runner.invoke(app, ["fit", "--method", "cusum", "--data", str(dataset_dir), "--out", str(model)])
@@ -140,6 +180,10 @@ def test_fit_then_evaluate_round_trip(dataset_dir, tmp_path):
     (["benchmark", "--seed-list", "0,x"], "seed-list: expected comma-separated integers"),
     (["benchmark", "--seed-list", "1,1"], "seed-list: expected distinct non-negative integers"),
     (["benchmark", "--data", "x", "--stress"], "need a profile"),
+    (["benchmark", "--profile", "quick", "--configs", "modelIII-exponential-bias"],
+     "configs: 'modelIII-exponential-bias' not in profile 'quick'; choose from modelI-exponential-bias"),
+    (["benchmark", "--data", "x", "--configs", "modelI-exponential-bias"], "with --data the datasets are given"),
+    (["resilience", "--configs", " , "], "configs: no configuration named"),
     (["fit", "--method", "cusum", "--data", "/nonexistent", "--out", "m.json"], "no such dataset"),
     (["evaluate", "--model", "/nonexistent.json", "--data", ".", "--out", "x"], "no such model file"),
 ])

@@ -128,13 +128,19 @@ def _backend(kind: str, address: Optional[str], device: str, workers: Optional[i
     return be
 
 
-def _profile(name: str):
-    from quadformer.experiments.grid import get_profile
+def _profile(name: str, configs: Optional[str] = None):
+    """The named profile, over the configurations ``configs`` names when given."""
+    from quadformer.experiments.grid import get_profile, select_configs
 
     try:
-        return get_profile(name)
+        prof = get_profile(name)
+        return prof if configs is None else select_configs(prof, configs)
     except ValueError as e:
         _fail(str(e))
+
+
+_CONFIGS_HELP = ("Comma-separated configurations of the profile to run (e.g. modelII-laplace-bias; default: "
+                 "all); their datasets and models are the whole profile's, shared through the cache.")
 
 
 @app.command()
@@ -304,6 +310,7 @@ def benchmark(
                                           "detector except ablations; 'all': every one."),
     data: list[Path] = typer.Option([], "--data", help="Benchmark on these dataset directories instead of a "
                                     "profile (repeatable): simulated ones or `quadformer logs import` ones."),
+    configs: Optional[str] = typer.Option(None, help=_CONFIGS_HELP),
     out: Path = typer.Option(Path("runs/benchmark"), "--out", help="Output directory."),
     cache: Path = typer.Option(Path("runs/cache"), help="Dataset cache directory."),
     seed: int = typer.Option(0, help="Split seed (with --seeds, the first seed)."),
@@ -328,8 +335,9 @@ def benchmark(
     from quadformer.experiments.pool import BackendError, UnitError
     from quadformer.io import set_threads
 
-    if not data:
-        _profile(profile)
+    if data and configs is not None:
+        _fail("--configs selects a profile's configurations; with --data the datasets are given")
+    prof = None if data else _profile(profile, configs)
     if not 0.0 <= label_fraction <= 1.0:
         _fail(f"label-fraction: must be in [0, 1], got {label_fraction}")
     seed_runs = _seed_list(seeds, seed_list, seed)
@@ -345,10 +353,10 @@ def benchmark(
             results = run_datasets(data, names, out, progress=not quiet, seed=seed, label_fraction=label_fraction,
                                    device=device)
         elif seed_runs is not None:
-            results = run_seeds(profile, names, out, cache, seed_runs, progress=not quiet, workers=workers,
+            results = run_seeds(prof, names, out, cache, seed_runs, progress=not quiet, workers=workers,
                                 label_fraction=label_fraction, stress=stress, backend=be, device=device)
         else:
-            results = run_benchmark(profile, names, out, cache, progress=not quiet, workers=workers, seed=seed,
+            results = run_benchmark(prof, names, out, cache, progress=not quiet, workers=workers, seed=seed,
                                     label_fraction=label_fraction, stress=stress, backend=be, device=device)
     except (DatasetError, ValueError, BackendError, UnitError) as e:
         _fail(str(e))
@@ -512,6 +520,7 @@ def resilience(
     detector: str = typer.Option("quadformer", help="Registered detector driving the resilient policy."),
     out: Path = typer.Option(Path("runs/resilience"), "--out", help="Output directory."),
     cache: Path = typer.Option(Path("runs/cache"), help="Dataset and tuned-model cache directory."),
+    configs: Optional[str] = typer.Option(None, help=_CONFIGS_HELP),
     seed: int = typer.Option(0, help="Split seed (the detection benchmark's)."),
     label_fraction: float = typer.Option(0.2, help="Share of training flights whose labels the detector may use."),
     hold: float = typer.Option(2.0, help="Seconds clear and agreeing before GPS is re-admitted."),
@@ -535,7 +544,7 @@ def resilience(
     from quadformer.io import set_threads
     from quadformer.resilience import AdmissionConfig
 
-    _profile(profile)
+    prof = _profile(profile, configs)
     if not 0.0 <= label_fraction <= 1.0:
         _fail(f"label-fraction: must be in [0, 1], got {label_fraction}")
     try:
@@ -552,7 +561,7 @@ def resilience(
     be = _backend(backend, address, device, workers)
     set_threads()
     try:
-        results = run_resilience(profile, detector, out, cache, progress=not quiet, workers=workers, seed=seed,
+        results = run_resilience(prof, detector, out, cache, progress=not quiet, workers=workers, seed=seed,
                                  label_fraction=label_fraction, admission=adm, threshold=threshold,
                                  max_flights=max_flights, backend=be, device=device)
     except (DatasetError, ValueError, BackendError, UnitError) as e:

@@ -70,6 +70,24 @@ def config_name(model: str, noise: str, attack: str) -> str:
     return f"model{model}-{noise}-{attack}"
 
 
+def select_configs(profile: Profile, names: str) -> Profile:
+    """``profile`` over some of its configurations: ``names`` comma-separated configuration
+    names (``modelI-exponential-bias``, ...), kept in the profile's order. The datasets are
+    those of the whole profile (each configuration's seed derives from its own names), so
+    a selection reuses, and adds to, the whole profile's cache."""
+    wanted = [n.strip() for n in names.split(",") if n.strip()]
+    if not wanted:
+        raise ValueError("configs: no configuration named")
+    known = [config_name(*c) for c in profile.grid]
+    unknown = [n for n in wanted if n not in known]
+    if unknown:
+        raise ValueError(f"configs: {', '.join(map(repr, unknown))} not in profile {profile.name!r}; "
+                         f"choose from {', '.join(known)}")
+    grid = tuple(c for c in profile.grid if config_name(*c) in wanted)
+    res = None if profile.resilience_grid is None else tuple(c for c in profile.resilience_grid if c in grid)
+    return dataclasses.replace(profile, grid=grid, resilience_grid=res or None)
+
+
 def noise_stats(ds: Dataset) -> dict[str, float]:
     """Moments of the GPS velocity noise (white, of the configured shape) on clean steps."""
     f = ds.flights[ds.flights["label"] == 0]
