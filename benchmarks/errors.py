@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from quadformer.evaluation.metrics import prf
+
 COUNTS = ("tp", "miss_early", "miss_late", "fa_after", "fa_elsewhere")
 
 
@@ -51,12 +53,10 @@ def breakdown(scores: pd.DataFrame, method: str, early_s: float, after_s: float)
     return out
 
 
-def prf(c: dict[str, int]) -> tuple[float, float, float]:
-    fp = c["fa_after"] + c["fa_elsewhere"]
-    fn = c["miss_early"] + c["miss_late"]
-    p = c["tp"] / (c["tp"] + fp) if c["tp"] + fp else 0.0
-    r = c["tp"] / (c["tp"] + fn) if c["tp"] + fn else 0.0
-    return p, r, (2 * p * r / (p + r) if p + r else 0.0)
+def line(method: str, c: dict[str, int]) -> str:
+    """The counts and the point-wise P / R / F1 they give."""
+    p, r, f1 = prf(c["tp"], c["fa_after"] + c["fa_elsewhere"], c["miss_early"] + c["miss_late"])
+    return f"  {method:20s} " + " ".join(f"{k} {c[k]:6d}" for k in COUNTS) + f"  P {p:.2f} R {r:.2f} F1 {f1:.2f}"
 
 
 def main() -> None:
@@ -88,13 +88,10 @@ def main() -> None:
             pooled.setdefault(m, dict.fromkeys(COUNTS, 0))
             for k in COUNTS:
                 pooled[m][k] += c[k]
-            p, r, f1 = prf(c)
-            print(f"  {m:20s} " + " ".join(f"{k} {c[k]:6d}" for k in COUNTS)
-                  + f"  P {p:.2f} R {r:.2f} F1 {f1:.2f}")
+            print(line(m, c))
     print("pooled")
     for m, c in pooled.items():
-        p, r, f1 = prf(c)
-        print(f"  {m:20s} " + " ".join(f"{k} {c[k]:6d}" for k in COUNTS) + f"  P {p:.2f} R {r:.2f} F1 {f1:.2f}")
+        print(line(m, c))
     print(json.dumps({"run": str(args.run), "early_s": args.early, "after_s": args.after,
                       "configs": result, "pooled": pooled}))
 

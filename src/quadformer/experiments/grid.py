@@ -78,12 +78,12 @@ def select_configs(profile: Profile, names: str) -> Profile:
     wanted = [n.strip() for n in names.split(",") if n.strip()]
     if not wanted:
         raise ValueError("configs: no configuration named")
-    known = [config_name(*c) for c in profile.grid]
-    unknown = [n for n in wanted if n not in known]
+    named = {config_name(*c): c for c in profile.grid}
+    unknown = [n for n in wanted if n not in named]
     if unknown:
         raise ValueError(f"configs: {', '.join(map(repr, unknown))} not in profile {profile.name!r}; "
-                         f"choose from {', '.join(known)}")
-    grid = tuple(c for c in profile.grid if config_name(*c) in wanted)
+                         f"choose from {', '.join(named)}")
+    grid = tuple(c for n, c in named.items() if n in wanted)
     res = None if profile.resilience_grid is None else tuple(c for c in profile.resilience_grid if c in grid)
     return dataclasses.replace(profile, grid=grid, resilience_grid=res or None)
 
