@@ -5,13 +5,18 @@ estimated onset of the attack (from the detector's onset criterion where it has 
 the alarm time), its attack type (from a typer such as ``attack_types.ShapeTyper`` where
 one is given, else from the detector where it classifies, else ``attack``), the peak score
 during the run and when the run ended (``None`` while still alarmed at the end of the data).
+
+``AlertTracker`` is that lifecycle (raise, estimated onset, confirm the type, close) fed one
+step at a time; the live monitor, the closed loop and offline scoring (``alerts_from_scores``)
+all run it, so one flight gives the same alerts by every route.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import pandas as pd
@@ -20,6 +25,7 @@ from quadformer.detectors.base import flight_slices
 from quadformer.io import atomic_path
 
 ALERT_COLUMNS = ["flight_id", "start_s", "onset_s", "attack_type", "score", "end_s", "confirmed_type"]
+ALERT_EVENTS = ("alert_start", "alert_end", "alert_type")
 
 
 def runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -56,12 +62,174 @@ class Alert:
                 f"(onset ~{self.onset_s:.1f} s, until {end}, peak score {self.score:.3g}{confirmed})")
 
 
+@dataclass(frozen=True)
+class AlertEvent:
+    """A change in an alert's life: ``alert_start`` (raised), ``alert_end`` (closed; ``alert.end_s``
+    None when the data ended under it) or ``alert_type`` (its type confirmed; ``raised_as`` the
+    type it was raised with). ``flight``: the flight's position in the tracker's batch; ``t``:
+    the step's time (None for the close at the end of the data); ``step``: the step's index."""
+    event: str
+    flight: int
+    t: float | None
+    alert: Alert
+    step: int = -1
+    raised_as: str | None = None
+
+
+class AlertTracker:
+    """The alert lifecycle of ``n`` flights stepped together (see the module text).
+
+    ``update`` takes one step: each flight's time, score, alarm (the detector's rule), the type
+    to raise an alert with, and where the detector has an onset criterion, whether its raw score
+    is above the onset level (``StreamStep.above``); the onset of a new alert is the first step
+    of the run of such steps that ends just before the alarm (the alarm's own time otherwise), as
+    ``onset_times`` back-tracks offline. ``confirm`` sets an alert's confirmed type; ``finish``
+    closes what is open at the end of the data. Closed alerts are kept in ``alerts`` (the last
+    ``keep``); memory does not grow with time beyond that."""
+
+    def __init__(self, n: int, flight_ids: Sequence[Any] | None = None, keep: int | None = None):
+        if not (isinstance(n, (int, np.integer)) and n >= 1):
+            raise ValueError(f"n must be an integer >= 1, got {n!r}")
+        self.n = int(n)
+        ids = list(range(self.n)) if flight_ids is None else [f.item() if hasattr(f, "item") else f
+                                                              for f in flight_ids]
+        if len(ids) != self.n:
+            raise ValueError(f"{len(ids)} flight ids for {self.n} flights")
+        self.flight_ids = ids
+        self.open: list[Alert | None] = [None] * self.n
+        self._is_open = np.zeros(self.n, dtype=bool)
+        self._peak = np.full(self.n, -np.inf)
+        self._rise = np.full(self.n, np.nan)      # first step time of the current run above the onset level
+        self.alerts: list[Alert] = []
+        self._order: list[tuple[int, int]] = []   # (flight, step) of each closed alert
+        self._open_step = np.full(self.n, -1)
+        self.keep = keep
+        self.steps = np.zeros(self.n, dtype=np.int64)
+        self.n_alerts = 0
+
+    def update(self, t, score, alarm, attack_type=None, above=None, active=None) -> list[AlertEvent]:
+        """One step; returns its events (starts and ends). ``t``: the step's time, one value or
+        one per flight; ``attack_type``: one name or one per flight (None: ``attack``); ``active``:
+        the flights that have this step (all by default; offline flights of unequal length)."""
+        n = self.n
+        t = np.broadcast_to(np.asarray(t, dtype=float), (n,))
+        score = np.broadcast_to(np.asarray(score, dtype=float), (n,))
+        alarm = np.broadcast_to(np.asarray(alarm, dtype=bool), (n,))
+        act = np.ones(n, dtype=bool) if active is None else np.asarray(active, dtype=bool)
+        events = []
+        starts = np.nonzero(alarm & ~self._is_open & act)[0]
+        ends = np.nonzero(~alarm & self._is_open & act)[0]
+        going = alarm & self._is_open & act
+        self._peak[going] = np.maximum(self._peak[going], score[going])
+        for i in ends:
+            events.append(self._close(int(i), float(t[i]), int(self.steps[i])))
+        for i in starts:
+            kind = attack_type if attack_type is None or isinstance(attack_type, str) else attack_type[i]
+            onset = self._rise[i] if np.isfinite(self._rise[i]) else t[i]
+            a = Alert(self.flight_ids[i], float(t[i]), float(onset), "attack" if kind is None else str(kind),
+                      float(score[i]), None)
+            self.open[i] = a
+            self._is_open[i] = True
+            self._peak[i] = score[i]
+            self._open_step[i] = self.steps[i]
+            self.n_alerts += 1
+            events.append(AlertEvent("alert_start", int(i), float(t[i]), a, int(self.steps[i])))
+        if above is not None:
+            up = np.broadcast_to(np.asarray(above, dtype=bool), (n,)) & act
+            self._rise[up & ~np.isfinite(self._rise)] = t[up & ~np.isfinite(self._rise)]
+            self._rise[~up & act] = np.nan
+        else:
+            self._rise[act] = np.nan
+        self.steps[act] += 1
+        return events
+
+    def peak(self, i: int) -> float:
+        """The peak score so far of flight i's open alert (-inf when none is open)."""
+        return float(self._peak[i]) if self._is_open[i] else -np.inf
+
+    def _close(self, i: int, t: float | None, step: int) -> AlertEvent:
+        a = dataclasses.replace(self.open[i], score=float(self._peak[i]), end_s=t)
+        self.open[i] = None
+        self._is_open[i] = False
+        self.alerts.append(a)
+        self._order.append((i, int(self._open_step[i])))
+        if self.keep is not None and len(self.alerts) > self.keep:
+            del self.alerts[0], self._order[0]
+        return AlertEvent("alert_end", i, t, a, step)
+
+    def confirm(self, i: int, start_s: float, kind: str, t: float | None = None) -> AlertEvent | None:
+        """Confirm the type of flight i's alert raised at ``start_s`` (open, or among those kept)."""
+        a = self.open[i]
+        if a is not None and a.start_s == start_s:
+            self.open[i] = a = dataclasses.replace(a, confirmed_type=kind)
+        else:
+            for k in range(len(self.alerts) - 1, -1, -1):
+                b = self.alerts[k]
+                if self._order[k][0] == i and b.start_s == start_s:
+                    self.alerts[k] = a = dataclasses.replace(b, confirmed_type=kind)
+                    break
+            else:
+                return None
+        return AlertEvent("alert_type", i, t, a, raised_as=None)
+
+    def finish(self, flights: Sequence[int] | None = None) -> list[AlertEvent]:
+        """Close the open alerts (of ``flights``, all by default) at the end of the data (end_s None)."""
+        idx = range(self.n) if flights is None else flights
+        return [self._close(int(i), None, int(self.steps[i])) for i in idx if self._is_open[i]]
+
+    def closed(self) -> list[tuple[int, int, Alert]]:
+        """(flight, step raised at, alert) of the closed alerts kept, by flight (batch order) then time."""
+        return sorted(((i, j, a) for (i, j), a in zip(self._order, self.alerts)), key=lambda x: x[:2])
+
+
+def onset_flags(X: pd.DataFrame, detector) -> np.ndarray | None:
+    """Per row of X, whether the detector's raw score is above its onset level (detectors with an
+    onset criterion: ``raw_scores`` and ``onset_level_``), else None."""
+    level = getattr(detector, "onset_level_", None) if detector is not None else None
+    if level is None or not hasattr(detector, "raw_scores"):
+        return None
+    raw, _ = detector.raw_scores(X)
+    return np.asarray(raw) > level
+
+
+def track_alerts(X: pd.DataFrame, scores: np.ndarray, alarms: np.ndarray, types=None,
+                 above: np.ndarray | None = None) -> tuple[list[Alert], np.ndarray]:
+    """The ``AlertTracker`` over the flights of X (rows grouped by ``flight_id``, time ``t``), all
+    flights stepped together; (alerts by flight and time, the row of each alert's start). Steps
+    where no flight's alarm or onset flag is raised or changes leave the tracker as it is and are
+    passed over."""
+    slices = flight_slices(X)
+    if not slices:
+        return [], np.zeros(0, dtype=int)
+    t = X["t"].to_numpy(dtype=float)
+    lengths = np.array([len(idx) for _, idx in slices])
+    first = np.array([idx[0] for _, idx in slices])
+    step = np.arange(len(X)) - np.repeat(first, lengths)          # each row's step in its flight
+    busy = alarms.copy()
+    busy[1:] |= alarms[:-1] & (step[1:] > 0)                      # the step after an alarm (its end)
+    if above is not None:
+        busy[1:] |= (above[1:] != above[:-1]) & (step[1:] > 0)
+        busy |= above & (step == 0)
+    tracker = AlertTracker(len(slices), [f for f, _ in slices])
+    for j in np.unique(step[busy]):
+        act = lengths > j
+        rows = np.where(act, first + j, first)     # rows of the flights with a step j (others masked)
+        kind = None if types is None else np.asarray(types)[rows]
+        tracker.steps[:] = j
+        tracker.update(t[rows], scores[rows], alarms[rows] & act, kind,
+                       None if above is None else above[rows] & act, active=act)
+    tracker.finish()
+    done = tracker.closed()
+    starts = np.array([first[i] + j for i, j, _ in done], dtype=int)
+    return [a for _, _, a in done], starts
+
+
 def alerts_from_scores(X: pd.DataFrame, scores: np.ndarray, detector=None, *,
                        threshold: float | None = None,
                        typer=None, memo: dict[int, str] | None = None) -> list[Alert]:
     """Alerts of the flights in X (rows grouped by ``flight_id``, time ``t``) for per-step
     ``scores``, under the detector's alarm rule (``score > detector.threshold_``), or under
-    ``threshold`` for scores that come without a detector.
+    ``threshold`` for scores that come without a detector: the ``AlertTracker`` run over them.
 
     The attack type of an alert is the typer's at its first row when a typer is given (a
     ``ShapeTyper``: ``type_rows``, with ``memo`` shared between calls on the same X), and its
@@ -75,31 +243,17 @@ def alerts_from_scores(X: pd.DataFrame, scores: np.ndarray, detector=None, *,
         if threshold is None:
             raise ValueError("alerts need an alarm threshold: a calibrated detector or threshold=")
     alarms = scores > threshold
-    onsets: dict[tuple[Any, float], float] = {}
-    if detector is not None and hasattr(detector, "onset_times"):
-        onsets = {(fid, ta): to for fid, ta, to in detector.onset_times(X, alarms)}
-    t = X["t"].to_numpy(dtype=float)
-    found = [(fid, idx, s, e) for fid, idx in flight_slices(X) for s, e in runs(alarms[idx])]
-    starts = np.array([idx[s] for _, idx, s, _ in found], dtype=int)
-    confirmed = np.full(len(found), None, dtype=object)
-    if typer is not None:
-        types = typer.type_rows(X, starts, memo)
-        confirmed = typer.type_rows(X, typer.confirm_rows(X, starts), memo)
-    elif detector is not None and hasattr(detector, "predict_type"):
-        types = detector.predict_type(X)[starts]
-    else:
-        types = np.full(len(found), "attack", dtype=object)
-    out = []
-    for (fid, idx, s, e), kind, sure in zip(found, types, confirmed):
-        t0 = float(t[idx[s]])
-        out.append(Alert(
-            flight_id=fid.item() if hasattr(fid, "item") else fid, start_s=t0,
-            onset_s=float(onsets.get((fid, t0), t0)),
-            attack_type=str(kind),
-            score=float(scores[idx[s:e]].max()),
-            end_s=float(t[idx[e]]) if e < len(idx) else None,
-            confirmed_type=None if sure is None else str(sure)))
-    return out
+    types = None
+    if typer is None and detector is not None and hasattr(detector, "predict_type") and alarms.any():
+        types = np.asarray(detector.predict_type(X), dtype=object)
+    above = onset_flags(X, detector) if alarms.any() else None
+    alerts, starts = track_alerts(X, scores, alarms, types, above)
+    if typer is not None and alerts:
+        kinds = typer.type_rows(X, starts, memo)
+        sure = typer.type_rows(X, typer.confirm_rows(X, starts), memo)
+        alerts = [dataclasses.replace(a, attack_type=str(k), confirmed_type=str(c))
+                  for a, k, c in zip(alerts, kinds, sure)]
+    return alerts
 
 
 def alerts_frame(alerts: list[Alert]) -> pd.DataFrame:

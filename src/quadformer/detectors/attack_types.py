@@ -58,6 +58,8 @@ advances by it), which differs where a log's receiver is slower than the filter'
 
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -69,6 +71,7 @@ from quadformer.estimator.schema import ATTACK_TYPES, columns
 
 #: the columns the typer reads
 TYPING_COLUMNS = ["t", *columns("res_ref_d", "res_ref_w", "res_ref_age", "gps_vel")]
+_REF_D = columns("res_ref_d")
 #: the type given where the typer cannot tell (too few samples, non-finite inputs, no columns)
 UNTYPED = "attack"
 #: where alerts take their type from: the shape typer (where the rows carry its columns; else
@@ -255,6 +258,44 @@ class ShapeTyper:
             costs["freeze"] = fit(on - on_a, None, on, on_a, -f.pos[rows], -f.pos[pa], -f.vel[rows],
                                   f.vel[held]) + 4 * pen
         return min(costs, key=costs.get), costs
+
+
+class OnlineTyper:
+    """The shape typer fed one row at a time (one flight): the last rows' typing columns, with GPS
+    minus the reference without its anchor carried over every row (``Unanchored``), bounded to
+    the typer's longest window and replay delay. ``type_now()`` is the typer's type at the last
+    row, as ``ShapeTyper.type_rows`` gives offline at that row."""
+
+    def __init__(self, typer: ShapeTyper, gps_rate_hz: float):
+        self.typer = typer
+        n = int(np.ceil((typer.window + max(typer.delays) + 1.0) * gps_rate_hz))
+        self.history: deque[dict[str, float]] = deque(maxlen=n)
+        self.anchored: deque[tuple[np.ndarray, int]] = deque(maxlen=n)
+        self.unanchored = Unanchored(step=1.0 / gps_rate_hz, keep=n)
+
+    def push(self, t: float, cols: Mapping[str, float]) -> bool:
+        """Remember a row (its ``TYPING_COLUMNS``); False when the row does not carry them."""
+        if not all(c in cols for c in TYPING_COLUMNS[1:]):
+            return False
+        self.history.append({"t": float(t), **{c: float(cols[c]) for c in TYPING_COLUMNS[1:]}})
+        self.anchored.append(self.unanchored.push(np.array([cols[c] for c in _REF_D]), cols["res_ref_age"]))
+        return True
+
+    @property
+    def last_t(self) -> float | None:
+        return self.history[-1]["t"] if self.history else None
+
+    def type_now(self) -> str:
+        """The type at the last row (``UNTYPED`` when the typer cannot tell)."""
+        if not self.history:
+            return UNTYPED
+        try:
+            a, j = (np.array(x) for x in zip(*self.anchored))
+            first = self.unanchored.k - len(self.anchored)            # the row of the first kept
+            f = self.typer.prepare(pd.DataFrame(list(self.history)), unanchored=a, anchor=j - first)
+            return self.typer.type_at(f, len(self.history) - 1)[0]
+        except ValueError:
+            return UNTYPED
 
 
 def alert_typer(X: pd.DataFrame, typing: str = "shape"):

@@ -26,10 +26,15 @@ class StreamStep:
     score: np.ndarray                   # (n,) higher = more anomalous
     alarm: np.ndarray                   # (n,) bool
     attack_type: np.ndarray | None      # (n,) predicted type names (classifiers), else None
+    above: np.ndarray | None = None     # (n,) bool, raw score above the onset level (detectors with an
+                                        # onset criterion: ``AlertTracker`` dates an alert's onset by it)
 
 
 class DetectorStream:
-    """Input checking and the alarm rule; subclasses implement ``_score``."""
+    """Input checking and the alarm rule; subclasses implement ``_score`` (and those of detectors
+    with an onset criterion set ``above``, the onset flags of the last step)."""
+
+    above: np.ndarray | None = None
 
     def __init__(self, detector, n_flights: int):
         detector.check_fitted()
@@ -61,7 +66,7 @@ class DetectorStream:
         score, types = self._score(self._matrix(residues))
         thr = getattr(self.detector, "threshold_", None)
         alarm = score > thr if thr is not None else np.zeros(self.n, dtype=bool)
-        return StreamStep(score, alarm, types)
+        return StreamStep(score, alarm, types, self.above)
 
     def _score(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         raise NotImplementedError
@@ -108,5 +113,9 @@ class StreamGroup:
         if any(st.attack_type is not None for st in steps):
             types = np.concatenate([st.attack_type if st.attack_type is not None
                                     else np.full(len(st.score), None, dtype=object) for st in steps])
+        above = None
+        if any(st.above is not None for st in steps):
+            above = np.concatenate([st.above if st.above is not None else np.zeros(len(st.score), dtype=bool)
+                                    for st in steps])
         return StreamStep(np.concatenate([st.score for st in steps]),
-                          np.concatenate([st.alarm for st in steps]), types)
+                          np.concatenate([st.alarm for st in steps]), types, above)

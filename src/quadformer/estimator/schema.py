@@ -158,9 +158,14 @@ def axis_columns(axis: str) -> list[str]:
 
 
 def as_columns(groups: dict[str, object]) -> dict[str, object]:
-    """{group: (n, width) array} -> {column: (n,) array}, for the groups present."""
+    """{group: (n, width) array} -> {column: (n,) array}, for the groups present: the one place
+    residue groups become the flight table's columns (a group outside ``GROUPS`` of width 3 gets
+    the columns NAME_x, NAME_y, NAME_z; a time entry ``t`` is left out)."""
     out = {}
     for name, val in groups.items():
-        for i, c in enumerate(GROUPS[name].columns):
+        if name == "t":
+            continue
+        cols = GROUPS[name].columns if name in GROUPS else [f"{name}_{a}" for a in "xyz"]
+        for i, c in enumerate(cols):
             out[c] = val[:, i]
     return out

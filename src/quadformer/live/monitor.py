@@ -53,14 +53,12 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-import pandas as pd
-import torch
 
 from quadformer.config import SENSOR_NAMES
 from quadformer.detectors.alarms import Alert
-from quadformer.detectors.attack_types import TYPING_COLUMNS, TYPINGS, UNTYPED, ShapeTyper, Unanchored
+from quadformer.detectors.attack_types import TYPINGS, OnlineTyper, ShapeTyper
 from quadformer.estimator.online import FilterConfig, GapError, ResidueStream
-from quadformer.estimator.schema import GROUPS, SENSOR_GROUPS, columns
+from quadformer.estimator.schema import GROUPS, SENSOR_GROUPS
 from quadformer.geometry.frames import geodetic_to_enu
 from quadformer.io import package_versions, write_json
 from quadformer.live.actions import Records, VehicleLink, autopilot_name
@@ -90,13 +88,12 @@ from quadformer.resilience.admission import (
     Admission,
     AdmissionConfig,
 )
+from quadformer.resilience.step import OnlineStep
 
 STATES = {FUSING: "fusing", EXCLUDED: "GPS excluded", BLENDING: "re-admitting GPS"}
 STREAMS = ("imu", "gps", "mag", "baro", "vio", "attitude")
 EPOCH_S = 1e9                     # s, a stamp larger than this is UNIX time, not time since boot
 MAX_ALERTS = 1000                 # alerts kept in memory (all are in alerts.jsonl)
-REF_D = columns("res_ref_d")      # GPS minus the GPS-free reference, anchored
-MAX_PENDING = 100                 # alerts awaiting their confirmed type (one per alarm start within confirm_s)
 MAX_SEGMENTS = 100                # segment descriptions kept in memory
 
 
@@ -246,32 +243,26 @@ class _Order:
 
 
 class _Segment:
-    """One continuous stretch of the vehicle's clock: the residue stream, the detector stream,
-    the admission state and the open alert."""
+    """One continuous stretch of the vehicle's clock: the residue stream and the online step
+    (detector stream, admission, alert lifecycle and typer)."""
 
     def __init__(self, index: int, monitor: "Monitor", reason: str, excluded: bool):
         self.index, self.reason = index, reason
         self.stream = ResidueStream(monitor.filter_config, monitor.sensors, n=1)
-        self.detector = monitor.detector.stream(1)
-        self.admission = Admission(["resilient"], monitor.filter_config.gps_rate_hz, monitor.config.admission)
+        admission = Admission(["resilient"], monitor.filter_config.gps_rate_hz, monitor.config.admission)
         if excluded:           # the vehicle is still off GPS: re-admission follows the rule
-            self.admission.state[:] = EXCLUDED
+            admission.state[:] = EXCLUDED
+        typer = None if monitor.typer is None else OnlineTyper(monitor.typer, monitor.filter_config.gps_rate_hz)
+        self.step = OnlineStep(monitor.detector.stream(1), admission, flight_ids=[index], typer=typer,
+                               keep=MAX_ALERTS)
         self.first_imu: float | None = None
         self.last_imu: float | None = None
         self.fixes = 0
-        self.alert: Alert | None = None
         self.last_score = math.nan
-        # the last fixes' typing columns (bounded), for the shape typer, with GPS minus the
-        # reference without its anchor carried over every fix of the segment (and the fix its
-        # anchor was taken at); alerts whose type is yet to be confirmed: (start, type raised with)
-        self.history: deque[dict[str, float]] = deque(maxlen=monitor.history_len)
-        self.unanchored = Unanchored(step=1.0 / monitor.filter_config.gps_rate_hz, keep=monitor.history_len)
-        self.history_a: deque[tuple[np.ndarray, int]] = deque(maxlen=monitor.history_len)
-        self.pending: deque[tuple[float, str]] = deque(maxlen=MAX_PENDING)
 
     @property
     def state(self) -> int:
-        return int(self.admission.state[0])
+        return int(self.step.admission.state[0])
 
 
 class Monitor:
@@ -293,10 +284,8 @@ class Monitor:
         self.sensors = monitor_sensors(detector, config.filter)
         self.on_fix, self.on_alert = on_fix, on_alert
         self.echo = echo or (lambda line: None)
-        # alert types: the shape typer over the last fixes (its longest window and replay delay)
+        # alert types: the shape typer over the last fixes (``OnlineTyper``)
         self.typer = ShapeTyper() if config.typing == "shape" else None
-        self.history_len = 0 if self.typer is None else \
-            int(math.ceil((self.typer.window + max(self.typer.delays) + 1.0) * config.filter.gps_rate_hz))
         self.conn = None
         self.link: VehicleLink | None = None
         self.records: Records | None = None
@@ -657,41 +646,25 @@ class Monitor:
     def _rows(self, rows: list[dict], t_in: float) -> None:
         seg = self.segment
         for row in rows:
-            cols = {}
-            for name, v in row.items():
-                if name != "t":
-                    for i, c in enumerate(GROUPS[name].columns):
-                        cols[c] = float(v[0, i])
             t = float(row["t"])
+            before = seg.state
             try:
-                step = seg.detector.update(cols)
+                out = seg.step.update(t, row)
             except ValueError as e:          # non-finite residues: not scored
                 self.dropped["rows_not_scored"] += 1
                 self.last_error = str(e)
                 continue
-            score, alarm = float(step.score[0]), bool(step.alarm[0])
-            kind = str(step.attack_type[0]) if step.attack_type is not None else None
-            r = row["res_gps_r"]
-            w = torch.as_tensor(r / np.where(row["res_gps_s"] > 0, row["res_gps_s"], 1.0))
-            before = seg.state
-            dec = seg.admission.decide(torch.as_tensor(row["res_gps_nis"][:, 0]), w, torch.tensor([alarm]),
-                                       torch.tensor([False]))
-            after = seg.state
+            dec, after = out.decision, seg.state
+            score, alarm = float(out.score[0]), bool(out.alarm[0])
+            kind = out.attack_type[0] if out.attack_type is not None else None
             latency = time.perf_counter() - t_in
             self.latency.add(latency)
-            # attack typing after the admission decision, which never waits for it
-            if self.typer is not None and all(c in cols for c in TYPING_COLUMNS[1:]):
-                seg.history.append({"t": t, **{c: cols[c] for c in TYPING_COLUMNS[1:]}})
-                seg.history_a.append(seg.unanchored.push(np.array([cols[c] for c in REF_D]), cols["res_ref_age"]))
-                self._confirm(seg, t)
-                kind = (self._type(seg, -1) if alarm and seg.alert is None else
-                        seg.alert.attack_type if seg.alert is not None else None)
-                if alarm and seg.alert is None:
-                    seg.pending.append((t, kind))
             seg.fixes += 1
             self.fixes += 1
             seg.last_score = score
-            self._alarm(seg, t, score, alarm, kind, before, after, int(dec.readmit[0]), int(dec.exclude[0]))
+            self._events(seg, out.events, after, exclusion=after == EXCLUDED and before != EXCLUDED)
+            self._admission(t, before, after, int(dec.readmit[0]), int(dec.exclude[0]))
+            cols = {c: float(v[0]) for c, v in out.columns.items()}
             rec = FixRecord(seg.index, t, score, alarm, kind, STATES[after], float(dec.std_scale[0]),
                             cols["res_gps_nis"], row["gps_pos"][0].copy(), row["est_pos"][0].copy(),
                             self.ap_pos.copy(), latency, cols)
@@ -702,24 +675,10 @@ class Monitor:
             if self.on_fix is not None:
                 self.on_fix(rec)
 
-    def _alarm(self, seg: _Segment, t: float, score: float, alarm: bool, kind: str | None, before: int,
-               after: int, readmit: int = 0, exclude: int = 0) -> None:
-        """Alerts and admission messages of one fix; ``readmit`` / ``exclude``: the admission
-        rule that acted at this fix (``Decision.readmit`` / ``Decision.exclude``)."""
+    def _admission(self, t: float, before: int, after: int, readmit: int = 0, exclude: int = 0) -> None:
+        """The admission messages and actions of one fix; ``readmit`` / ``exclude``: the rule
+        that acted at this fix (``Decision.readmit`` / ``Decision.exclude``)."""
         c = self.config
-        if alarm and seg.alert is None:
-            seg.alert = Alert(seg.index, t, t, kind or "attack", score, None)
-            self.n_alerts += 1
-            self._event("alert_start", seg, t, score, seg.alert.attack_type, after)
-            text = f"GPS SPOOF ALERT {seg.alert.attack_type} s={score:.3g}"
-            if after == EXCLUDED and before != EXCLUDED:
-                text += " GPS excluded"
-            if self.link is not None:
-                self.link.statustext(text, mavlink2.MAV_SEVERITY_ALERT)
-        elif alarm:
-            seg.alert = dataclasses.replace(seg.alert, score=max(seg.alert.score, score))
-        elif seg.alert is not None:
-            self._close_alert(seg, t, after)
         if after == EXCLUDED and before != EXCLUDED:
             if exclude == EXCLUDE_NIS:
                 self.echo(f"[t {t:.1f} s] GPS excluded (fix outside the agreement gate under the standing alarm)")
@@ -744,74 +703,50 @@ class Monitor:
                 self.link.set_source(1)
                 self.echo(f"[t {t:.1f} s] act: EKF source set 1 (GPS) requested")
 
-    def _type(self, seg: _Segment, pos: int) -> str:
-        """The shape typer's type at fix ``pos`` of the segment's history (``attack`` if it cannot tell)."""
-        if len(seg.history) < -pos:
-            return UNTYPED
-        try:
-            a, j = (np.array(x) for x in zip(*seg.history_a))
-            first = seg.unanchored.k - len(seg.history_a)            # the fix of the first row kept
-            f = self.typer.prepare(pd.DataFrame(list(seg.history)), unanchored=a, anchor=j - first)
-            return self.typer.type_at(f, len(seg.history) + pos)[0]
-        except ValueError:
-            return UNTYPED
-
-    def _close_alert(self, seg: _Segment, t: float | None, state: int) -> None:
-        alert = dataclasses.replace(seg.alert, end_s=t)
-        seg.alert = None
-        self.alerts.append(alert)
-        self._event("alert_end", seg, t, alert.score, alert.attack_type, state)
-
-    def _confirm(self, seg: _Segment, t: float | None) -> None:
-        """Confirm the types of the alerts raised ``confirm_s`` or more before vehicle time t (all
-        of them at a segment's end, t None) from the last fix: an ``alert_type`` event each."""
-        while seg.pending and (t is None or t >= seg.pending[0][0] + self.typer.confirm_s):
-            start, raised = seg.pending.popleft()
-            kind = self._type(seg, -1)
-            if seg.alert is not None and seg.alert.start_s == start:
-                seg.alert = dataclasses.replace(seg.alert, confirmed_type=kind)
-            else:
-                for i in range(len(self.alerts) - 1, -1, -1):
-                    a = self.alerts[i]
-                    if a.flight_id == seg.index and a.start_s == start:
-                        self.alerts[i] = dataclasses.replace(a, confirmed_type=kind)
-                        break
+    def _events(self, seg: _Segment, events: list, state: int, exclusion: bool = False) -> None:
+        """The online step's alert events: counted, kept, written, sent and echoed."""
+        for ev in events:
+            a = ev.alert
             now = datetime.now(timezone.utc)
-            event = {"event": "alert_type", "segment": seg.index, "vehicle_t": seg.history[-1]["t"],
-                     "wall_time": now.isoformat(timespec="milliseconds"), "unix_time": now.timestamp(),
-                     "start_s": start, "attack_type": kind, "raised_as": raised}
+            event = {"event": ev.event, "segment": seg.index, "vehicle_t": ev.t,
+                     "wall_time": now.isoformat(timespec="milliseconds"), "unix_time": now.timestamp()}
+            if ev.event == "alert_type":
+                event.update(start_s=a.start_s, attack_type=a.confirmed_type, raised_as=ev.raised_as)
+                self.alerts = deque((dataclasses.replace(b, confirmed_type=a.confirmed_type)
+                                     if b.flight_id == a.flight_id and b.start_s == a.start_s else b
+                                     for b in self.alerts), maxlen=MAX_ALERTS)
+                kind, raised = a.confirmed_type, ev.raised_as
+                self.echo(f"[t {ev.t:.1f} s] alert of t {a.start_s:.1f} s: type {kind}"
+                          + (f" (raised as {raised})" if kind != raised else " confirmed"))
+            else:
+                score = a.score if ev.event == "alert_end" else float(seg.last_score)
+                event.update(score=score, onset_s=a.onset_s, attack_type=a.attack_type, admission=STATES[state],
+                             threshold=float(self.detector.threshold_))
+                if ev.event == "alert_start":
+                    self.n_alerts += 1
+                    text = f"GPS SPOOF ALERT {a.attack_type} s={score:.3g}"
+                    if exclusion:
+                        text += " GPS excluded"
+                    if self.link is not None:
+                        self.link.statustext(text, mavlink2.MAV_SEVERITY_ALERT)
+                else:
+                    self.alerts.append(a)
+                    event.update(start_s=a.start_s, peak_score=a.score)
+                when = f"t {ev.t:.1f} s" if ev.t is not None else "end of segment"
+                self.echo(f"[{when}] {'ALERT' if ev.event == 'alert_start' else 'alert ended'}: {a.attack_type}, "
+                          f"score {score:.3g} (threshold {self.detector.threshold_:.3g}), segment {seg.index}, "
+                          f"{STATES[state]}")
             if self.records is not None:
                 self.records.alert(event)
             if self.on_alert is not None:
                 self.on_alert(event)
-            self.echo(f"[t {event['vehicle_t']:.1f} s] alert of t {start:.1f} s: type {kind}"
-                      + (f" (raised as {raised})" if kind != raised else " confirmed"))
-
-    def _event(self, name: str, seg: _Segment, t: float | None, score: float, kind: str, state: int) -> None:
-        now = datetime.now(timezone.utc)
-        event = {"event": name, "segment": seg.index, "vehicle_t": t,
-                 "wall_time": now.isoformat(timespec="milliseconds"), "unix_time": now.timestamp(), "score": score, "attack_type": kind, "admission": STATES[state],
-                 "threshold": float(self.detector.threshold_)}
-        if name == "alert_end":
-            a = self.alerts[-1]
-            event.update(start_s=a.start_s, peak_score=a.score)
-        if self.records is not None:
-            self.records.alert(event)
-        if self.on_alert is not None:
-            self.on_alert(event)
-        when = f"t {t:.1f} s" if t is not None else "end of segment"
-        self.echo(f"[{when}] {'ALERT' if name == 'alert_start' else 'alert ended'}: {kind}, score {score:.3g} "
-                  f"(threshold {self.detector.threshold_:.3g}), segment {seg.index}, {STATES[state]}")
 
     # -- segments ---------------------------------------------------------------------------
     def _end_segment(self, why: str) -> None:
         seg = self.segment
         if seg is None:
             return
-        if seg.alert is not None:
-            self._close_alert(seg, None, seg.state)
-        if seg.pending and seg.history:
-            self._confirm(seg, None)
+        self._events(seg, seg.step.finish(), seg.state)
         self.segments.append({"segment": seg.index, "started": seg.reason, "ended": why, "fixes": seg.fixes,
                               "first_imu_t": seg.first_imu, "last_imu_t": seg.last_imu})
 

@@ -33,7 +33,7 @@ import pandas as pd
 
 from quadformer.config import SENSOR_NAMES
 from quadformer.estimator.online import CALL_ORDER, MAX_GPS_DELAY, FilterConfig, GapError, ResidueStream, spaced
-from quadformer.estimator.schema import GROUPS, RESIDUES
+from quadformer.estimator.schema import GROUPS, RESIDUES, as_columns
 from quadformer.logs.flightlog import FlightLog, LogError
 
 RESIDUE_SOURCES = ("ekf", "autopilot")
@@ -263,13 +263,7 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
     flights = []
     for b, (attack, (_, _, label, d_pos)) in enumerate(zip(attacks, fixes)):
         rows = dict(base)
-        for name in out[0]:
-            if name == "t":
-                continue
-            val = np.stack([r[name][b] for r in out])
-            cols = GROUPS[name].columns if name in GROUPS else [f"{name}_{a}" for a in "xyz"]
-            for i, c in enumerate(cols):
-                rows[c] = val[:, i]
+        rows.update(as_columns({name: np.stack([r[name][b] for r in out]) for name in out[0] if name != "t"}))
         for i, a in enumerate("xyz"):
             rows[f"atk_d_{a}"] = d_pos[idx, i]
         rows["label"] = label[idx].astype(np.int8)

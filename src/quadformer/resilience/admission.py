@@ -217,6 +217,11 @@ class AdmissionGroup:
     def _slices(self):
         return zip(self.parts, self._bounds[:-1], self._bounds[1:])
 
+    @property
+    def state(self) -> torch.Tensor:
+        """(B,) the admission state of every flight (``FUSING``, ``EXCLUDED``, ``BLENDING``)."""
+        return torch.cat([p.state for p in self.parts])
+
     def decide(self, nis: torch.Tensor, w_component: torch.Tensor, alarm: torch.Tensor,
                attacked: torch.Tensor) -> Decision:
         """``Admission.decide`` of each part on its slice, joined."""

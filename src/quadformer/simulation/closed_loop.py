@@ -39,10 +39,11 @@ from quadformer.estimator.eskf import (
 )
 from quadformer.estimator.reference import GpsFreeReference
 from quadformer.estimator.residues import AIDING, ResidueTracker
-from quadformer.estimator.schema import as_columns, groups_for
+from quadformer.estimator.schema import groups_for
 from quadformer.geometry import exp_quat
 from quadformer.missions import sample_missions
 from quadformer.plant import DrydenWind, Plant, concat_wind, sample_wind
+from quadformer.resilience.step import OnlineStep
 from quadformer.rng import Stream, batch_generators
 from quadformer.sensors import GPS, IMU, VIO, Barometer, ChunkedNoise, Magnetometer
 
@@ -218,6 +219,7 @@ def _simulate_loop(groups, progress, record_nees, record_sensors, admission, str
                (("fused", bool, ()), ("std_scale", float, ()), ("reset", bool, ()), ("score", float, ()),
                 ("alarm", bool, ()), ("correction", float, (3,)), ("readmit", np.int8, ()),
                 ("exclude", np.int8, ()))} if admission is not None else None
+    step = OnlineStep(stream, admission) if admission is not None else None
 
     for k in range(n_steps):
         if k % block == 0:
@@ -278,8 +280,8 @@ def _simulate_loop(groups, progress, record_nees, record_sensors, admission, str
             if admission is None:
                 ekf = proposed
             else:
-                ekf = _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, torch.from_numpy(np.asarray(active)),
-                             admission, stream, residues, adm_rec, j)
+                ekf = _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, np.asarray(active), step, t,
+                             residues, adm_rec, j)
             reference.anchor(ekf)
             label[:, j] = active
             for name, val in (
@@ -312,15 +314,10 @@ def _simulate_loop(groups, progress, record_nees, record_sensors, admission, str
     return out
 
 
-def _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, attacked, admission, stream, residues, rec, j):
-    """One GPS step under admission control: score, decide per flight, apply."""
-    B = len(attacked)
-    if stream is not None:
-        step = stream.update(as_columns(res))
-        score, alarm = step.score, step.alarm
-    else:
-        score, alarm = np.zeros(B), np.zeros(B, dtype=bool)
-    dec = admission.decide(inn.nis, inn.r / inn.s_std, torch.from_numpy(np.asarray(alarm)), attacked)
+def _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, attacked, step, t, residues, rec, j):
+    """One GPS step under admission control: the online step scores and decides per flight; apply."""
+    out = step.update(t, res, attacked)
+    score, alarm, dec, admission = out.score, out.alarm, out.decision, step.admission
     scaled = dec.fuse & (dec.std_scale != 1.0)
     if bool(dec.fuse.all()) and not bool(scaled.any()):
         new, dx = proposed, inn.dx

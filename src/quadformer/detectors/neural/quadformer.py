@@ -122,7 +122,7 @@ class QUADFormer(TorchCheckpoint, Detector):
         return QUADFormerNet(len(self.features_), len(self.classes_), self.context, self.d_model, self.heads,
                              self.layers, use_prior=self.use_prior, prior_sigma=self.prior_sigma)
 
-    def get_params(self) -> dict[str, Any]:
+    def get_params(self, deep: bool = True) -> dict[str, Any]:
         sig = inspect.signature(QUADFormer.__init__)
         return {k: getattr(self, k) for k in sig.parameters if k != "self"}
 
@@ -294,6 +294,11 @@ class QUADFormer(TorchCheckpoint, Detector):
         raw, _ = self.raw_scores(X)
         return onset_times(X, alarms, raw, self._lower())
 
+    @property
+    def onset_level_(self) -> float:
+        """The raw-score level an alarm is back-tracked to for its onset (``onset_times``)."""
+        return self._lower()
+
     def _lower(self) -> float:
         """Onset back-tracking level: the 90th percentile of training scores on normal steps
         (for the configured ``w_anomaly``)."""
@@ -354,9 +359,12 @@ class KofNStream(WindowStream):
     def __init__(self, detector: QUADFormer, n_flights: int, inputs: Normalizer | RawInputs | None = None):
         super().__init__(detector, n_flights, inputs)
         self.last = RingBuffer(self.n, detector.n, fill=FLOOR, dtype=np.float64)
+        self.onset_level = getattr(detector, "onset_level_", None)
 
     def _score(self, x):
         raw, types = super()._score(x)
+        if self.onset_level is not None:
+            self.above = raw > self.onset_level
         last = self.last.push(raw)
         d = self.detector
         return np.sort(last, axis=1)[:, d.n - d.k], types
@@ -369,8 +377,8 @@ def _variant(name: str, doc: str, **fixed: Any) -> type[QUADFormer]:
         def __init__(self, **kw: Any) -> None:
             super().__init__(**{**fixed, **kw})
 
-        def get_params(self) -> dict[str, Any]:
-            p = QUADFormer.get_params(self)
+        def get_params(self, deep: bool = True) -> dict[str, Any]:
+            p = QUADFormer.get_params(self, deep)
             return {k: v for k, v in p.items() if k not in fixed}
 
     Variant.__name__ = Variant.__qualname__ = "QUADFormer_" + name.split("-")[-1]

@@ -1,0 +1,143 @@
+"""One online step: a GPS step's residue row in; score, alarm, GPS admission and alert events out.
+
+The closed loop (``simulation.closed_loop``) and the live monitor (``live.monitor``) drive the
+same ``OnlineStep``, as PX4's flight code and its replay call the same ``Ekf::update``; each
+driver owns only its clock and its I/O. Per step, for ``n`` flights stepped together:
+
+1. the residue groups become columns (``estimator.schema.as_columns``);
+2. the detector's stream scores them (``detector.stream(n)``, or a ``StreamGroup``): score,
+   alarm under the detector's rule, its attack types, its onset flags;
+3. the admission decides per flight whether the fix is fused (``resilience.admission``), from
+   the GPS innovation's NIS and its whitened components in the same row;
+4. the alert lifecycle (``detectors.alarms.AlertTracker``) raises, dates (estimated onset),
+   types and closes alerts; with an ``OnlineTyper`` (one flight) an alert is raised with the
+   shape typer's type at its first row and confirmed ``confirm_s`` later (an ``alert_type``
+   event), as ``alerts_from_scores`` types alerts offline.
+
+Offline scoring of a whole log (``logs.detect``) computes the same scores in one batch (every
+detector's stream equals its ``decision_function``) and runs the same ``AlertTracker`` over
+them, so a flight gives the same alerts live and offline.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from quadformer.detectors.alarms import AlertEvent, AlertTracker
+from quadformer.detectors.attack_types import OnlineTyper
+from quadformer.estimator.schema import as_columns
+from quadformer.resilience.admission import Decision
+
+MAX_PENDING = 100          # alerts awaiting their confirmed type (one per alarm start within confirm_s)
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """What one step gives, per flight (arrays of length n)."""
+    score: np.ndarray
+    alarm: np.ndarray                       # bool
+    attack_type: np.ndarray | None          # the type an alert is (or would be) raised with; None: untyped
+    columns: dict[str, Any]                 # the residue row as scored
+    decision: Decision | None = None        # None without an admission
+    state_before: np.ndarray | None = None  # admission states before and after the decision
+    state_after: np.ndarray | None = None
+    events: list[AlertEvent] = field(default_factory=list)
+
+
+class OnlineStep:
+    """Score, admission and alerts of ``n`` flights, one GPS step at a time (see the module text).
+
+    ``stream``: a detector stream (``detector.stream(n)``, a ``StreamGroup``) or None (scores 0,
+    no alarm: policies that need no detector); ``admission``: an ``Admission`` (or group) of the
+    same n flights, or None; ``typer``: an ``OnlineTyper`` (one flight only) for shape-typed
+    alerts; ``flight_ids``: the names alerts carry; ``keep``: closed alerts kept in memory."""
+
+    def __init__(self, stream=None, admission=None, *, n: int | None = None,
+                 flight_ids: Sequence[Any] | None = None, typer: OnlineTyper | None = None,
+                 keep: int | None = None):
+        sizes = {m for m in (n, getattr(stream, "n", None),
+                             len(admission.policies) if admission is not None else None) if m is not None}
+        if len(sizes) != 1:
+            raise ValueError("OnlineStep: give n, a stream or an admission, all of one batch size "
+                             f"(got {sorted(sizes) or 'none'})")
+        self.n = sizes.pop()
+        if typer is not None and self.n != 1:
+            raise ValueError(f"OnlineStep: an OnlineTyper types one flight, not {self.n}")
+        self.stream, self.admission, self.typer = stream, admission, typer
+        self.tracker = AlertTracker(self.n, flight_ids, keep=keep)
+        self.pending: deque[tuple[float, str]] = deque(maxlen=MAX_PENDING)
+        self._zeros = np.zeros(self.n)
+        self._quiet = np.zeros(self.n, dtype=bool)
+
+    def update(self, t, residues: Mapping[str, Any], attacked=None) -> StepResult:
+        """One GPS step. ``t``: its time (one value or one per flight); ``residues``: residue groups
+        ``{group: (n, width)}`` (as ``ResidueStream`` and the closed loop give them); ``attacked``:
+        (n,) which fixes are spoofed (the oracle policy only). Raises ValueError for residues the
+        detector cannot score (non-finite): nothing is decided for such a step."""
+        cols = as_columns(residues)
+        if self.stream is not None:
+            st = self.stream.update(cols)
+            score, alarm, types, above = st.score, np.asarray(st.alarm, dtype=bool), st.attack_type, st.above
+        else:
+            score, alarm, types, above = self._zeros, self._quiet, None, None
+        dec = before = after = None
+        if self.admission is not None:
+            before = self.admission.state.numpy().copy()
+            nis = torch.as_tensor(np.asarray(residues["res_gps_nis"]))[:, 0]
+            r = torch.as_tensor(np.asarray(residues["res_gps_r"]))
+            s = torch.as_tensor(np.asarray(residues["res_gps_s"]))
+            w = r / torch.where(s > 0, s, torch.ones_like(s))
+            hit = torch.zeros(self.n, dtype=torch.bool) if attacked is None else torch.as_tensor(
+                np.asarray(attacked, dtype=bool))
+            dec = self.admission.decide(nis, w, torch.from_numpy(alarm), hit)
+            after = self.admission.state.numpy().copy()
+        events: list[AlertEvent] = []
+        kinds = types
+        if self.typer is not None:
+            t0 = float(np.asarray(t).reshape(-1)[0])
+            row = {c: float(np.asarray(v).reshape(-1)[0]) for c, v in cols.items()}
+            if self.typer.push(t0, row):
+                events += self._confirm(t0)
+                if alarm[0] and self.tracker.open[0] is None:
+                    kinds = np.array([self.typer.type_now()], dtype=object)
+                    self.pending.append((t0, str(kinds[0])))
+        events += self.tracker.update(t, score, alarm, kinds, above)
+        if self.typer is not None:          # the open alert's type (raised with the typer's)
+            a = self.tracker.open[0]
+            kinds = np.array([None if a is None else a.attack_type], dtype=object)
+        return StepResult(np.asarray(score, dtype=float), alarm, kinds, cols, dec, before, after, events)
+
+    def _confirm(self, t: float | None) -> list[AlertEvent]:
+        """Confirm the types of alerts raised ``confirm_s`` or more before t (all at the end, t None)."""
+        out = []
+        while self.pending and (t is None or t >= self.pending[0][0] + self.typer.typer.confirm_s):
+            start, raised = self.pending.popleft()
+            ev = self.tracker.confirm(0, start, self.typer.type_now(), self.typer.last_t)
+            if ev is not None:
+                out.append(AlertEvent(ev.event, ev.flight, ev.t, ev.alert, ev.step, raised_as=raised))
+        return out
+
+    def open_alert(self, i: int = 0):
+        """Flight i's open alert, with its peak score so far (None when none is open)."""
+        a = self.tracker.open[i]
+        if a is None:
+            return None
+        return replace(a, score=self.tracker.peak(i))
+
+    def finish(self) -> list[AlertEvent]:
+        """The end of the data: open alerts closed (``end_s`` None), then pending types confirmed."""
+        events = self.tracker.finish()
+        if self.typer is not None and self.typer.history:
+            events += self._confirm(None)
+        return events
+
+    @property
+    def alerts(self):
+        """The closed alerts kept, by flight and time."""
+        return [a for _, _, a in self.tracker.closed()]
