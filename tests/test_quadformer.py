@@ -199,3 +199,43 @@ def test_alarm_rule_variants_share_one_scoring_of_the_network(bias_dataset):
     # scores on other flights replace the cached ingredients for every variant
     variants[2].raw_scores(train)
     assert det.__dict__["_cache"]["parts"] is not parts
+
+
+def test_the_online_step_raises_the_offline_alerts_with_their_onsets(fitted):
+    """The online step (one GPS step of every test flight at a time, as the closed loop and the
+    monitor drive it) gives the alerts that offline scoring gives: same flights, start, estimated
+    onset (from the stream's onset flags), type and end; peak scores to the stream's float32
+    agreement."""
+    from quadformer.detectors import alerts_from_scores
+    from quadformer.resilience.step import OnlineStep
+
+    det, test = fitted
+    offline = alerts_from_scores(test, det.decision_function(test), det)
+    groups = [g for _, g in test.groupby("flight_id", sort=False)]
+    assert len({len(g) for g in groups}) == 1
+    step = OnlineStep(det.stream(len(groups)), flight_ids=[g.flight_id.iloc[0] for g in groups])
+    events = []
+    for j in range(len(groups[0])):
+        rows = {c: np.array([g[c].iloc[j] for g in groups]) for c in det.features_}
+        t = np.array([g.t.iloc[j] for g in groups])
+        events += step.update(t, _groups(rows)).events
+    events += step.finish()
+    live = step.alerts
+    assert len(live) == len(offline) >= 2
+    assert any(a.onset_s < a.start_s for a in live)          # onsets estimated before the alarm
+    for a, b in zip(live, offline):
+        assert (a.flight_id, a.start_s, a.onset_s, a.attack_type, a.end_s) == \
+               (b.flight_id, b.start_s, b.onset_s, b.attack_type, b.end_s)
+        assert a.score == pytest.approx(b.score, rel=1e-5, abs=1e-5)
+    assert sum(e.event == "alert_start" for e in events) == sum(e.event == "alert_end" for e in events) == len(live)
+
+
+def _groups(cols: dict) -> dict:
+    """Columns -> the residue groups they belong to ((n, width) arrays), as a residue stream gives them."""
+    from quadformer.estimator.schema import GROUPS
+
+    out = {}
+    for g in GROUPS.values():
+        if all(c in cols for c in g.columns):
+            out[g.name] = np.stack([cols[c] for c in g.columns], axis=1)
+    return out
