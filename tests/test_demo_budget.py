@@ -7,7 +7,7 @@ import pytest
 
 from quadformer.detectors import defaults
 from quadformer.evaluation.protocol import TrainingBudget, default_params
-from quadformer.experiments.cache import _stem
+from quadformer.experiments.cache import model_stem
 from quadformer.experiments.demo import plan
 from quadformer.experiments.detection import training_budget_doc
 from quadformer.experiments.grid import PROFILES
@@ -32,9 +32,9 @@ def test_budget_scales_every_trained_method_alike():
 
 def test_reduced_budget_models_have_their_own_cache_entries():
     b = PROFILES["demo"].budget
-    assert _stem("cnn", 1.0) != _stem("cnn", 1.0, b)
-    assert _stem("cnn", 1.0, b) != _stem("cnn", 1.0, dataclasses.replace(b, fraction=0.5))
-    assert _stem("cnn", 1.0, b).startswith(_stem("cnn", 1.0) + "-t")
+    assert model_stem("cnn", 1.0) != model_stem("cnn", 1.0, b)
+    assert model_stem("cnn", 1.0, b) != model_stem("cnn", 1.0, dataclasses.replace(b, fraction=0.5))
+    assert model_stem("cnn", 1.0, b).startswith(model_stem("cnn", 1.0) + "-t")
 
 
 def test_demo_plan_counts_units_and_estimates(tmp_path):

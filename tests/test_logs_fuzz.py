@@ -99,6 +99,9 @@ def test_damaged_logs_end_in_flightlog_or_logerror(kind, seed, sources, tmp_path
     src = sources[kind]
     data = src.read_bytes()
     target = tmp_path / f"case{src.suffix}"
+    # the undamaged copy reads: the errors below are the damage's doing
+    target.write_bytes(data)
+    assert isinstance(read_log(target), FlightLog), kind
     outcomes = {"log": 0, "error": 0}
     for what, blob in _mutations(data, np.random.default_rng(seed)):
         target.write_bytes(blob)
@@ -113,6 +116,5 @@ def test_damaged_logs_end_in_flightlog_or_logerror(kind, seed, sources, tmp_path
         else:
             assert isinstance(log, FlightLog)
             outcomes["log"] += 1
-    assert sum(outcomes.values()) == 2 * CASES
     # both outcomes occur: damage is neither always fatal nor always ignored
     assert outcomes["error"] > 0 and outcomes["log"] > 0, outcomes

@@ -2,8 +2,12 @@
 
 Data flow: missions -> plant -> sensors -> attacks -> estimator -> residues -> detectors ->
 resilience; sources of flights (simulation, logs) produce datasets; experiments and reports
-on top. The names below are loaded on first use, so ``import quadformer.logs`` (say) does
-not pull in the simulator.
+on top. The names below are loaded on first use (PEP 562), so ``import quadformer`` is quick
+and ``import quadformer.logs`` (say) does not pull in the simulator or torch.
+
+    from quadformer import make, read_log, detect_log
+    detector = make("cusum").fit(train).calibrate(val)     # threshold chosen on validation flights
+    result = detect_log(read_log("flight.ulg"), detector)
 """
 
 from __future__ import annotations
@@ -15,6 +19,10 @@ _EXPORTS = {
     "AttackConfig": "quadformer.config", "ConfigError": "quadformer.config", "SimConfig": "quadformer.config",
     "Dataset": "quadformer.dataset", "DatasetError": "quadformer.dataset", "load_dataset": "quadformer.dataset",
     "write_dataset": "quadformer.dataset", "simulate": "quadformer.simulation",
+    "make": "quadformer.detectors", "load": "quadformer.detectors",
+    "split_flights": "quadformer.evaluation.protocol",
+    "read_log": "quadformer.logs", "detect_log": "quadformer.logs.detect",
+    "Monitor": "quadformer.live.monitor",
 }
 __all__ = sorted(_EXPORTS)
 __version__ = "0.1.0"
@@ -22,9 +30,11 @@ __version__ = "0.1.0"
 
 def __getattr__(name: str) -> Any:
     if name in _EXPORTS:
-        return getattr(importlib.import_module(_EXPORTS[name]), name)
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+        globals()[name] = value      # later look-ups skip this function
+        return value
     raise AttributeError(f"module 'quadformer' has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return sorted(list(globals()) + __all__)
+    return sorted(set(globals()) | set(__all__))

@@ -3,7 +3,9 @@ thread settings and lock files.
 
 Nothing is half-written: every file goes to a uniquely named temporary sibling and is moved
 into place with ``os.replace`` (atomic on POSIX), so a reader never sees a partial file and
-two writers of the same path never share a temporary file (the last one wins). Writers that
+two writers of the same path never share a temporary file (the last one wins). The temporary
+sibling is created like any other file (mode 0666, directories 0777, less the umask), so
+what lands in place has the permissions a plain ``open`` would give it. Writers that
 must not both do the work (cache entries) take ``exclusive(path)`` first: a lock file
 created with ``O_CREAT | O_EXCL``, which one process wins, also on shared storage.
 """
@@ -13,9 +15,9 @@ from __future__ import annotations
 import json
 import os
 import platform
+import secrets
 import shutil
 import socket
-import tempfile
 import time
 from contextlib import contextmanager
 from importlib import metadata
@@ -27,15 +29,33 @@ import numpy as np
 PACKAGES = ("quadformer", "numpy", "torch", "rotorpy", "pandas", "pyarrow", "roma", "scipy", "scikit-learn")
 
 
+def _new_sibling(path: Path, suffix: str, directory: bool = False) -> Path:
+    """Create a uniquely named hidden sibling of ``path`` (``.NAME.XXXXXXXXXXXX.SUFFIX``): an
+    empty file of mode 0666, or a directory of mode 0777, both less the umask, as ``open`` and
+    ``mkdir`` create them (``tempfile.mkstemp`` / ``mkdtemp`` give 0600 / 0700, which the
+    rename would carry into place). ``O_EXCL`` / ``mkdir`` fail on an existing name, so no two
+    writers share one."""
+    for _ in range(100):
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}{suffix}")
+        try:
+            if directory:
+                os.mkdir(tmp, 0o777)
+            else:
+                os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+            return tmp
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"no free temporary name beside {path}")
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it replaces ``path``, on failure
-    it is removed. For writers that take a file name (Parquet, CSV, ``torch.save``)."""
+    it is removed. For writers that take a file name (Parquet, CSV, ``torch.save``). The file
+    ends with the mode any new file gets (0666 less the umask)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    tmp = Path(name)
+    tmp = _new_sibling(path, ".tmp")
     try:
         yield tmp
         os.replace(tmp, path)
@@ -59,16 +79,17 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
 @contextmanager
 def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
     """Yield a temporary directory beside ``path``; on success it becomes ``path`` (replacing
-    an existing one only with ``overwrite``), on failure it is removed."""
+    an existing one only with ``overwrite``), on failure it is removed. The directory ends with
+    the mode any new directory gets (0777 less the umask)."""
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} already exists (pass overwrite=True / --overwrite to replace it)")
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    tmp = _new_sibling(path, ".tmp", directory=True)
     try:
         yield tmp
         if path.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
+            old = _new_sibling(path, ".old", directory=True)
             os.replace(path, old / path.name)
             os.replace(tmp, path)
             shutil.rmtree(old, ignore_errors=True)

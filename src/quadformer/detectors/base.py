@@ -5,9 +5,12 @@
   step, -1 where unknown) is optional, for methods that use labels.
 - ``decision_function(X)`` returns one score per row, higher meaning more anomalous. It is
   causal: the score of a step uses that flight's steps up to it only.
-- ``calibrate(threshold, ...)`` sets the alarm rule (``score > threshold_``) chosen on
-  validation flights; it is learned state, saved and loaded with the detector, so a saved
-  model alone reproduces its alarms. ``predict`` gives 0/1.
+- ``calibrate(X_val)`` chooses the alarm rule (``score > threshold_``) on validation flights
+  (best F1, or a false-alarm budget: ``detectors.calibration``) and returns self;
+  ``calibrate(threshold)`` sets one chosen elsewhere. The rule is learned state, saved and
+  loaded with the detector, so a saved model alone reproduces its alarms. ``predict`` gives 0/1.
+- ``get_params`` / ``set_params`` follow scikit-learn (``set_params`` changes the detector in
+  place and returns it), so ``sklearn.base.clone`` gives an unfitted copy.
 - ``stream(n_flights)`` scores n flights online, one GPS step at a time, with the same
   scores and alarms as ``decision_function`` (see ``detectors.streams``).
 - ``features_`` (learned) names the residue columns the detector reads.
@@ -39,13 +42,24 @@ class Detector:
     param_grid: ClassVar[dict[str, list[Any]]] = {}
 
     # -- parameters -------------------------------------------------------------------
-    def get_params(self) -> dict[str, Any]:
+    def get_params(self, deep: bool = True) -> dict[str, Any]:
+        """The constructor arguments, by name. ``deep`` is accepted for scikit-learn; no
+        detector holds another estimator as a parameter, so it changes nothing."""
         sig = inspect.signature(type(self).__init__)
         out = {k: getattr(self, k) for k in sig.parameters if k not in ("self", "params", "kwargs")}
         return out
 
     def set_params(self, **params: Any) -> "Detector":
-        return type(self)(**{**self.get_params(), **params})
+        """Set constructor arguments in place (scikit-learn semantics); returns self. Learned
+        state is left as it is: refit for the new parameters to take effect."""
+        valid = self.get_params()
+        unknown = sorted(set(params) - set(valid))
+        if unknown:
+            raise ValueError(f"{self.name}: invalid parameter(s) {', '.join(unknown)}; "
+                             f"valid: {', '.join(sorted(valid))}")
+        for k, v in params.items():
+            setattr(self, k, v)
+        return self
 
     #: post-processing parameters (e.g. an alarm rule) tuned without refitting
     post_grid: ClassVar[dict[str, list[Any]]] = {}
@@ -69,19 +83,74 @@ class Detector:
         raise NotImplementedError
 
     # -- alarm rule -------------------------------------------------------------------
-    def calibrate(self, threshold: float, budget_threshold: float | None = None,
+    def calibrate(self, X: pd.DataFrame | float, y: np.ndarray | float | None = None, *, criterion: str = "f1",
+                  budget_per_hour: float = 1.0, gps_rate_hz: float | None = None,
+                  scores: np.ndarray | None = None, budget_threshold: float | None = None,
                   **provenance: Any) -> "Detector":
-        """Set the alarm rule, ``score > threshold``, chosen on validation flights (and the
-        threshold that meets a false-alarm budget, if known). ``provenance`` (e.g. the split
-        seed and test flights) is kept with it. Returns self."""
+        """Set the alarm rule, ``score > threshold_``, on validation flights; returns self.
+
+        ``calibrate(X_val, y_val=None)``: choose it on validation flights ``X_val`` (labels
+        ``y_val``, 1 on attacked steps; default: the ``label`` column). ``threshold_`` is the
+        threshold of best point-wise F1 (``criterion="f1"``) or the one meeting the false-alarm
+        budget (``criterion="budget"``); ``budget_threshold_`` is always the latter: at most
+        ``budget_per_hour`` alarm runs per flight-hour on the clean validation flights (those
+        without an attacked step; every flight when there are no labels), ``gps_rate_hz`` steps
+        per second (default: from the ``t`` column). ``scores``: ``decision_function(X_val)``
+        if already computed.
+
+        ``calibrate(threshold, budget_threshold=None)`` (the latter also by keyword): set a rule
+        chosen elsewhere.
+
+        ``provenance`` (e.g. the split seed and test flights) is kept with the rule."""
         self.check_fitted()
+        if isinstance(X, pd.DataFrame):
+            if budget_threshold is not None:
+                raise TypeError(f"{self.name}: the budget threshold is chosen on the validation flights; "
+                                "set budget_per_hour instead")
+            threshold, budget = self._choose(X, y, criterion, budget_per_hour, gps_rate_hz, scores)
+        else:
+            if scores is not None or gps_rate_hz is not None or criterion != "f1" or budget_per_hour != 1.0:
+                raise TypeError(f"{self.name}: criterion, budget_per_hour, gps_rate_hz and scores choose a "
+                                "threshold on validation flights; pass the flights (a DataFrame), not a number")
+            if y is not None and budget_threshold is not None:
+                raise TypeError(f"{self.name}: the budget threshold given twice")
+            threshold, budget = X, (y if budget_threshold is None else budget_threshold)
         if not np.isfinite(threshold):
             raise ValueError(f"{self.name}: threshold must be finite, got {threshold!r}")
         self.threshold_ = float(threshold)
-        self.budget_threshold_ = None if budget_threshold is None else float(budget_threshold)
+        self.budget_threshold_ = None if budget is None else float(budget)
         if provenance:
             self.calibration_ = dict(provenance)
         return self
+
+    def _choose(self, X: pd.DataFrame, y: np.ndarray | None, criterion: str, budget_per_hour: float,
+                gps_rate_hz: float | None, scores: np.ndarray | None) -> tuple[float, float]:
+        """(threshold, budget threshold) chosen on validation flights ``X``."""
+        # imported here: calibration counts alarm runs with detectors.alarms, which imports this module
+        from quadformer.detectors.calibration import CRITERIA, choose_thresholds, gps_rate
+
+        if criterion not in CRITERIA:
+            raise ValueError(f"{self.name}: criterion must be one of {', '.join(CRITERIA)}, got {criterion!r}")
+        if y is None and "label" in X.columns:
+            y = X["label"].to_numpy()
+        if y is None:
+            if criterion == "f1":
+                raise ValueError(f"{self.name}: the F1 criterion needs labels: pass y or a 'label' column "
+                                 "(or criterion='budget' on clean flights)")
+            y = np.zeros(len(X), dtype=np.int8)
+        y = np.asarray(y)
+        if y.shape != (len(X),) or not np.isin(y, (0, 1)).all():
+            raise ValueError(f"{self.name}: validation labels must be 0 or 1, one per row of X")
+        s = self.decision_function(X) if scores is None else np.asarray(scores, float)
+        if s.shape != (len(X),):
+            raise ValueError(f"{self.name}: {s.size} scores for {len(X)} validation rows")
+        rate = gps_rate(X) if gps_rate_hz is None else gps_rate_hz
+        thr = choose_thresholds(s, y, X["flight_id"].to_numpy(), rate, budget_per_hour)
+        if criterion == "f1":
+            return thr.f1, thr.budget
+        if not np.isfinite(thr.budget):
+            raise ValueError(f"{self.name}: no clean validation flight to meet the false-alarm budget on")
+        return thr.budget, thr.budget
 
     def at_budget(self) -> "Detector":
         """A shallow copy whose alarm threshold is the false-alarm-budget one."""

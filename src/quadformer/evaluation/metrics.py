@@ -192,10 +192,14 @@ def vus_pr(labels: np.ndarray, scores: np.ndarray, flight_ids: np.ndarray | None
            max_buffer: int = VUS_MAX_BUFFER, thresholds: int = VUS_THRESHOLDS) -> float | None:
     """VUS-PR: the volume under the range-based precision-recall surface (Paparrizos, Boniol,
     Palpanas, Tsay, Elmore and Franklin, "Volume Under the Surface: a new accuracy evaluation
-    measure for time-series anomaly detection", PVLDB 15(11), 2022), computed as TSB-AD does
-    (Liu and Paparrizos, NeurIPS 2024 Datasets and Benchmarks: ``get_metrics`` ->
-    ``generate_curve(labels, score, 2 * slidingWindow)`` -> ``RangeAUC_volume_opt``), with
-    ``slidingWindow = max_buffer`` (default 50 GPS steps, 5 s at 10 Hz).
+    measure for time-series anomaly detection", PVLDB 15(11), 2022), computed as TSB-AD 1.5 does
+    (Liu and Paparrizos, NeurIPS 2024 Datasets and Benchmarks: ``get_metrics(score, labels,
+    slidingWindow)`` -> ``generate_curve(labels, score, slidingWindow)`` ->
+    ``basic_metricor.RangeAUC_volume_opt(labels, score, windowSize=slidingWindow, thre=250)``,
+    which averages over the buffer lengths ``l = 0 .. slidingWindow``, every attack window
+    extended by ``l // 2`` steps on each side). ``max_buffer`` is the largest extension on
+    each side, ``slidingWindow / 2``: on one flight, ``vus_pr(labels, scores, max_buffer=B)``
+    is TSB-AD's VUS-PR with ``slidingWindow = 2 * B`` (default B = 50 GPS steps, 5 s at 10 Hz).
 
     For each buffer length ``l = 0, 1, ..., 2 * max_buffer``:
 

@@ -10,6 +10,9 @@
 4. Also reported: the threshold meeting a false-alarm budget (default one alarm per
    flight-hour) on the clean validation flights.
 
+Both thresholds are chosen by ``Detector.calibrate`` (``detectors.calibration``), so a
+detector fitted outside this protocol is calibrated by the same rule.
+
 A reduced training budget (``TrainingBudget``, the demo profile's) gives every method that
 trains the same fraction of its own default budget: training epochs of the network
 detectors, training windows of PCA and the SVM. Methods that fit closed-form statistics
@@ -26,8 +29,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from quadformer.detectors import Detector, get, make, runs
-from quadformer.detectors.base import flight_slices
+from quadformer.detectors import Detector, get, make
+from quadformer.detectors.calibration import best_f1_threshold, budget_threshold  # noqa: F401  (the protocol's)
 
 
 @dataclass(frozen=True)
@@ -96,50 +99,6 @@ def training_labels(train: pd.DataFrame, labelled: np.ndarray) -> np.ndarray:
     y = train["label"].to_numpy().astype(np.int8).copy()
     y[~train["flight_id"].isin(labelled).to_numpy()] = -1
     return y
-
-
-def best_f1_threshold(scores: np.ndarray, labels: np.ndarray) -> tuple[float, float]:
-    """Threshold maximising point-wise F1 for the rule ``alarm = score > threshold``.
-
-    Exact: every distinct score is a candidate; the threshold is placed halfway to the next
-    lower distinct score. Returns (threshold, F1).
-    """
-    s = np.asarray(scores, float)
-    y = np.asarray(labels, bool)
-    if y.sum() == 0:
-        return float(np.max(s)) if s.size else 0.0, 0.0
-    order = np.argsort(-s, kind="stable")
-    s_sorted, y_sorted = s[order], y[order]
-    tp = np.cumsum(y_sorted)
-    fp = np.cumsum(~y_sorted)
-    last = np.nonzero(np.r_[s_sorted[1:] != s_sorted[:-1], True])[0]   # end of each tie group
-    tp, fp = tp[last], fp[last]
-    f1 = 2 * tp / (tp + fp + y.sum())
-    i = int(np.argmax(f1))
-    hi = s_sorted[last[i]]
-    lo = s_sorted[last[i] + 1] if last[i] + 1 < s.size else hi - 1.0
-    return float(0.5 * (hi + lo)), float(f1[i])
-
-
-def budget_threshold(scores: np.ndarray, flight_ids: np.ndarray, clean_flights: np.ndarray,
-                     hours: float, per_hour: float = 1.0) -> float:
-    """Lowest threshold with at most ``per_hour * hours`` alarm runs on the clean flights."""
-    mask = np.isin(flight_ids, clean_flights)
-    s, fid = np.asarray(scores)[mask], np.asarray(flight_ids)[mask]
-    if s.size == 0:
-        return float("inf")
-    allowed = int(np.floor(per_hour * hours))
-    top = float(np.max(s))
-    if allowed == 0:
-        return top
-    cands = np.unique(np.quantile(s, np.linspace(0.9, 1.0, 201)))[::-1]
-    best = top
-    for c in cands:
-        n = sum(len(runs(s[fid == f] > c)) for f in np.unique(fid))
-        if n > allowed:
-            break
-        best = float(c)
-    return best
 
 
 #: the training-budget parameters a ``TrainingBudget`` scales, where a method has them
@@ -234,9 +193,6 @@ def tune(method: str, train: pd.DataFrame, y_train: np.ndarray, val: pd.DataFram
             if best is None or f1 > best[3]:
                 best = (det, {**fixed, **point, **post}, thr, f1, s)
     assert best is not None
-    det, params, thr, f1, scores = best
-    fid = val["flight_id"].to_numpy()
-    clean = np.setdiff1d(np.unique(fid), np.unique(fid[y_val == 1]))
-    hours = sum(len(i) for f, i in flight_slices(val) if f in set(clean.tolist())) / gps_rate_hz / 3600
-    det.calibrate(thr, budget_threshold(scores, fid, clean, hours, budget_per_hour))
+    det, params, _, f1, scores = best
+    det.calibrate(val, y_val, gps_rate_hz=gps_rate_hz, budget_per_hour=budget_per_hour, scores=scores)
     return Tuned(det, params, f1, tried)

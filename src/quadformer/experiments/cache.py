@@ -247,7 +247,7 @@ def tuned_model(method: str, train: pd.DataFrame, y_train, val: pd.DataFrame, ra
     if model_dir is None:
         return tune(method, train, y_train, val, gps_rate_hz=rate, budget_per_hour=budget_per_hour, device=device,
                     budget=budget)
-    stem = _stem(method, budget_per_hour, budget)
+    stem = model_stem(method, budget_per_hour, budget)
     model_path, meta_path = Path(model_dir) / f"{stem}.json", Path(model_dir) / f"{stem}.tuned.json"
     found = cached_model(method, budget_per_hour, model_dir, budget)
     if found is not None:
@@ -263,7 +263,10 @@ def tuned_model(method: str, train: pd.DataFrame, y_train, val: pd.DataFrame, ra
     return tuned
 
 
-def _stem(method: str, budget_per_hour: float, budget: TrainingBudget | None = None) -> str:
+def model_stem(method: str, budget_per_hour: float, budget: TrainingBudget | None = None) -> str:
+    """File name stem of a tuned model's cache entry: the method, the false-alarm budget, a
+    digest of the detectors' code, and the reduced training budget if there is one (models
+    trained on another budget never share an entry)."""
     stem = f"{method}-b{budget_per_hour:g}-{detectors_digest(method)}"
     return stem if budget is None else f"{stem}-t{budget.name}{budget.fraction:g}"
 
@@ -274,7 +277,7 @@ def cached_model(method: str, budget_per_hour: float, model_dir: Path,
     unreadable: it will be tuned again and overwritten)."""
     from quadformer.detectors import load
 
-    stem = _stem(method, budget_per_hour, budget)
+    stem = model_stem(method, budget_per_hour, budget)
     model_path, meta_path = Path(model_dir) / f"{stem}.json", Path(model_dir) / f"{stem}.tuned.json"
     if not meta_path.exists():
         return None
