@@ -1,0 +1,381 @@
+"""The results tables of the documentation, generated from the ``results.json`` of runs.
+
+    python docs/tables.py            # rewrite every declared table in the pages
+    python docs/tables.py --check    # exit 1 when a page differs from what the results give
+    python docs/tables.py --list     # the declared tables, their sources and their pages
+
+A table sits in a page (README.md or docs/*.md) between two marker comments::
+
+    <!-- table: NAME -->
+    ...generated Markdown, never edited by hand...
+    <!-- /table: NAME -->
+
+``TABLES`` below declares each NAME: the ``results.json`` it reads (committed under
+``docs/results/``, as ``quadformer benchmark`` or ``quadformer resilience`` wrote it), the
+kind of table and its options. The same NAME may appear in several pages. A marker pair whose
+NAME is not declared is left untouched and reported as pending: a table measured before its
+``results.json`` was committed. To generate it, commit the run's ``results.json`` as
+``docs/results/<run>/results.json``, declare the table here and run this script.
+
+Kinds (``kind``), and what they read:
+
+- ``methods``: a detection run (``benchmark``): one row per method, one column per
+  configuration (Model, noise, attack, in the paper's order); ``metric`` is a key of a method's
+  results (dotted for nested ones: ``budget.event_recall``), ``paren`` an optional second one
+  shown in brackets.
+- ``seeds``: a several-seed run (``benchmark --seeds``): the same layout, ``mean ± std`` of
+  ``metric`` over the seeds.
+- ``stress``: the stress sets of a ``benchmark --stress`` run, pooled over configurations: one
+  row per set, one column per method, event recall / median delay / false alarms per clean
+  flight-hour at the false-alarm budget threshold (``at: "budget"``) or the F1 threshold
+  (``at: "f1"``).
+- ``typing``: per method, the share of detected attacks typed right (own classifier at the
+  first alarm; shape typer at the first alarm and confirmed later), pooled over configurations.
+- ``resilience``: a ``resilience`` run: one row per policy over every configuration's flights.
+
+Options common to every kind: ``methods`` (a subset of methods, in this order; default every
+method of the run), ``digits`` (default 2). Only the standard library is needed, except for
+``resilience`` tables, which summarise flights with ``quadformer.evaluation.resilience``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+DOCS = Path(__file__).resolve().parent
+ROOT = DOCS.parent
+
+#: every generated table: NAME -> its source (a results.json, relative to docs/), kind and options.
+#: For example, once the paper profile's results.json is committed:
+#:     "paper-f1": {"source": "results/paper/results.json", "kind": "methods", "metric": "f1",
+#:                  "command": "quadformer benchmark --profile paper --out runs/paper-now"},
+TABLES: dict[str, dict[str, Any]] = {
+}
+
+#: the pages whose markers this script fills
+PAGES = (ROOT / "README.md", *sorted(DOCS.glob("*.md")))
+
+MARKER = re.compile(r"<!-- table: (?P<name>[\w.-]+) -->\n(?P<body>.*?)<!-- /table: (?P=name) -->", re.S)
+OPEN = re.compile(r"<!-- (/?)table: ([\w.-]+) -->")
+
+NOISE = {"exponential": "exp", "laplace": "lap", "gaussian": "gauss"}
+ORDER = {k: i for i, k in enumerate(("I", "II", "exponential", "laplace", "gaussian", "bias", "ramp", "mix"))}
+CONFIG_NAME = re.compile(r"model(?P<model>I{1,2})-(?P<noise>[a-z]+)-(?P<attack>[a-z]+)$")
+
+
+class TableError(Exception):
+    """A declared table that cannot be generated (missing source, unknown kind or method)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# formatting
+
+
+def fmt(v: Any, digits: int = 2) -> str:
+    if v is None or (isinstance(v, float) and v != v):
+        return "-"
+    if isinstance(v, bool):
+        return str(v)
+    if isinstance(v, int):
+        return str(v)
+    return f"{v:.{digits}f}"
+
+
+def as_float(v: Any) -> float | None:
+    """A metric as a float (JSON may hold 0 or 1 as integers); None stays None."""
+    return None if v is None else float(v)
+
+
+def markdown(head: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def get(d: dict[str, Any] | None, key: str) -> Any:
+    """``d[key]``, dotted keys reaching into nested dicts; None where absent."""
+    for part in key.split("."):
+        if not isinstance(d, dict):
+            return None
+        d = d.get(part)
+    return d
+
+
+# ---------------------------------------------------------------------------------------------
+# configurations and methods
+
+
+def config_key(c: dict[str, Any]) -> tuple:
+    """Sort key of a configuration: Model, noise, attack in the paper's order; else its name."""
+    parts = [c.get("model"), c.get("noise"), c.get("attack")]
+    if None in parts:
+        m = CONFIG_NAME.match(c["name"])
+        if not m:
+            return (99, c["name"])
+        parts = [m["model"], m["noise"], m["attack"]]
+    return tuple(ORDER.get(p, 50) for p in parts) + (c["name"],)
+
+
+def config_label(c: dict[str, Any]) -> str:
+    """``I exp bias`` for a profile's configuration, its name otherwise."""
+    m = CONFIG_NAME.match(c["name"])
+    if not m:
+        return c["name"]
+    return f"{m['model']} {NOISE.get(m['noise'], m['noise'])} {m['attack']}"
+
+
+def pick_methods(available: list[str], wanted: list[str] | None, name: str) -> list[str]:
+    if wanted is None:
+        return list(available)
+    missing = [m for m in wanted if m not in available]
+    if missing:
+        raise TableError(f"table {name!r}: method(s) {', '.join(missing)} not in the run "
+                         f"(it has {', '.join(available)})")
+    return list(wanted)
+
+
+# ---------------------------------------------------------------------------------------------
+# the kinds of table
+
+
+def table_methods(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
+    if "configs" not in res or "methods_run" not in res:
+        raise TableError(f"table {name!r}: not a detection run's results.json (no configs / methods_run)")
+    configs = sorted(res["configs"], key=config_key)
+    methods = pick_methods(res["methods_run"], spec.get("methods"), name)
+    key, paren, digits = spec.get("metric", "f1"), spec.get("paren"), spec.get("digits", 2)
+    rows = []
+    for m in methods:
+        row = [m]
+        for c in configs:
+            r = c["methods"].get(m)
+            cell = fmt(as_float(get(r, key)), digits)
+            if paren:
+                cell += f" ({fmt(as_float(get(r, paren)), digits)})"
+            row.append(cell)
+        rows.append(row)
+    return markdown(["method", *(config_label(c) for c in configs)], rows)
+
+
+def table_seeds(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
+    if "summary" not in res or "seeds" not in res:
+        raise TableError(f"table {name!r}: not a several-seed run's results.json (no summary / seeds)")
+    configs = sorted(({"name": n} for n in res["summary"]), key=config_key)
+    methods = pick_methods(res["methods_run"], spec.get("methods"), name)
+    metric, digits = spec.get("metric", "f1"), spec.get("digits", 2)
+    rows = []
+    for m in methods:
+        row = [m]
+        for c in configs:
+            s = get(res["summary"][c["name"]], f"{m}.{metric}")
+            if s is None:
+                row.append("-")
+            elif s.get("std") is None:
+                row.append(fmt(s["mean"], digits))
+            else:
+                row.append(f"{fmt(s['mean'], digits)} ± {fmt(s['std'], digits)}")
+        rows.append(row)
+    return markdown(["method", *(config_label(c) for c in configs)], rows)
+
+
+def table_stress(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
+    pooled = get(res, "stress.pooled")
+    if not pooled:
+        raise TableError(f"table {name!r}: the run has no stress results (benchmark --stress)")
+    methods = pick_methods(res["methods_run"], spec.get("methods"), name)
+    at, digits = spec.get("at", "budget"), spec.get("digits", 2)
+    order = list(get(res, "stress.sets") or {})
+    sets = sorted(pooled, key=lambda s: order.index(s) if s in order else len(order))
+    rows = []
+    for st in sets:
+        row = [st]
+        for m in methods:
+            r = pooled[st].get(m)
+            if at == "budget":
+                r = get(r, "budget")
+            if r is None:
+                row.append("-")
+                continue
+            delay = r.get("delay_median_s")
+            row.append(f"{fmt(as_float(r.get('event_recall')), digits)} / "
+                       f"{'-' if delay is None else fmt(float(delay), 1) + ' s'} / "
+                       f"{fmt(as_float(r.get('false_alarms_per_hour')), 1)}")
+        rows.append(row)
+    return markdown(["stress set", *methods], rows)
+
+
+def table_typing(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
+    if "configs" not in res:
+        raise TableError(f"table {name!r}: not a detection run's results.json (no configs)")
+    methods = pick_methods(res["methods_run"], spec.get("methods"), name)
+    digits = spec.get("digits", 2)
+    cols = (("own", "own classifier, first alarm"), ("shape_first", "shape typer, first alarm"),
+            ("shape_confirmed", "shape typer, confirmed"))
+    rows = []
+    for m in methods:
+        row = [m]
+        for key, _ in cols:
+            counts = [get(c["methods"].get(m), f"attack_typing.{key}") for c in res["configs"]]
+            counts = [n for n in counts if n is not None]
+            if not counts:
+                row.append("-")
+                continue
+            right, n = sum(x["right"] for x in counts), sum(x["attacks"] for x in counts)
+            row.append(f"{fmt(right / n, digits) if n else '-'} ({right}/{n})")
+        rows.append(row)
+    return markdown(["method", *(title for _, title in cols)], rows)
+
+
+def table_resilience(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
+    if "policies" not in res or "configs" not in res:
+        raise TableError(f"table {name!r}: not a resilience run's results.json (no policies / configs)")
+    try:
+        from quadformer.evaluation.resilience import summarize_policy
+    except ImportError:                   # run from a checkout without the package installed
+        sys.path.insert(0, str(ROOT / "src"))
+        from quadformer.evaluation.resilience import summarize_policy
+
+    digits = spec.get("digits", 2)
+    d = lambda v: fmt(v, digits)           # noqa: E731
+    rows = []
+    for p in spec.get("policies", res["policies"]):
+        flights = [r for c in res["configs"] for r in c["flights"] if r["policy"] == p]
+        s = summarize_policy(flights)
+        share = s["wrongly_excluded_fraction"]
+        excl = (f"{d(s['exclusion_precision'])} / {d(s['exclusion_recall'])} / {d(s['exclusion_f1'])}"
+                if p != "naive" else "-")
+        rows.append([p, str(s["attacked_flights"]),
+                     f"{d(s['max_dev_median_m'])} / {d(s['max_dev_p95_m'])} / {d(s['max_dev_max_m'])}",
+                     d(s["est_err_rms_median_m"]), fmt(s["exclusion_delay_median_s"], 1),
+                     f"{fmt(s['readmit_delay_median_s'], 1)} / {fmt(s['readmit_delay_p95_s'], 1)}",
+                     str(s["not_readmitted"]), str(s["stale_readmissions"]),
+                     "-" if share is None else f"{100 * share:.1f}%", excl])
+    head = ["policy", "attacked flights", "max deviation from mission during attack, median / p95 / worst (m)",
+            "estimate error RMS, median (m)", "onset to exclusion, median (s)",
+            "end to re-admission, median / p95 (s)", "never re-admitted", "stale re-admissions",
+            "GPS wrongly excluded (clean time)", "exclusion P / R / F1"]
+    return markdown(head, rows)
+
+
+KINDS = {"methods": table_methods, "seeds": table_seeds, "stress": table_stress, "typing": table_typing,
+         "resilience": table_resilience}
+
+
+# ---------------------------------------------------------------------------------------------
+# pages
+
+
+def render(name: str, spec: dict[str, Any], page: Path, root: Path, cache: dict[Path, dict[str, Any]]) -> str:
+    """The Markdown between NAME's markers in ``page``: the table and a line naming its source
+    (``spec["source"]``, relative to ``root/docs``; linked relative to the page) and the
+    command that wrote it."""
+    if spec.get("kind") not in KINDS:
+        raise TableError(f"table {name!r}: unknown kind {spec.get('kind')!r}; choose from {', '.join(KINDS)}")
+    path = root / "docs" / spec["source"]
+    if path not in cache:
+        if not path.is_file():
+            raise TableError(f"table {name!r}: source {path.relative_to(root).as_posix()} does not exist")
+        cache[path] = json.loads(path.read_text())
+    body = KINDS[spec["kind"]](cache[path], spec, name)
+    link = Path(os.path.relpath(path, page.parent)).as_posix()
+    note = f"Generated by `python docs/tables.py` from [`{path.relative_to(root).as_posix()}`]({link})"
+    if spec.get("command"):
+        note += f", written by `{spec['command']}`"
+    return f"{body}\n{note}.\n"
+
+
+def rewrite(text: str, page: Path, tables: dict[str, dict[str, Any]], root: Path,
+            cache: dict[Path, dict[str, Any]]) -> tuple[str, list[str], list[str]]:
+    """``text`` with every declared table regenerated; the names whose table changed and those
+    pending (markers without a declaration)."""
+    changed, pending = [], []
+
+    def sub(m: re.Match) -> str:
+        name = m["name"]
+        if name not in tables:
+            pending.append(name)
+            return m.group(0)
+        body = render(name, tables[name], page, root, cache)
+        if body != m["body"]:
+            changed.append(name)
+        return f"<!-- table: {name} -->\n{body}<!-- /table: {name} -->"
+
+    return MARKER.sub(sub, text), changed, pending
+
+
+def check_markers(text: str, label: str) -> list[str]:
+    """Marker comments of page ``label`` that do not pair up."""
+    problems, open_ = [], None
+    for m in OPEN.finditer(text):
+        closing, name = m.group(1) == "/", m.group(2)
+        if not closing:
+            if open_ is not None:
+                problems.append(f"{label}: table {open_!r} not closed before {name!r} opens")
+            open_ = name
+        else:
+            if open_ != name:
+                problems.append(f"{label}: closing marker of {name!r} without its opening marker")
+            open_ = None
+    if open_ is not None:
+        problems.append(f"{label}: table {open_!r} is never closed")
+    return problems
+
+
+def run(check: bool, pages: tuple[Path, ...] = PAGES, tables: dict[str, dict[str, Any]] | None = None,
+        root: Path = ROOT, out=sys.stdout) -> int:
+    """Regenerate (or, with ``check``, compare) every declared table of ``pages``; 0 when all is
+    well, 1 after printing what is wrong. ``tables``: the declarations (default ``TABLES``),
+    their sources relative to ``root/docs``."""
+    tables = TABLES if tables is None else tables
+    cache: dict[Path, dict[str, Any]] = {}
+    problems, seen, pending = [], set(), []
+    for page in pages:
+        label = page.relative_to(root).as_posix()
+        text = page.read_text()
+        problems += check_markers(text, label)
+        seen.update(m["name"] for m in MARKER.finditer(text) if m["name"] in tables)
+        try:
+            new, changed, waiting = rewrite(text, page, tables, root, cache)
+        except TableError as e:
+            problems.append(f"{label}: {e}")
+            continue
+        pending += [f"{label}: {n}" for n in waiting]
+        if new != text:
+            if check:
+                problems.append(f"{label}: table(s) {', '.join(sorted(set(changed)))} differ from their "
+                                f"results; run python docs/tables.py")
+            else:
+                page.write_text(new)
+                print(f"wrote {label}", file=out)
+    problems += [f"table {n!r} is declared but no page has its markers" for n in sorted(set(tables) - seen)]
+    for p in pending:
+        print(f"pending (no source declared): {p}", file=out)
+    for p in problems:
+        print(f"error: {p}", file=out)
+    if not problems:
+        print(f"{len(seen)} table(s) {'up to date' if check else 'generated'}, {len(pending)} pending", file=out)
+    return 1 if problems else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--check", action="store_true", help="change nothing; exit 1 when a page differs")
+    ap.add_argument("--list", action="store_true", help="the declared tables and where they appear")
+    args = ap.parse_args(argv)
+    if args.list:
+        where = {n: [p.relative_to(ROOT).as_posix() for p in PAGES if f"<!-- table: {n} -->" in p.read_text()]
+                 for n in TABLES}
+        for n, spec in TABLES.items():
+            print(f"{n}: {spec['kind']} from docs/{spec['source']} in {', '.join(where[n]) or 'no page'}")
+        return 0
+    return run(args.check)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
