@@ -71,9 +71,9 @@ def run_demo(out: Path | None = None, detector=None, method: str = "bht", speed:
         if out is not None:
             model_path = str(detector.save(Path(out) / "demo-model.json"))
     a, k = sim["attacks"], TRAIN_FLIGHTS
-    boot = SenderConfig().boot_s - float(sim["sensors"]["imu_t"][0])      # vehicle clock of the sender
-    echo(f"demo: the spoofed flight: GPS offset by {a.magnitude[k]:.1f} m from {a.onset[k] + boot:.1f} s to "
-         f"{a.end[k] + boot:.1f} s (vehicle clock), streamed at {speed:g}x real time")
+    t0 = float(sim["sensors"]["imu_t"][0])          # the monitor's t counts from the first sample
+    echo(f"demo: the spoofed flight: GPS offset by {a.magnitude[k]:.1f} m from t {a.onset[k] - t0:.1f} s to "
+         f"{a.end[k] - t0:.1f} s (from the first sensor sample), streamed at {speed:g}x real time")
     config = MonitorConfig(connect="udpin:127.0.0.1:0",
                            filter=FilterConfig.matching(cfg.to_dict(), sensors=DEMO_SENSORS),
                            out=out, duration_s=duration_s, act=act)

@@ -1,8 +1,9 @@
 """A source of flights: a live MAVLink link.
 
-MAVLink messages of a vehicle are decoded into timestamped samples (``mavlink``), fed, one
-message at a time, to the very ``estimator.online.ResidueStream`` the log replay drives, and
-each residue row is scored by the detector's online stream, as ``quadformer detect`` does
-offline; alarms drive the resilient GPS admission rule and its actions (``monitor``). A test
+MAVLink messages of a vehicle are decoded into timestamped samples (``mavlink``), checked and
+put on the link's time base by the intake (``intake``; datagrams and packet loss: ``packets``)
+and fed, one message at a time, to the very ``estimator.online.ResidueStream`` the log replay
+drives; each residue row is scored by the detector's online stream, as ``quadformer detect``
+does offline; alarms drive the resilient GPS admission rule and its actions (``monitor``). A test
 sender streams recorded or simulated sensors as MAVLink over UDP (``sender``).
 """

@@ -41,6 +41,9 @@ RATES = {
                   "GLOBAL_POSITION_INT": 5.0},
 }
 
+#: the least rate (Hz) per stream the monitor's filter needs; slower streams are warned about
+MIN_RATES = {"imu": 50.0, "gps": 5.0, "baro": 10.0, "vio": 20.0}
+
 
 def autopilot_name(code: int) -> str:
     return {mavlink2.MAV_AUTOPILOT_PX4: "px4", mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot"}.get(code, "other")
@@ -146,12 +149,17 @@ class VehicleLink:
 class Records:
     """``alerts.jsonl`` (one object per alarm start and end) and ``fixes.csv`` (one line per
     scored fix) in the output directory, appended and flushed as they happen: nothing is
-    kept in memory. ``summary.json`` is written atomically at the end by the monitor."""
+    kept in memory. ``summary.json`` is written atomically at the end by the monitor.
 
-    FIX_COLUMNS = ("segment", "t", "score", "alarm", "attack_type", "admission", "nis", "gps_x", "gps_y", "gps_z",
-                   "est_x", "est_y", "est_z", "ap_x", "ap_y", "ap_z", "latency_ms")
+    Times are ``t``, seconds since the link's first sensor sample (as ``detect`` counts from its
+    log's start), with ``boot_t``, the vehicle's time since boot, beside it: ``boot_time`` maps one to the
+    other (a fix's ``t`` is its second value; an event's is ``vehicle_t``)."""
 
-    def __init__(self, out: Path | None):
+    FIX_COLUMNS = ("segment", "t", "boot_t", "score", "alarm", "attack_type", "admission", "nis", "gps_x", "gps_y",
+                   "gps_z", "est_x", "est_y", "est_z", "ap_x", "ap_y", "ap_z", "latency_ms")
+
+    def __init__(self, out: Path | None, boot_time: Callable[[float | None], float | None] = lambda t: None):
+        self.boot_time = boot_time
         self.out = Path(out) if out is not None else None
         self._alerts: TextIO | None = None
         self._fixes: TextIO | None = None
@@ -168,13 +176,21 @@ class Records:
 
     def alert(self, event: dict[str, Any]) -> None:
         if self._alerts is not None:
+            if "vehicle_t" in event and "boot_t" not in event:
+                event = {**event, "t": event["vehicle_t"], "boot_t": self.boot_time(event["vehicle_t"])}
             self._alerts.write(json.dumps(event, default=json_default) + "\n")
             self._alerts.flush()
 
     def fix(self, values: tuple) -> None:
+        """One scored fix: FIX_COLUMNS without ``boot_t`` (taken from its ``t``), or all of them;
+        times to the microsecond, other numbers to 6 significant digits."""
         if self._csv is not None:
+            if len(values) == len(self.FIX_COLUMNS) - 1:
+                boot = self.boot_time(values[1])
+                values = (*values[:2], math.nan if boot is None else boot, *values[2:])
             self._csv.writerow(["" if isinstance(v, float) and math.isnan(v) else
-                                (f"{v:.6g}" if isinstance(v, float) else v) for v in values])
+                                (f"{v:.6f}" if i in (1, 2) else f"{v:.6g}") if isinstance(v, float) else v
+                                for i, v in enumerate(values)])
             self._unflushed += 1
             if self._unflushed >= 50:
                 self._fixes.flush()

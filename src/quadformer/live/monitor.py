@@ -25,19 +25,27 @@ What the vehicle must send (``actions.RATES``; ``request_rates`` asks with SET_M
 an IMU (HIGHRES_IMU, or RAW_IMU / SCALED_IMU*) at 50-100 Hz or more, GPS_RAW_INT (or GPS2_RAW)
 at 5-10 Hz, ATTITUDE (for the start), and for the configured aiding sensors the magnetometer
 (in the IMU message), the barometer (SCALED_PRESSURE or HIGHRES_IMU's pressure altitude) and
-ODOMETRY. Robustness, each counted, never an exception out of the loop:
+ODOMETRY. The link intake (``live.intake``, ``live.packets``) turns messages into samples:
+each UDP datagram parsed on its own, one source per sensor, the samples in order and on one
+time base, ``t`` in seconds since the link's first sensor sample (as ``detect`` counts from its
+log's start) with the vehicle's boot time ``boot_t`` beside it in the events, ``fixes.csv``, the
+status line and the summary; each stream's rate measured, with a warning for one slower than
+the filter needs (``actions.MIN_RATES``). Robustness, each counted, never an exception out of
+the loop:
 
-- a bad CRC (corrupt bytes): pymavlink's ``BAD_DATA``, discarded; lost packets: MAVLink
-  sequence gaps per sender;
+- a bad CRC or junk (corrupt bytes): pymavlink's ``BAD_DATA``, discarded, costing its own
+  datagram only; lost, duplicate and reordered packets: MAVLink sequence numbers per sender,
+  read together with time (an outage longer than the 8-bit sequence is counted whole);
 - a sample stamped as the previous one of its stream (duplicate) or earlier (late, reordered):
   dropped;
 - a stream whose clock goes back by more than ``restart_s`` for ``restart_confirm`` samples in
   a row (a reboot, a restarted log): a new segment (new residue stream, new detector stream;
   GPS stays excluded across it until re-admitted by the rule);
 - an IMU gap longer than the filter's ``max_gap_s`` (``GapError``): a new segment;
-- a stream that stops: "no GPS for N s" / "no IMU for N s" on the status line; no rows without
-  IMU; GPS and aiding samples more than ``max_gap_s`` after the last IMU sample are dropped
-  (they could never be fused and would only queue).
+- a stream that stops: "no GPS for N s" / "no IMU for N s" on the status line, and the state
+  is "stale" while the IMU or GPS has been silent longer than ``stale_s`` (the admission state
+  again once they flow); no rows without IMU; GPS and aiding samples more than ``max_gap_s``
+  after the last IMU sample are dropped (they could never be fused and would only queue).
 """
 
 from __future__ import annotations
@@ -62,23 +70,8 @@ from quadformer.estimator.schema import GROUPS, SENSOR_GROUPS
 from quadformer.geometry.frames import geodetic_to_enu
 from quadformer.io import package_versions, write_json
 from quadformer.live.actions import Records, VehicleLink, autopilot_name
-from quadformer.live.mavlink import (
-    GPS_MESSAGES,
-    IMU_MESSAGES,
-    Attitude,
-    Baro,
-    Estimate,
-    Gps,
-    Imu,
-    Mag,
-    Odometry,
-    Origin,
-    SystemTime,
-    decode,
-    local_address,
-    mavlink2,
-    open_link,
-)
+from quadformer.live.intake import STREAMS, Intake
+from quadformer.live.mavlink import Estimate, Gps, Origin, decode, local_address, mavlink2, open_link
 from quadformer.resilience.admission import (
     BLENDING,
     EXCLUDE_NIS,
@@ -91,8 +84,7 @@ from quadformer.resilience.admission import (
 from quadformer.resilience.step import OnlineStep
 
 STATES = {FUSING: "fusing", EXCLUDED: "GPS excluded", BLENDING: "re-admitting GPS"}
-STREAMS = ("imu", "gps", "mag", "baro", "vio", "attitude")
-EPOCH_S = 1e9                     # s, a stamp larger than this is UNIX time, not time since boot
+STALE = "stale"                   # the state while the IMU or GPS the filter needs is silent
 MAX_ALERTS = 1000                 # alerts kept in memory (all are in alerts.jsonl)
 MAX_SEGMENTS = 100                # segment descriptions kept in memory
 
@@ -152,7 +144,7 @@ class MonitorConfig:
 class FixRecord:
     """One scored GPS fix, handed to ``on_fix`` (the monitor keeps none)."""
     segment: int
-    t: float                       # s, vehicle time of the fix
+    t: float                       # s since the link's first sensor sample (the monitor's time base)
     score: float
     alarm: bool
     attack_type: str | None
@@ -214,34 +206,6 @@ class _Latency:
         return 10 ** (self.LO + (i + 0.5) / self.PER_DECADE)
 
 
-class _Order:
-    """Per-stream stamp checks: duplicates, late (reordered) samples and a restarted clock."""
-
-    def __init__(self, restart_s: float, confirm: int):
-        self.restart_s, self.confirm = restart_s, confirm
-        self.last: dict[str, float] = {}
-        self.back: dict[str, tuple[int, float]] = {}
-
-    def check(self, stream: str, t: float) -> str:
-        last = self.last.get(stream)
-        if last is None or t > last:
-            self.last[stream] = t
-            self.back.pop(stream, None)
-            return "ok"
-        if t == last:
-            return "duplicate"
-        if last - t <= self.restart_s:
-            return "late"
-        n, prev = self.back.get(stream, (0, -math.inf))
-        n = n + 1 if t > prev else 1
-        self.back[stream] = (n, t)
-        return "restart" if n >= self.confirm else "late"
-
-    def reset(self) -> None:
-        self.last.clear()
-        self.back.clear()
-
-
 class _Segment:
     """One continuous stretch of the vehicle's clock: the residue stream and the online step
     (detector stream, admission, alert lifecycle and typer)."""
@@ -272,11 +236,12 @@ class Monitor:
     (``duration_s``, ``max_messages``), ``stop()`` (from another thread) or Ctrl-C ends it.
     ``process(msg)`` handles one pymavlink message (what ``run`` does per message), so the
     monitor can also be driven without a socket. ``on_fix`` receives every scored fix,
-    ``on_alert`` every alert start/end event, ``echo`` every console line (None: silent)."""
+    ``on_alert`` every alert start/end event, ``echo`` every console line (None: silent);
+    ``clock`` (seconds, monotonic) times the link's silences, the status lines and the bounds."""
 
     def __init__(self, detector, config: MonitorConfig, *, on_fix: Callable[[FixRecord], None] | None = None,
                  on_alert: Callable[[dict], None] | None = None, echo: Callable[[str], None] | None = print,
-                 model: str | None = None):
+                 model: str | None = None, clock: Callable[[], float] = time.monotonic):
         if getattr(detector, "threshold_", None) is None:
             raise ValueError(f"{detector.name}: no alarm threshold; use a model written by `quadformer fit`")
         self.detector, self.config, self.model = detector, config, model
@@ -284,6 +249,7 @@ class Monitor:
         self.sensors = monitor_sensors(detector, config.filter)
         self.on_fix, self.on_alert = on_fix, on_alert
         self.echo = echo or (lambda line: None)
+        self.clock = clock
         # alert types: the shape typer over the last fixes (``OnlineTyper``)
         self.typer = ShapeTyper() if config.typing == "shape" else None
         self.conn = None
@@ -294,39 +260,28 @@ class Monitor:
         self.segment: _Segment | None = None
         self.n_segments = 0
         self.segments: deque[dict] = deque(maxlen=MAX_SEGMENTS)
-        self.order = _Order(config.restart_s, config.restart_confirm)
+        self.notes: deque[str] = deque(maxlen=50)
+        # the link intake: sources, order, time base, activity, rates, packet accounting
+        self.intake = Intake(self.sensors, stale_s=config.stale_s, restart_s=config.restart_s,
+                             restart_confirm=config.restart_confirm, gps_instance=config.gps_instance,
+                             note=self._note, clock=clock)
         self.origin: tuple[float, float, float] | None = None
         self.origin_source = "none"
         self.vehicle: int | None = config.system
         self.autopilot = "unknown"
-        self.epoch_offset: float | None = None
-        self.imu_source: str | None = None
-        self.baro_source: str | None = None
-        self.gps_instance: int | None = config.gps_instance
         self.ap_pos = np.full(3, np.nan)
         self.alerts: deque[Alert] = deque(maxlen=MAX_ALERTS)
         self.n_alerts = 0
         self.latency = _Latency()
         # counters: fixed keys, or keyed by message type / stream (bounded sets)
         self.messages: Counter = Counter()
-        self.packets: Counter = Counter()          # lost, duplicate, reordered (MAVLink sequence numbers)
-        self._seq: dict[tuple[int, int], int] = {}
-        self.samples: Counter = Counter()
-        self.dropped: Counter = Counter()
-        self.gaps: dict[str, dict[str, float]] = {s: {"count": 0, "longest_s": 0.0} for s in STREAMS}
-        self.notes: deque[str] = deque(maxlen=50)
+        self.dropped: Counter = self.intake.dropped  # samples and rows not used, by reason
         self.errors = 0
         self.last_error = ""
         self.fixes = 0
         self.n_messages = 0
-        # stream activity: vehicle time and wall time of the last sample per stream
-        self.last_t: dict[str, float] = {}
-        self.last_wall: dict[str, float] = {}
-        self.now_t = -math.inf
-        self.first_t: float | None = None          # vehicle time of the first sample (of this clock)
-        self._window: Counter = Counter()
         self._t_status = self._t_heartbeat = 0.0
-        self._started = time.monotonic()
+        self._started = clock()
         self._rates_requested = False
         self.stop_reason = ""
 
@@ -339,8 +294,9 @@ class Monitor:
             self.link = VehicleLink(self.conn, self.echo, statustext=c.statustext)
             if c.system is not None:
                 self.link.target = (c.system, 1)          # the autopilot component, until its heartbeat
-            self.records = Records(c.out)
-            self._started = time.monotonic()
+            self.records = Records(c.out, boot_time=self.intake.time.boot)
+            self.intake.attach(self.conn)
+            self._started = self.clock()
             self.link.heartbeat()
             self._t_heartbeat = self._started
             addr = local_address(self.conn)
@@ -368,7 +324,7 @@ class Monitor:
             while True:
                 if self._stop.is_set():
                     break
-                now = time.monotonic()
+                now = self.clock()
                 if now >= deadline:
                     reason = "duration"
                     break
@@ -377,8 +333,7 @@ class Monitor:
                     break
                 self._tick(now)
                 try:
-                    msg = self.conn.recv_match(blocking=True,
-                                               timeout=min(c.recv_timeout_s, max(deadline - now, 1e-3)))
+                    msg = self.intake.recv(min(c.recv_timeout_s, max(deadline - now, 1e-3)))
                 except (OSError, ValueError) as e:     # a serial device unplugged, a socket error: wait, retry
                     self.dropped["link_errors"] += 1
                     if self.dropped["link_errors"] in (1, 10, 100, 1000):
@@ -439,7 +394,8 @@ class Monitor:
             src = (msg.get_srcSystem(), msg.get_srcComponent())
             if src == (self.config.source_system, self.config.source_component):
                 return
-            self._sequence(src, msg.get_seq())
+            samples = decode(msg)
+            self.intake.packet(src, msg.get_seq(), samples)
             if kind == "TIMESYNC":
                 if msg.tc1 == 0 and self.link is not None:
                     self.link.timesync_reply(msg.ts1)
@@ -453,7 +409,6 @@ class Monitor:
                     if line:
                         self._note(line)
                 return
-            samples = decode(msg)
             if not samples:
                 return
             if self.vehicle is None:
@@ -468,24 +423,6 @@ class Monitor:
                 self._sample(s, kind, t_in)
         except Exception as e:          # noqa: BLE001 - the loop must outlive any one message
             self._error(e)
-
-    def _sequence(self, src: tuple[int, int], seq: int) -> None:
-        """Packet loss from MAVLink sequence numbers (per sender): a forward jump counts the
-        packets skipped (corrupt ones included); the same number again is a duplicate, an older
-        one a reordering."""
-        last = self._seq.get(src)
-        if last is None:
-            self._seq[src] = seq
-            return
-        d = (seq - last - 1) % 256
-        if d == 255:
-            self.packets["duplicate"] += 1
-        elif d < 128:
-            self.packets["lost"] += d
-            self._seq[src] = seq
-        else:                              # arrived after a later one: counted lost then, not lost now
-            self.packets["reordered"] += 1
-            self.packets["lost"] = max(self.packets["lost"] - 1, 0)
 
     def _error(self, e: Exception) -> None:
         self.errors += 1
@@ -508,54 +445,28 @@ class Monitor:
                 self._rates_requested = True
                 self._note("requested streams: " + ", ".join(self.link.request_rates(self.autopilot)))
 
-    def _time(self, t: float) -> float | None:
-        """Vehicle time since boot; UNIX-epoch stamps are mapped with SYSTEM_TIME."""
-        if t < EPOCH_S:
-            return t
-        if self.epoch_offset is None:
-            self.dropped["epoch_stamp_unmapped"] += 1
-            return None
-        return t - self.epoch_offset
-
     def _sample(self, s, kind: str, t_in: float) -> None:
         if isinstance(s, Origin):
             if self.origin is None:
                 self.origin, self.origin_source = (s.lat, s.lon, s.alt), s.source
                 self._note(f"origin: {s.lat:.7f}, {s.lon:.7f}, {s.alt:.1f} m from {s.source}")
             return
-        if isinstance(s, SystemTime):
-            self.epoch_offset = s.unix_s - s.boot_s
-            return
-        t = self._time(s.t)
-        if t is None:
-            return
         if isinstance(s, Estimate):
+            if self.intake.boot_time(s.t) is None:
+                return
             if s.kind == "global" and self.origin is not None:
                 self.ap_pos = geodetic_to_enu(*s.pos, self.origin)
             elif s.kind == "local" and self.origin_source == "GPS_GLOBAL_ORIGIN":
                 self.ap_pos = s.pos            # the autopilot's local frame is about the same origin
             return
-        stream = {Imu: "imu", Gps: "gps", Mag: "mag", Baro: "baro", Odometry: "vio", Attitude: "attitude"}[type(s)]
-        if not self._selected(s, stream, kind):
+        got = self.intake.accept(s, kind, may_switch=self.fixes == 0)
+        if got is None:
             return
-        verdict = self.order.check(stream, t)
-        if verdict == "duplicate":
-            self.dropped[f"{stream}_duplicate"] += 1
-            return
-        if verdict == "late":
-            self.dropped[f"{stream}_late"] += 1
-            return
-        if verdict == "restart":
-            self._new_segment(f"{stream} clock went back to {t:.3f} s (restart)")
-            self.order.reset()
-            self.now_t, self.first_t = t, None
-            self.last_t.clear()
-            self.order.check(stream, t)
-        self._seen(stream, t)
-        self.samples[stream] += 1
+        if got.restart is not None:
+            self._new_segment(got.restart)
         if self.segment is None:
             self._new_segment("start")
-        seg = self.segment
+        seg, stream, t = self.segment, got.stream, got.t
         if stream == "imu":
             self._imu(seg, t, s.x, t_in)
             return
@@ -574,53 +485,6 @@ class Monitor:
             seg.stream.baro(t, s.alt)
         else:
             seg.stream.vio(t, np.concatenate([s.vel, s.q]))
-
-    def _selected(self, s, stream: str, kind: str) -> bool:
-        """One IMU (and the magnetometer it carries), one barometer, one GPS receiver."""
-        if stream in ("imu", "mag"):          # the magnetometer of the IMU message used
-            if self.imu_source is None or (self.fixes == 0 and self._upgrade(kind)):
-                self._note(f"imu: using {s.source}" + (f" instead of {self.imu_source}" if self.imu_source else ""))
-                self.imu_source = s.source
-            ok = s.source == self.imu_source
-        elif stream == "baro":
-            if self.baro_source is None:
-                self.baro_source = s.source
-                self._note(f"baro: using {s.source}")
-            ok = s.source == self.baro_source
-        elif stream == "gps":
-            if s.fix_type < 3:
-                self.dropped["gps_no_3d_fix"] += 1
-                return False
-            if self.gps_instance is None:
-                self.gps_instance = s.instance
-                self._note(f"gps: using receiver {s.instance} ({'GPS_RAW_INT' if s.instance == 0 else 'GPS2_RAW'}), "
-                           "the first with a 3D fix")
-            ok = s.instance == self.gps_instance
-        else:
-            ok = True
-        if not ok:
-            self.dropped[f"{stream}_other_source"] += 1
-        return ok
-
-    def _upgrade(self, kind: str) -> bool:
-        """A preferred IMU message (HIGHRES_IMU first) replaces the current one before any fix."""
-        cur = self.imu_source.split("#")[0] if self.imu_source else None
-        return cur is not None and kind in IMU_MESSAGES and IMU_MESSAGES.index(kind) < IMU_MESSAGES.index(cur)
-
-    def _seen(self, stream: str, t: float) -> None:
-        wall = time.monotonic()
-        if stream in self.last_t:
-            gap = max(t - self.last_t[stream], wall - self.last_wall[stream])
-            if gap > self.config.stale_s:
-                g = self.gaps[stream]
-                g["count"] += 1
-                g["longest_s"] = max(g["longest_s"], gap)
-                self._note(f"{stream}: back after {gap:.1f} s")
-        self.last_t[stream], self.last_wall[stream] = t, wall
-        self.now_t = max(self.now_t, t)
-        if self.first_t is None:
-            self.first_t = t
-        self._window[stream] += 1
 
     def _imu(self, seg: _Segment, t: float, x: np.ndarray, t_in: float) -> None:
         if seg.first_imu is None:
@@ -773,42 +637,43 @@ class Monitor:
             elapsed = now - self._t_status if self._t_status else now - self._started
             self._t_status = now
             self.echo(self.status_line(elapsed))
-            self._window.clear()
+            self.intake.window.clear()
 
     def stale(self, stream: str) -> float:
-        """Seconds since the stream's last sample (vehicle time while others flow, wall time
-        when the link is silent); since the start when it never arrived."""
-        wall = time.monotonic()
-        if stream not in self.last_t:
-            return max(self.now_t - self.first_t if self.first_t is not None else 0.0, wall - self._started)
-        return max(self.now_t - self.last_t[stream], wall - self.last_wall[stream])
+        """Seconds since the stream's last sample (``Intake.stale``)."""
+        return self.intake.stale(stream)
 
     def state_text(self) -> str:
+        """waiting for IMU, stale (the IMU or GPS silent longer than ``stale_s``), waiting for
+        fix, or the admission state."""
         seg = self.segment
-        if "imu" not in self.last_t:
+        if "imu" not in self.intake.last_t:
             return "waiting for IMU"
+        if self.intake.silent():
+            return STALE
         if seg is None or seg.fixes == 0:
             return "waiting for fix"
         return STATES[seg.state]
 
     def status_line(self, elapsed: float = 1.0) -> str:
-        rates = " ".join(f"{s} {self._window[s] / max(elapsed, 1e-9):.0f}" for s in STREAMS if s in self.last_t)
+        intake = self.intake
+        rates = " ".join(f"{s} {intake.window[s] / max(elapsed, 1e-9):.0f}" for s in STREAMS if s in intake.last_t)
         seg = self.segment
         score = f"{seg.last_score:.3g}" if seg is not None and math.isfinite(seg.last_score) else "-"
-        parts = [f"t {self.now_t:.1f} s" if math.isfinite(self.now_t) else "t -",
-                 f"seg {seg.index if seg else '-'}", f"{rates or 'no samples'} /s", f"fixes {self.fixes}",
+        now = f"t {intake.now_t:.1f} s (boot {intake.time.boot(intake.now_t):.1f} s)" \
+            if math.isfinite(intake.now_t) else "t -"
+        parts = [now, f"seg {seg.index if seg else '-'}", f"{rates or 'no samples'} /s", f"fixes {self.fixes}",
                  f"score {score} (thr {self.detector.threshold_:.3g})", self.state_text()]
         need = ["imu", "gps"] + [s for s in ("mag", "baro", "vio") if s in self.sensors.split("+")]
         for s in need:
-            age = self.stale(s)
+            age = intake.stale(s)
             if age > self.config.stale_s:
                 parts.append(f"no {s.upper()} for {age:.0f} s")
-        bad = sum(v for k, v in self.dropped.items() if k.endswith(("_late", "_duplicate")))
-        parts.append(f"lost {self._lost()} bad {self.messages['BAD_DATA']} late/dup {bad}")
+        packets = intake.packets
+        late = sum(v for k, v in self.dropped.items() if k.endswith(("_late", "_duplicate")))
+        parts.append(f"packets lost {packets['lost']} bad {self.messages['BAD_DATA']} dup {packets['duplicate']}")
+        parts.append(f"samples late/dup {late}")
         return " | ".join(parts)
-
-    def _lost(self) -> int:
-        return int(self.packets["lost"])
 
     def _note(self, line: str) -> None:
         self.notes.append(line)
@@ -816,26 +681,32 @@ class Monitor:
 
     # -- summary --------------------------------------------------------------------------
     def summary(self) -> dict[str, Any]:
-        elapsed = time.monotonic() - self._started
+        elapsed = self.clock() - self._started
         dropped = dict(sorted(self.dropped.items()))
+        intake, packets = self.intake, self.intake.packets
         return {
             "stop_reason": self.stop_reason, "wall_s": elapsed,
             "config": self.config.to_dict(), "filter": dataclasses.asdict(self.filter_config),
             "sensors": self.sensors,
             "detector": {"name": self.detector.name, "model": self.model, "threshold": float(self.detector.threshold_),
                          "features": list(self.detector.features_)},
-            "vehicle": {"system": self.vehicle, "autopilot": self.autopilot, "imu": self.imu_source,
-                        "baro": self.baro_source, "gps_receiver": self.gps_instance,
+            "vehicle": {"system": self.vehicle, "autopilot": self.autopilot, "imu": intake.imu_source,
+                        "baro": intake.baro_source, "gps_receiver": intake.gps_instance,
                         "origin": self.origin, "origin_source": self.origin_source},
+            "state": self.state_text(),
+            "time": {"t": "s since the link's first sensor sample", "boot_t": "s since the vehicle's boot",
+                     **intake.summary()},
+            "rates_hz": dict(intake.rates),
             "messages": dict(sorted(self.messages.items())), "n_messages": self.n_messages,
             "messages_per_s": self.n_messages / elapsed if elapsed > 0 else math.nan,
-            "samples": dict(self.samples), "fixes_scored": self.fixes, "alerts": self.n_alerts,
+            "samples": dict(intake.samples), "fixes_scored": self.fixes, "alerts": self.n_alerts,
             "alert_list": [dataclasses.asdict(a) for a in self.alerts],
-            "link": {"lost_packets": self._lost(), "corrupt_packets": self.messages["BAD_DATA"],
-                     "duplicate_packets": self.packets["duplicate"], "reordered_packets": self.packets["reordered"],
+            "link": {"lost_packets": packets["lost"], "corrupt_packets": self.messages["BAD_DATA"],
+                     "duplicate_packets": packets["duplicate"], "reordered_packets": packets["reordered"],
+                     "datagrams": intake.reader.datagrams if intake.reader is not None else None,
                      "duplicates": sum(v for k, v in dropped.items() if k.endswith("_duplicate")),
                      "late": sum(v for k, v in dropped.items() if k.endswith("_late")),
-                     "dropped": dropped, "stream_gaps": self.gaps},
+                     "dropped": dropped, "stream_gaps": intake.gaps},
             "segments": self.n_segments, "segment_list": list(self.segments),
             "errors": self.errors, "last_error": self.last_error,
             "latency_ms": {"p50": self.latency.quantile(0.5) * 1e3, "p99": self.latency.quantile(0.99) * 1e3,
@@ -854,8 +725,12 @@ class Monitor:
             f"({s['messages_per_s']:.0f}/s)",
             f"  messages: {msgs or 'none'}",
             f"  fixes scored {s['fixes_scored']}, alerts {s['alerts']}, segments {s['segments']}, errors {s['errors']}",
-            f"  link: lost {link['lost_packets']}, corrupt {link['corrupt_packets']}, duplicates {link['duplicates']}, "
-            f"late {link['late']}, other drops "
+            f"  state at the end: {s['state']}; t counts from the link's first sensor sample, at "
+            + (f"{s['time']['first_sample_boot_s']:.3f} s after the vehicle's boot"
+               if s["time"]["first_sample_boot_s"] is not None else "none received"),
+            f"  link: packets lost {link['lost_packets']}, corrupt {link['corrupt_packets']}, "
+            f"duplicate packets {link['duplicate_packets']}, reordered {link['reordered_packets']}; "
+            f"samples duplicate {link['duplicates']}, late {link['late']}; other drops "
             + (", ".join(f"{k} {v}" for k, v in link["dropped"].items()
                          if not k.endswith(("_duplicate", "_late"))) or "none"),
             f"  latency per fix (message in hand to admission decision): p50 {s['latency_ms']['p50']:.2f} ms, "

@@ -1,0 +1,283 @@
+"""The live monitor's link intake against a MAVLink sender written apart from ours: a pymavlink
+peer on 127.0.0.1 that stamps a stationary vehicle's IMU and GPS with its own boot clock.
+
+Every exchange ends with a TIMESYNC request the monitor answers once it has processed every
+packet before it, so the tests wait for events and count messages; wall-clock limits are
+only a safety net. Silence is made by moving the monitor's injected clock, never by sleeping."""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import re
+import threading
+import time
+
+import numpy as np
+import pandas as pd
+import pytest
+from logs_support import time_limit
+
+from quadformer.detectors.classical import Chi2Gate
+from quadformer.estimator.online import FilterConfig
+from quadformer.live import mavlink as M
+from quadformer.live.monitor import Monitor, MonitorConfig
+
+LOCAL = "127.0.0.1"
+ORIGIN = (47.3977418, 8.5455939, 488.0)
+UP = np.array([0.0, 0.0, 9.80665, 0.0, 0.0, 0.0])     # specific force and rates at rest, FLU
+LIMIT_S = 120.0                                        # safety net per test (a loaded machine)
+FILTER = FilterConfig(sensors="gps+imu")
+
+
+# -- helpers ------------------------------------------------------------------------------------
+def gate(threshold: float) -> Chi2Gate:
+    """The NIS gate fitted on chi-square(6) draws, with a given alarm threshold."""
+    nis = np.random.default_rng(0).chisquare(6, 400)
+    table = pd.DataFrame({"flight_id": np.zeros(400, int), "t": np.arange(400) / 10.0, "res_gps_nis": nis})
+    return Chi2Gate().fit(table).calibrate(threshold)
+
+
+class Clock:
+    """The monitor's clock: the machine's monotonic clock plus the silence a test declares."""
+
+    def __init__(self):
+        self.skipped = 0.0
+
+    def __call__(self) -> float:
+        return time.monotonic() + self.skipped
+
+
+class Vehicle:
+    """A pymavlink peer sending to the monitor: a vehicle at rest with its own boot clock."""
+
+    def __init__(self, port: int, boot: float = 100.0):
+        self.conn = M.open_link(f"udpout:{LOCAL}:{port}", 1, 1)
+        self.t = boot                          # s since the vehicle's boot, the next IMU stamp
+        self.syncs = 0
+
+    def send(self, msg) -> None:
+        self.conn.mav.send(msg)
+
+    def raw_imu(self, t: float):
+        return M.mavlink2.MAVLink_raw_imu_message(M.usec(t), 0, 0, -1000, 0, 0, 0, 0, 0, 0)
+
+    def stream(self, seconds: float, imu_hz: float = 100.0, gps_hz: float = 10.0, attitude: bool = False) -> int:
+        """HIGHRES_IMU at imu_hz and GPS_RAW_INT at gps_hz over ``seconds`` of vehicle time;
+        the number of packets sent."""
+        n, sent = int(round(seconds * imu_hz)), 0
+        every = max(int(round(imu_hz / gps_hz)), 1)
+        for k in range(n):
+            t = self.t + k / imu_hz
+            if attitude and k == 0:
+                self.send(M.encode_attitude(t, np.array([0.0, 0.0, 0.0, 1.0])))
+                sent += 1
+            self.send(M.encode_highres_imu(t, imu=UP))
+            sent += 1
+            if k % every == 0:
+                self.send(M.encode_gps_raw_int(t, *ORIGIN, np.zeros(3), eph=0.5, epv=0.8, speed_acc=0.2))
+                sent += 1
+        self.t += n / imu_hz
+        return sent
+
+    def sync(self, timeout: float = LIMIT_S) -> None:
+        """Until the monitor answered a TIMESYNC request sent now (it processed all before
+        it); the request is repeated every 2 s should a receiver have lost it."""
+        self.syncs += 1
+        ts = self.syncs
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            self.send(M.mavlink2.MAVLink_timesync_message(0, ts))
+            again = time.monotonic() + 2.0
+            while time.monotonic() < min(again, end):
+                m = self.conn.recv_match(type="TIMESYNC", blocking=True, timeout=0.5)
+                if m is not None and m.tc1 != 0 and m.ts1 == ts:
+                    return
+        raise AssertionError(f"no TIMESYNC answer {ts} within {timeout} s")
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+@contextlib.contextmanager
+def monitor(detector, clock=None, on_fix=None, **config):
+    """A monitor listening on 127.0.0.1 (ephemeral port), run in a thread; yields
+    (monitor, its console lines, a dict that receives its summary once stopped)."""
+    lines: list[str] = []
+    extra = {} if clock is None else {"clock": clock}
+    mon = Monitor(detector, MonitorConfig(connect=f"udpin:{LOCAL}:0", **config), echo=lines.append,
+                  on_fix=on_fix, **extra)
+    mon.open()
+    out: dict = {}
+    thread = threading.Thread(target=lambda: out.update(summary=mon.run()), daemon=True)
+    thread.start()
+    try:
+        with time_limit(LIMIT_S):
+            yield mon, lines, out
+    finally:
+        mon.stop()
+        thread.join(20)
+    assert not thread.is_alive()
+
+
+@pytest.fixture(scope="module")
+def quiet():
+    """A gate that never alarms."""
+    return gate(1e9)
+
+
+# -- 1. one datagram is parsed on its own -----------------------------------------------------------
+def test_a_junk_datagram_starting_with_a_marker_loses_no_valid_datagram(quiet):
+    with monitor(quiet) as (mon, lines, out):
+        peer = Vehicle(mon.address[1])
+        peer.conn.write(b"\xfd\xff")                       # a MAVLink 2 marker claiming 255 bytes
+        for k in range(30):
+            peer.send(peer.raw_imu(100.0 + k / 100.0))
+        peer.sync()
+    s = out["summary"]
+    assert s["messages"]["RAW_IMU"] == 30
+    assert s["messages"]["BAD_DATA"] == 1 and s["link"]["corrupt_packets"] == 1
+    assert s["link"]["lost_packets"] == 0
+
+
+def test_a_thirty_percent_junk_datagrams_lose_nothing(quiet):
+    rng = np.random.default_rng(7)
+    junk = 0
+    with monitor(quiet) as (mon, lines, out):
+        peer = Vehicle(mon.address[1])
+        for k in range(200):
+            if rng.random() < 0.3:                          # 0xFD or 0xFE, then random bytes
+                peer.conn.write(bytes([int(rng.choice([0xFD, 0xFE]))]) + rng.bytes(int(rng.integers(1, 40))))
+                junk += 1
+            peer.send(peer.raw_imu(100.0 + k / 100.0))
+        peer.sync()
+    s = out["summary"]
+    assert junk > 40
+    assert s["messages"]["RAW_IMU"] == 200
+    assert s["link"]["corrupt_packets"] >= junk
+    assert s["link"]["lost_packets"] == 0
+
+
+# -- 2. loss counted on the sequence together with time ---------------------------------------------
+def test_b_an_outage_longer_than_the_sequence_counts_every_lost_packet(quiet):
+    with monitor(quiet) as (mon, lines, out):
+        peer = Vehicle(mon.address[1])
+        for k in range(300):                                # 3 s at 100 Hz: the sender's rate
+            peer.send(peer.raw_imu(100.0 + k / 100.0))
+        peer.sync()
+        peer.conn.mav.seq = (peer.conn.mav.seq + 510) % 256  # 510 packets lost: 5.1 s at 100 Hz ...
+        for k in range(100):                                # ... after the sync packet
+            peer.send(peer.raw_imu(103.0 + 5.11 + k / 100.0))
+        peer.sync()
+    link = out["summary"]["link"]
+    assert link["lost_packets"] == 510
+    assert link["duplicate_packets"] == 0 and link["reordered_packets"] == 0
+
+
+def test_b_an_outage_ended_by_an_unstamped_packet_is_timed_by_the_clock(quiet):
+    """A HEARTBEAT (no stamp) first after the outage: the monitor's clock times the gap."""
+    clock = Clock()
+    with monitor(quiet, clock=clock) as (mon, lines, out):
+        peer = Vehicle(mon.address[1])
+        for k in range(300):
+            peer.send(peer.raw_imu(100.0 + k / 100.0))
+        peer.sync()
+        clock.skipped += 6.0                                # 600 packets at 100 Hz: 6 s
+        peer.conn.mav.seq = (peer.conn.mav.seq + 600) % 256
+        peer.send(M.mavlink2.MAVLink_heartbeat_message(M.mavlink2.MAV_TYPE_QUADROTOR, M.mavlink2.MAV_AUTOPILOT_PX4,
+                                                       0, 0, M.mavlink2.MAV_STATE_ACTIVE, 3))
+        for k in range(50):
+            peer.send(peer.raw_imu(109.0 + k / 100.0))
+        peer.sync()
+    assert out["summary"]["link"]["lost_packets"] == 600
+
+
+# -- 3. a silent link is stale -------------------------------------------------------------------------
+def test_c_a_silent_link_is_stale_and_fusing_again_when_data_flows(quiet, tmp_path):
+    clock = Clock()
+    with monitor(quiet, clock=clock, filter=FILTER, out=tmp_path, stale_s=5.0) as (mon, lines, out):
+        peer = Vehicle(mon.address[1])
+        peer.stream(4.0, attitude=True)
+        peer.sync()
+        assert mon.fixes > 10 and mon.state_text() == "fusing"
+        clock.skipped += 10.0                              # 10 s without a packet
+        assert mon.state_text() == "stale"
+        line = mon.status_line()
+        assert "stale" in line and re.search(r"no IMU for 1\d s", line) and re.search(r"no GPS for 1\d s", line)
+        stale_summary = mon.summary()
+        assert stale_summary["state"] == "stale"
+        n = mon.fixes
+        peer.stream(1.0)                                    # the vehicle's stamps go on
+        peer.sync()
+        assert mon.fixes > n and mon.state_text() == "fusing"
+    assert out["summary"]["state"] == "fusing"
+
+
+# -- 4. a stream slower than the filter needs is named ---------------------------------------------------
+def test_d_an_imu_under_50_hz_is_warned_with_its_rate(quiet):
+    with monitor(quiet, filter=FILTER) as (mon, lines, out):
+        peer = Vehicle(mon.address[1])
+        peer.stream(5.0, imu_hz=25.0, gps_hz=10.0 / 4, attitude=True)
+        peer.sync()
+    s = out["summary"]
+    warnings = [n for n in s["notes"] if n.startswith("warning")]
+    assert any(re.search(r"imu at 25 Hz .*under the 50 Hz the filter needs", n) for n in warnings), s["notes"]
+    assert any(re.search(r"gps at 2\.5 Hz .*under the 5 Hz the filter needs", n) for n in warnings), s["notes"]
+    assert any(w in lines for w in warnings)                # on the console too
+    assert s["rates_hz"]["imu"] == pytest.approx(25.0, rel=0.02)
+
+
+def test_d_streams_at_their_rates_give_no_warning(quiet):
+    with monitor(quiet, filter=FILTER) as (mon, lines, out):
+        peer = Vehicle(mon.address[1])
+        peer.stream(5.0, attitude=True)
+        peer.sync()
+    s = out["summary"]
+    assert not [n for n in s["notes"] if n.startswith("warning")], s["notes"]
+    assert s["rates_hz"]["imu"] == pytest.approx(100.0, rel=0.02)
+    assert s["rates_hz"]["gps"] == pytest.approx(10.0, rel=0.02)
+
+
+# -- 5. one time base with detect: seconds since the link's first sensor sample ----------------------------
+def test_e_times_count_from_the_first_sensor_sample_with_the_boot_time_beside(tmp_path):
+    fixes = []
+    detector = gate(-1.0)                                   # every fix alarms: alert events
+    with monitor(detector, filter=FILTER, out=tmp_path, on_fix=fixes.append) as (mon, lines, out):
+        peer = Vehicle(mon.address[1], boot=250.0)
+        peer.stream(3.0, attitude=True)
+        peer.sync()
+        line = mon.status_line()
+    assert fixes and fixes[0].t < 1.0 and all(0.0 <= f.t < 3.0 for f in fixes)
+    now = re.search(r"\bt (\d+\.\d) s \(boot (\d+\.\d) s\)", line)
+    assert now and float(now[1]) <= 3.0 and float(now[2]) - float(now[1]) == pytest.approx(250.0), line
+    rows = list(csv.DictReader((tmp_path / "fixes.csv").open()))
+    assert len(rows) == len(fixes)
+    for r, f in zip(rows, fixes):
+        assert float(r["t"]) == pytest.approx(f.t, abs=1e-5)
+        assert float(r["boot_t"]) == pytest.approx(f.t + 250.0, abs=1e-5)
+    events = [json.loads(x) for x in (tmp_path / "alerts.jsonl").read_text().splitlines()]
+    start = next(e for e in events if e["event"] == "alert_start")
+    assert start["t"] == pytest.approx(fixes[0].t) and start["boot_t"] == pytest.approx(fixes[0].t + 250.0)
+    s = out["summary"]
+    assert s["time"]["first_sample_boot_s"] == 250.0
+
+
+# -- 6. repeated packets on the console --------------------------------------------------------------------
+def test_f_duplicate_packets_show_on_the_status_line_and_in_the_summary(quiet):
+    with monitor(quiet) as (mon, lines, out):
+        peer = Vehicle(mon.address[1])
+        for k in range(20):
+            buf = peer.raw_imu(100.0 + k / 100.0).pack(peer.conn.mav)
+            peer.conn.mav.seq = (peer.conn.mav.seq + 1) % 256
+            peer.conn.write(buf)
+            if k % 5 == 0:
+                peer.conn.write(buf)                        # the same packet again: 4 duplicates
+        peer.sync()
+        line = mon.status_line()
+    s = out["summary"]
+    assert s["link"]["duplicate_packets"] == 4
+    assert re.search(r"packets lost 0 bad 0 dup 4\b", line), line
+    assert "duplicate packets 4" in Monitor.summary_text(s)
+
+
