@@ -1,5 +1,6 @@
-"""The demo's plan: the work units still to do (for one progress bar over all of them) and
-an estimate of how long they take on this machine.
+"""The demo: its plan (the work units still to do, for one progress bar over all of them,
+and an estimate of how long they take on this machine) and its run (``run_demo_profile``:
+the profile's datasets, the detection benchmark, then the resilience benchmark).
 
 The estimate counts the work (flights x steps to simulate, models to train at the demo's
 training budget, datasets to score, closed-loop batches to fly) and prices it with costs
@@ -11,12 +12,14 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from quadformer.experiments.cache import (batch_count, cached_model, dataset_key, model_dir_for, trains_network,
                                           _readable)
-from quadformer.experiments.grid import Profile, profile_configs
+from quadformer.experiments.grid import Profile, dataset_summary, get_profile, profile_configs
 
 #: cores of the machine the costs were measured on
 CALIBRATION_CORES = 2
@@ -104,3 +107,49 @@ def plan(profile: Profile, methods: list[str], cache_dir: Path, workers: int | N
     units = len(batches) + tune_units + len(configs) + fly_units
     total = COSTS["overhead"] + sim_s + tune_s + eval_s + fly_s
     return DemoPlan(units, total, sum(c.flights for c in missing), steps, tune_units)
+
+
+@dataclass
+class DemoRun:
+    datasets: list[dict[str, Any]]     # per configuration: its name and ``grid.dataset_summary``
+    detection: dict[str, Any]          # the detection benchmark's results (``detection.run_benchmark``)
+    resilience: dict[str, Any]         # the resilience benchmark's results (``resilience.run_resilience``)
+    phases: dict[str, float]           # s: simulate, detection, resilience
+
+
+def run_demo_profile(out: Path, cache_dir: Path, methods: list[str], profile: str | Profile = "demo",
+                     detector: str = "quadformer", progress: bool = True, todo: DemoPlan | None = None,
+                     workers: int | None = None) -> DemoRun:
+    """A profile end to end: its datasets (simulated, or from the cache), the detection
+    benchmark of ``methods`` into ``out/detection``, then the resilience benchmark driven by
+    ``detector`` into ``out/resilience``; one progress bar over the plan's units (``todo``,
+    planned here when not given)."""
+    from quadformer.dataset import load_dataset
+    from quadformer.experiments.cache import ensure_datasets
+    from quadformer.experiments.detection import run_benchmark
+    from quadformer.experiments.pool import SharedBar
+    from quadformer.experiments.resilience import run_resilience
+
+    prof = get_profile(profile)
+    bar = None
+    if progress:
+        todo = todo or plan(prof, methods, cache_dir, workers, resilience=True)
+        bar = SharedBar(todo.units, desc="demo")
+    prog = bar if bar is not None else False
+    phases = {}
+    try:
+        t0 = time.perf_counter()
+        paths = ensure_datasets(prof, cache_dir, progress=prog, workers=workers)
+        phases["simulate"] = time.perf_counter() - t0
+        rows = [{"config": name, **dataset_summary(load_dataset(p))} for name, p in paths.items()]
+        t0 = time.perf_counter()
+        detection = run_benchmark(prof, methods, Path(out) / "detection", cache_dir, progress=prog, workers=workers)
+        phases["detection"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        resilience = run_resilience(prof, detector, Path(out) / "resilience", cache_dir, progress=prog,
+                                    workers=workers)
+        phases["resilience"] = time.perf_counter() - t0
+    finally:
+        if bar is not None:
+            bar.close()
+    return DemoRun(rows, detection, resilience, phases)

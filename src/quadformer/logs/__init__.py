@@ -3,7 +3,8 @@
 A reader is a file in and typed, timestamped streams out (``FlightLog``: imu, gps,
 odometry, baro, mag, innovations, estimate, truth as pandas DataFrames in SI units, ENU
 world and FLU body frames), nothing else; it knows nothing of filters or detectors.
-``read_log`` picks the reader from the file's content:
+``read_log`` picks the reader from the file's content (``find_logs``: the logs under
+directories):
 
 * PX4 ULog: the magic bytes ``ULog`` 0x01 0x12 0x35;
 * ArduPilot DataFlash: a message header 0xA3 0x95 at the start;
@@ -24,7 +25,7 @@ from quadformer.logs.px4 import read_ulog
 from quadformer.logs.ros import RosTopics, read_rosbag
 
 __all__ = ["FORMATS", "GPS_GAP", "IMU_GAP", "STREAMS", "FlightLog", "LogError", "RosTopics",
-           "detect_format", "read_dataflash", "read_log", "read_rosbag", "read_ulog"]
+           "detect_format", "find_logs", "read_dataflash", "read_log", "read_rosbag", "read_ulog"]
 
 FORMATS = ("px4", "ardupilot", "ros")
 _ULOG_MAGIC = b"ULog\x01\x12\x35"
@@ -59,6 +60,25 @@ def detect_format(path: str | Path) -> str | None:
     if head.startswith(_ROSBAG1) or head.startswith(_SQLITE) or head.startswith(_MCAP):
         return "ros"
     return None
+
+
+def find_logs(paths: list[str | Path]) -> list[Path]:
+    """The logs ``paths`` name: a file (or ROS 2 bag directory) as given, any other directory
+    searched for the files and bags whose content is a known log format (sorted; not inside a
+    bag found). LogError for a path that does not exist or a directory without a log."""
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if not p.exists():
+            raise LogError(f"{p}: no such file or directory")
+        if p.is_dir() and detect_format(p) is None:
+            found = sorted(q for q in p.rglob("*") if (q.is_file() or q.is_dir()) and detect_format(q) is not None
+                           and not any(detect_format(par) for par in q.parents if par != p and p in par.parents))
+            if not found:
+                raise LogError(f"{p}: no flight log in this directory (PX4 .ulg, ArduPilot .bin, ROS bags)")
+            out += found
+        else:
+            out.append(p)
+    return out
 
 
 def read_log(path: str | Path, format: str | None = None, **options) -> FlightLog:

@@ -1,0 +1,5 @@
+"""``python -m quadformer.cli``: the command line."""
+
+from quadformer.cli import app
+
+app()

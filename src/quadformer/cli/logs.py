@@ -1,0 +1,174 @@
+"""``quadformer detect``, ``logs info`` and ``logs import``: detection on flight logs, what a
+log holds, and datasets from logs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from quadformer.cli.common import (FILTER_HELP, LOG_GPS_DELAY_HELP, MODEL_HELP, RECEIVER_HELP, RESIDUES_HELP,
+                                   RUNTIME_HELP, TYPING_HELP, calibrated_model, check_residues, check_typing, fail,
+                                   log_paths, pair, print_alerts, replay_config)
+from quadformer.config import ATTACK_KINDS, ConfigError
+
+def detect(
+    logs: list[Path] = typer.Argument(..., help="Flight logs (PX4 .ulg, ArduPilot .bin, ROS 1/2 bags) or "
+                                      "directories holding them."),
+    model: Path = typer.Option(..., help=MODEL_HELP),
+    runtime: str = typer.Option("torch", help=RUNTIME_HELP),
+    residues: str = typer.Option("ekf", help=RESIDUES_HELP),
+    out: Path = typer.Option(Path("runs/detect"), "--out", help="Output directory (one folder per log)."),
+    format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot or ros (default: detected)."),
+    sensors: Optional[str] = typer.Option(None, help="Sensors the replayed filter fuses, e.g. gps+imu+mag+baro "
+                                          "(default: every sensor the log has)."),
+    filter: str = typer.Option("model", help=FILTER_HELP + " model: the simulation the detector was fit on "
+                               "(EKF2's defaults when the model does not say)."),
+    imu_rate: Optional[float] = typer.Option(None, help="IMU averaged down to at most this rate (Hz; default "
+                                             "100, or the matched simulation's)."),
+    gps_rate: Optional[float] = typer.Option(None, help="At most this many fixes per second are fused (Hz; "
+                                             "default 10, or the matched simulation's)."),
+    min_segment: float = typer.Option(3.0, help="Seconds of GPS a segment needs to be replayed."),
+    gps_delay: Optional[float] = typer.Option(None, help=LOG_GPS_DELAY_HELP),
+    receiver_accuracy: bool = typer.Option(True, help=RECEIVER_HELP),
+    typing: str = typer.Option("shape", help=TYPING_HELP),
+    quiet: bool = typer.Option(False, help="No progress bar."),
+) -> None:
+    """Detect GPS spoofing in flight logs: per-step scores, alerts (printed and CSV) and a report per log."""
+    from quadformer.io import set_threads
+    from quadformer.report.detection_outputs import detect_logs
+
+    det = calibrated_model(model, runtime)
+    check_residues(residues)
+    check_typing(typing)
+    config = replay_config(sensors, imu_rate, gps_rate, min_segment, filter, det, gps_delay, receiver_accuracy)
+    paths = log_paths(logs, format)
+    set_threads(1)
+    bar = None
+    if not quiet and len(paths) > 1:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=len(paths), unit="log", desc="detect")
+
+    def done(o) -> None:
+        if o.status == "failed":
+            typer.secho(f"{o.path}: {o.reason}", fg=typer.colors.RED, err=True)
+        elif o.status == "skipped":
+            typer.echo(f"{o.path}: nothing scored: {o.reason}")
+        if bar is not None:
+            bar.update(1)
+        if o.status == "scored":
+            res = o.detection
+            hours = len(res.rows) / config.gps_rate_hz / 3600
+            typer.echo(f"{o.path}: {res.log.source}, {res.log.duration:.1f} s, {len(res.rows)} GPS steps scored "
+                       f"({residues} residues, {res.sensors}): {len(res.alerts)} alert(s) "
+                       f"({len(res.alerts) / hours:.1f} per flight-hour)" if hours else "")
+            print_alerts(res.alerts)
+
+    run = detect_logs(paths, det, out, residues, config, format=format, typing=typing, model=str(model),
+                      on_log=done)
+    if bar is not None:
+        bar.close()
+    skipped, failed = run.of("skipped"), run.of("failed")
+    if run.of("scored"):
+        typer.echo(f"wrote {out.resolve()}: a folder per log (report.html, scores.csv, alerts.csv, summary.json), "
+                   "summary.csv and alerts.csv")
+    if skipped:
+        typer.echo(f"{len(skipped)} of {len(paths)} log(s) had nothing to score (their report says why)")
+    if failed:
+        typer.secho(f"{len(failed)} of {len(paths)} log(s) could not be processed", fg=typer.colors.RED, err=True)
+        raise typer.Exit(2 if len(failed) == len(paths) else 1)
+
+
+def logs_info(
+    log: Path = typer.Argument(..., help="A flight log."),
+    format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot or ros."),
+) -> None:
+    """What a log holds: streams with their rates, segments, origin and the reader's notes."""
+    import numpy as np
+
+    from quadformer.logs import LogError, read_log
+
+    try:
+        fl = read_log(log, format=format)
+    except LogError as e:
+        fail(str(e))
+    typer.echo(f"{log}: {fl.source}, {fl.duration:.1f} s in {len(fl.segments)} segment(s), origin {fl.origin} "
+               f"({fl.origin_source})")
+    for k, v in fl.vehicle.items():
+        typer.echo(f"  {k}: {v}")
+    for name, df in fl.streams.items():
+        t = df["t"].to_numpy()
+        rate = 1.0 / np.median(np.diff(t)) if len(t) > 1 else float("nan")
+        typer.echo(f"  {name:12s} {len(df):7d} samples, {rate:7.1f} Hz, {t[0]:.2f} to {t[-1]:.2f} s")
+    for n in fl.notes:
+        typer.echo(f"  note: {n}")
+
+
+def logs_import(
+    logs: list[Path] = typer.Argument(..., help="Flight logs or directories holding them."),
+    out: Path = typer.Option(..., "--out", help="Dataset directory to create."),
+    residues: str = typer.Option("ekf", help=RESIDUES_HELP),
+    inject: Optional[str] = typer.Option(None, help=f"Spoof to inject into the logged GPS before the replay: "
+                                         f"{', '.join(k for k in ATTACK_KINDS if k != 'none')} (open loop)."),
+    attack_fraction: Optional[float] = typer.Option(None, help="Share of flights attacked (default 0.5)."),
+    onset: Optional[str] = typer.Option(None, help="Attack onset range 'low,high' in s from each flight's first "
+                                        "fix (clipped to the flight's first half)."),
+    attack_duration: Optional[str] = typer.Option(None, help="Attack duration range 'low,high' in s."),
+    magnitude: Optional[str] = typer.Option(None, help="Offset norm range 'low,high' in m."),
+    rate: Optional[str] = typer.Option(None, help="Ramp drift rate range 'low,high' in m/s."),
+    axes: Optional[str] = typer.Option(None, help="Fixed attacked axes, e.g. 'x' or 'xy'."),
+    seed: int = typer.Option(0, help="Seed of which flights are attacked and of the attacks' parameters."),
+    repeat: int = typer.Option(1, help="Replay each log segment this many times (each with its own injection)."),
+    group: bool = typer.Option(True, help="Keep the replays of one recording together in the benchmark's split "
+                               "(--no-group: split them like independent flights; optimistic, for a fleet of "
+                               "too few logs to split by recording)."),
+    format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot or ros."),
+    sensors: Optional[str] = typer.Option(None, help="Sensors the replayed filter fuses (default: all the log has)."),
+    filter: str = typer.Option("ekf2", help=FILTER_HELP),
+    imu_rate: Optional[float] = typer.Option(None, help="IMU averaged down to at most this rate (Hz; default 100)."),
+    gps_rate: Optional[float] = typer.Option(None, help="At most this many fixes per second are fused (Hz; "
+                                             "default 10)."),
+    min_segment: float = typer.Option(3.0, help="Seconds of GPS a segment needs to be replayed."),
+    gps_delay: Optional[float] = typer.Option(None, help=LOG_GPS_DELAY_HELP),
+    receiver_accuracy: bool = typer.Option(True, help=RECEIVER_HELP),
+    overwrite: bool = typer.Option(False, help="Replace DIR if it exists."),
+) -> None:
+    """A dataset (the format of `quadformer simulate`) from flight logs: one flight per log segment,
+    optionally with spoofs injected into the logged GPS and labelled. `benchmark --data`, `fit` and
+    `evaluate` take it."""
+    from quadformer.config import AttackConfig
+    from quadformer.dataset import write_dataset
+    from quadformer.io import set_threads
+    from quadformer.logs import LogError
+    from quadformer.logs.detect import logs_dataset
+
+    check_residues(residues)
+    if out.exists() and not overwrite:
+        fail(f"{out} already exists (use --overwrite to replace it)")
+    attack = None
+    if inject is not None:
+        opts = {"kind": inject, "fraction": attack_fraction, "onset": pair("--onset", onset),
+                "duration": pair("--attack-duration", attack_duration), "magnitude": pair("--magnitude", magnitude),
+                "rate": pair("--rate", rate), "axes": axes}
+        try:
+            attack = AttackConfig(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in opts.items()
+                                     if v is not None})
+        except (ConfigError, TypeError) as e:
+            fail(str(e))
+    config = replay_config(sensors, imu_rate, gps_rate, min_segment, filter, gps_delay=gps_delay,
+                           receiver_accuracy=receiver_accuracy)
+    paths = log_paths(logs, format)
+    set_threads(1)
+    try:
+        ds = logs_dataset(paths, residues, config, attack=attack, seed=seed, format=format, repeat=repeat,
+                          group=group)
+    except (LogError, ValueError) as e:
+        fail(str(e))
+    write_dataset(ds, out, overwrite=overwrite)
+    s = ds.meta["summary"]
+    for log, notes in ds.meta["notes"].items():
+        for n in notes:
+            typer.echo(f"{log}: {n}")
+    typer.echo(f"wrote {out}: {s['flights']} flights ({s['attacked_flights']} attacked) from {len(paths)} log(s), "
+               f"{s['rows']} GPS steps, {residues} residues")

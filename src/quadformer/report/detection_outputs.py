@@ -1,0 +1,126 @@
+"""The outputs of detection on flight logs, as ``quadformer detect`` writes them.
+
+Per log, a folder (named after the log; replaced whole, never left half written):
+``scores.csv`` (the flight table's rows with ``score`` and ``alarm``), ``alerts.csv``,
+``report.html`` and ``summary.json``; a readable log with nothing to score gets
+``report.html`` and ``summary.json`` saying why. Over the logs scored: ``summary.csv`` (a
+row per log) and ``alerts.csv`` (every alert, with its ``log``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pandas as pd
+
+from quadformer.detectors import alerts_frame
+from quadformer.estimator.online import FilterConfig
+from quadformer.io import atomic_dir, atomic_path, write_json
+from quadformer.logs import LogError
+from quadformer.logs.detect import DetectorInputError, LogDetection, NothingToScore, detect_log
+from quadformer.report.logs import write_log_report, write_unscored_report
+
+#: the columns of summary.csv, taken from each scored log's summary.json
+SUMMARY_COLUMNS = ("log", "format", "duration_s", "segments", "steps", "alarmed_steps", "alerts")
+
+
+def write_detection(res: LogDetection, folder: str | Path, log: str | Path, model: str = "") -> dict[str, Any]:
+    """One log's detection into ``folder``: scores.csv, alerts.csv, report.html and
+    summary.json. ``log``: the log as named to the reader; ``model``: the model file's
+    name. Returns what summary.json holds."""
+    det = res.detector
+    with atomic_dir(folder, overwrite=True) as tmp:
+        table = res.rows.copy()
+        table["score"] = res.scores
+        table["alarm"] = res.alarms.astype(np.int8)
+        table.to_csv(tmp / "scores.csv", index=False)
+        alerts_frame(res.alerts).to_csv(tmp / "alerts.csv", index=False)
+        write_log_report(res, tmp, model)
+        info = {"log": str(log), "format": res.log.source, "residues": res.residues, "sensors": res.sensors,
+                "detector": det.name, "model": model, "threshold": det.threshold_,
+                "duration_s": res.log.duration, "segments": len(res.log.segments),
+                "steps": int(len(res.rows)), "alarmed_steps": int(res.alarms.sum()), "alerts": len(res.alerts),
+                "notes": [*res.log.notes, *res.notes]}
+        write_json(tmp / "summary.json", info)
+    return info
+
+
+def write_unscored(err: NothingToScore, folder: str | Path, log: str | Path) -> dict[str, Any]:
+    """A readable log with nothing to score into ``folder``: report.html and summary.json
+    saying why. Returns what summary.json holds."""
+    info = {"log": str(log), "format": err.log.source, "scored": False, "reason": str(err), "notes": err.log.notes}
+    with atomic_dir(folder, overwrite=True) as tmp:
+        write_unscored_report(err.log, str(err), tmp)
+        write_json(tmp / "summary.json", info)
+    return info
+
+
+def folder_names(paths: list[Path]) -> list[str]:
+    """A distinct output folder name per log: its file name, prefixed by its directory's
+    name (then suffixed) where another log already has it."""
+    used: set[str] = set()
+    out = []
+    for path in paths:
+        name = path.name
+        while name in used:
+            name = f"{path.parent.name}-{name}" if not name.startswith(path.parent.name) else f"{name}-1"
+        used.add(name)
+        out.append(name)
+    return out
+
+
+@dataclass
+class LogOutcome:
+    path: Path
+    status: str                                   # scored, skipped (readable, nothing to score) or failed
+    folder: Path | None = None                    # the log's output folder (none for a failed log)
+    detection: LogDetection | None = None         # scored: the scores, alarms and alerts
+    reason: str | None = None                     # skipped or failed: why
+    summary: dict[str, Any] = field(default_factory=dict)   # what the folder's summary.json holds
+
+
+@dataclass
+class LogsDetection:
+    out: Path
+    outcomes: list[LogOutcome]
+
+    def of(self, status: str) -> list[LogOutcome]:
+        return [o for o in self.outcomes if o.status == status]
+
+
+def detect_logs(paths: list[str | Path], detector, out: str | Path, residues: str = "ekf",
+                config: FilterConfig = FilterConfig(), format: str | None = None, typing: str = "shape",
+                model: str = "", on_log: Callable[[LogOutcome], None] | None = None) -> LogsDetection:
+    """``logs.detect.detect_log`` on each log of ``paths``, the outputs written under ``out``:
+    a folder per log (``folder_names``), and summary.csv and alerts.csv over the logs scored
+    (none when no log was). A log that cannot be read or scored (LogError, a detector that
+    reads residues the log does not provide, ValueError) is a ``failed`` outcome with no
+    folder; the others go on. ``on_log`` is called with each log's outcome as it is done."""
+    out, paths = Path(out), [Path(p) for p in paths]
+    outcomes, frames = [], []
+    for path, name in zip(paths, folder_names(paths)):
+        try:
+            res = detect_log(path, detector, residues, config, format=format, typing=typing)
+        except NothingToScore as e:                      # readable, but no GPS or too short: say so
+            info = write_unscored(e, out / name, path)
+            outcome = LogOutcome(path, "skipped", out / name, reason=str(e), summary=info)
+        except (LogError, DetectorInputError, ValueError) as e:
+            outcome = LogOutcome(path, "failed", reason=str(e))
+        else:
+            info = write_detection(res, out / name, path, model)
+            frames.append(alerts_frame(res.alerts).assign(log=str(path)))
+            outcome = LogOutcome(path, "scored", out / name, res, summary=info)
+        outcomes.append(outcome)
+        if on_log is not None:
+            on_log(outcome)
+    run = LogsDetection(out, outcomes)
+    scored = run.of("scored")
+    if scored:
+        with atomic_path(out / "summary.csv") as tmp:
+            pd.DataFrame([{k: o.summary[k] for k in SUMMARY_COLUMNS} for o in scored]).to_csv(tmp, index=False)
+        with atomic_path(out / "alerts.csv") as tmp:
+            pd.concat(frames, ignore_index=True).to_csv(tmp, index=False)
+    return run

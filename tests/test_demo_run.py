@@ -1,0 +1,43 @@
+"""The demo's run through the library: a profile's datasets, the detection benchmark, then
+the resilience benchmark, on a cache holding one small dataset per configuration."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+from quadformer.experiments.cache import dataset_key
+from quadformer.experiments.demo import run_demo_profile
+from quadformer.experiments.grid import PROFILES, profile_configs, select_configs
+
+
+@pytest.fixture(scope="module")
+def short_dataset_dir(tmp_path_factory):
+    """6 flights of 10 s, half of them attacked (bias from 2.5-4 s for 2.5-4 s)."""
+    from quadformer.config import AttackConfig, SimConfig
+    from quadformer.dataset import write_dataset
+    from quadformer.simulation import simulate
+
+    cfg = SimConfig(model="II", noise="laplace", flights=6, duration=10.0, seed=3,
+                    attack=AttackConfig(kind="bias", onset=(2.5, 4.0), duration=(2.5, 4.0)))
+    return write_dataset(simulate(cfg), tmp_path_factory.mktemp("short") / "ds")
+
+
+def test_demo_run_benchmarks_detection_then_resilience_from_the_cache(short_dataset_dir, tmp_path):
+    part = select_configs(PROFILES["demo"], "modelII-laplace-bias")
+    cache = tmp_path / "cache"
+    for name, cfg in profile_configs(part):
+        shutil.copytree(short_dataset_dir, cache / f"{name}-{dataset_key(cfg)}")
+    out = tmp_path / "demo"
+    run = run_demo_profile(out, cache, ["cusum"], profile=part, detector="cusum", progress=False, workers=1)
+    assert [r["config"] for r in run.datasets] == ["modelII-laplace-bias"] and run.datasets[0]["flights"] == 6
+    assert list(run.phases) == ["simulate", "detection", "resilience"] and min(run.phases.values()) >= 0
+    written = json.loads((out / "detection" / "results.json").read_text())
+    assert [c["name"] for c in run.detection["configs"]] == [c["name"] for c in written["configs"]] == [
+        "modelII-laplace-bias"]
+    assert run.resilience["detector"] == "cusum" and (out / "resilience" / "alerts.csv").exists()
+    assert run.resilience["configs"][0]["model_from_cache"] is True      # the detection run's tuned CUSUM
+    assert sorted(p.name for p in cache.iterdir() if p.name != "models") == [
+        f"{n}-{dataset_key(c)}" for n, c in profile_configs(part)]       # nothing simulated
