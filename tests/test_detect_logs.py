@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from logs_support import FIX
+from pyulog import ULog
 from typer.testing import CliRunner
 
 from quadformer.cli import app
@@ -265,9 +266,37 @@ def test_detect_with_the_replayed_filter_on_px4_and_ardupilot_logs(models, tmp_p
         assert np.median(gap) < 1.0
         html = (out / log.name / "report.html").read_text()
         assert "autopilot's estimate" in html or "autopilot" in html
+        # t counts from the log's first sensor sample, as the live monitor does; boot time beside
+        read = read_log(log)
+        assert min(float(df.t.iloc[0]) for n, df in read.streams.items()
+                   if n in ("imu", "gps", "mag", "baro", "odometry", "attitude")) == 0.0
+        assert s["boot_t0_s"] == pytest.approx(read.boot_t0) and read.boot_t0 > 0
+        np.testing.assert_allclose(rows.boot_t - rows.t, read.boot_t0, atol=1e-6)
+    imu = ULog(str(EVENTS), ["sensor_combined"]).data_list[0].data["timestamp"]
+    read = read_log(EVENTS)                         # the vehicle's clock is t + boot_t0
+    assert read.boot_t0 + float(read.imu.t.iloc[0]) == pytest.approx(imu[0] * 1e-6, abs=1e-6)
     # a detector fit with VIO residues refuses a log without a camera, and says what would help
     res = runner.invoke(app, ["detect", str(COPTER), "--model", str(models["svm"]), "--out", str(tmp_path / "x")])
     assert res.exit_code == 2 and "res_vio_r" in res.output and "--sensors gps+imu+mag+baro" in res.output
+
+
+def test_log_alerts_are_raised_by_the_online_step_as_by_the_batch_tracker():
+    """detect_log drives each segment's rows through resilience.step.OnlineStep (the live
+    monitor's and the closed loop's step): the alerts equal the batch tracker's over the scores."""
+    from quadformer import make
+    from quadformer.detectors import alerts_from_scores
+    from quadformer.detectors.attack_types import alert_typer
+    from quadformer.logs.detect import log_rows, step_alerts
+
+    flights, _ = log_rows(read_log(COPTER))
+    rows = pd.concat([f.rows for f in flights], ignore_index=True)
+    for name in ("chi2", "cusum"):
+        det = make(name).fit(rows, np.zeros(len(rows), np.int8))
+        scores = det.decision_function(rows)
+        det.calibrate(float(np.quantile(scores, 0.97)), float(np.quantile(scores, 0.99)))
+        batch = alerts_from_scores(rows, scores, det, typer=alert_typer(rows, "shape"))
+        assert batch and step_alerts(rows, scores, det, "shape") == batch, name
+        assert all(a.confirmed_type is not None for a in batch)
 
 
 def test_logs_import_injects_labelled_spoofs_the_residues_see(models, tmp_path):

@@ -71,15 +71,10 @@ def run_monitor(detector, streams, sender=SenderConfig(), seconds=60.0, **config
 def reference_log(record, path="live-record"):
     """The sender's data as encoded, as a FlightLog (what the monitor received), for the
     offline pipeline: fixes without a 3D fix are not fixes; ENU about the origin the vehicle
-    sent, else the first fix (the monitor's rules)."""
+    sent, else the first fix (the monitor's rules). ``assemble`` counts time from the first
+    sensor sample, as the monitor does."""
     gps = record["gps"]
     gps = gps[gps.fix_type >= 3].reset_index(drop=True)
-    # times from the first sensor sample the monitor accepts (its time base, t = 0)
-    t0 = min(float(df.t.iloc[0]) for name, df in record.items()
-             if name not in ("origin", "gps") and df is not None and len(df))
-    t0 = min(t0, float(gps.t.iloc[0]))
-    record = {k: (v.assign(t=v.t - t0) if k != "origin" and v is not None else v) for k, v in record.items()}
-    gps = gps.assign(t=gps.t - t0)
     origin = record["origin"] or tuple(gps[["lat", "lon", "alt"]].iloc[0])
     enu = geodetic_to_enu(gps.lat.to_numpy(), gps.lon.to_numpy(), gps.alt.to_numpy(), origin)
     cols = {"imu": ["ax", "ay", "az", "gx", "gy", "gz"], "mag": ["mx", "my", "mz"], "baro": ["alt"],

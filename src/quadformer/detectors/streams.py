@@ -119,3 +119,33 @@ class StreamGroup:
                                     for st in steps])
         return StreamStep(np.concatenate([st.score for st in steps]),
                           np.concatenate([st.alarm for st in steps]), types, above)
+
+
+class ScoredStream:
+    """The stream of steps scored beforehand, for one flight: ``update`` gives row k of
+    ``score``, ``alarm``, ``attack_type`` and ``above`` at its k-th call (the residues passed are
+    not read). Offline replay scores a whole log in one batch, which equals the detector's own
+    stream row by row (see the module text), and drives the online step with this one."""
+
+    n = 1
+
+    def __init__(self, score: np.ndarray, alarm: np.ndarray, attack_type: np.ndarray | None = None,
+                 above: np.ndarray | None = None):
+        self.score = np.asarray(score, dtype=float)
+        self.alarm = np.asarray(alarm, dtype=bool)
+        self.attack_type = None if attack_type is None else np.asarray(attack_type, dtype=object)
+        self.above = None if above is None else np.asarray(above, dtype=bool)
+        sizes = {len(a) for a in (self.score, self.alarm, self.attack_type, self.above) if a is not None}
+        if len(sizes) != 1:
+            raise ValueError(f"ScoredStream: score, alarm, attack_type and above differ in length ({sorted(sizes)})")
+        self.k = 0
+
+    def update(self, residues=None) -> StreamStep:
+        k = self.k
+        if k >= len(self.score):
+            raise IndexError(f"ScoredStream: all {len(self.score)} steps given")
+        self.k += 1
+        cut = slice(k, k + 1)
+        return StreamStep(self.score[cut], self.alarm[cut],
+                          None if self.attack_type is None else self.attack_type[cut],
+                          None if self.above is None else self.above[cut])

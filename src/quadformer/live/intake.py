@@ -9,9 +9,8 @@ sensor, in order and on one time base, out; with the link's accounting. The pack
   with the magnetometer it carries, one barometer, one GPS receiver (the first with a 3D fix).
 - **Time base** (``TimeBase``): ``t``, seconds since the link's first sensor sample (the first
   IMU, GPS, magnetometer, barometer, odometry or attitude sample accepted), beside ``boot_t``,
-  the vehicle's own time since boot (UNIX-epoch stamps mapped through ``SYSTEM_TIME``). The log
-  tools count from the start of their file; a link has no file, and its first sensor sample is
-  its start. After a restart of the vehicle's clock ``t`` goes on from its last value plus the
+  the vehicle's own time since boot (UNIX-epoch stamps mapped through ``SYSTEM_TIME``), as the
+  log tools count from a log's first sensor sample (``logs.flightlog``). After a restart of the vehicle's clock ``t`` goes on from its last value plus the
   monitor's clock time since (at least ``EPOCH_STEP_S``), so it never goes back.
 - **Activity**: per stream, ``t`` and the monitor's clock at its last sample. A stream is
   silent for the larger of the two ages; longer than ``stale_s`` it is reported (a gap when

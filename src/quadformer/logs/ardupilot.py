@@ -225,7 +225,7 @@ class _DataflashReader:
             "truth": self.truth(origin),
         }
         return assemble("ardupilot-dataflash", self.path, streams, self.notes, vehicle, origin,
-                        origin_source, imu_gap, gps_gap)
+                        origin_source, imu_gap, gps_gap, boot_start=self.first_us * 1e-6)
 
     def vehicle(self) -> dict:
         out: dict = {"autopilot": "ArduPilot"}

@@ -1,7 +1,7 @@
 """Detection on a flight log and a dataset from flight logs.
 
 ``detect_log``: read a log, turn each segment into rows of the flight table (``replay``),
-score them with a fitted, calibrated detector and collect its alerts.
+score them with a fitted, calibrated detector and raise its alerts through the online step.
 ``logs_dataset``: the rows of many logs (optionally with injected spoofs, labelled) as a
 dataset in the project's format, which ``benchmark --data``, ``fit`` and ``evaluate`` take.
 """
@@ -82,9 +82,6 @@ def detect_log(log: FlightLog | str | Path, detector, residues: str = "ekf",
                typing: str = "shape") -> LogDetection:
     """Scores, alarms and alerts of a calibrated ``detector`` on every segment of ``log``;
     ``typing``: where the alerts' attack types come from (``detectors.attack_types.TYPINGS``)."""
-    from quadformer.detectors import alerts_from_scores
-    from quadformer.detectors.attack_types import alert_typer
-
     if not isinstance(log, FlightLog):
         log = read_log(log, format=format)
     if getattr(detector, "threshold_", None) is None:
@@ -106,8 +103,43 @@ def detect_log(log: FlightLog | str | Path, detector, residues: str = "ekf",
               f"{flights[0].sensors if residues == 'ekf' else 'gps+imu+mag+baro'})")
     scores = detector.decision_function(rows)
     alarms = scores > detector.threshold_
-    alerts = alerts_from_scores(rows, scores, detector, typer=alert_typer(rows, typing))
+    alerts = step_alerts(rows, scores, detector, typing, config.gps_rate_hz)
     return LogDetection(log, residues, rows, scores, alarms, alerts, flights[0].sensors, detector, notes)
+
+
+def step_alerts(rows: pd.DataFrame, scores: np.ndarray, detector, typing: str = "shape",
+                gps_rate_hz: float = FilterConfig.gps_rate_hz) -> list:
+    """The alerts of ``rows`` (flights by ``flight_id``) scored in one batch (``scores``): each
+    flight's rows driven through the online step (``resilience.step.OnlineStep``) that the live
+    monitor and the closed loop drive, so its alert lifecycle, onsets and shape typing are the
+    live ones. The replayed filter fused every fix, so the step decides no GPS admission here."""
+    from quadformer.detectors import flight_slices
+    from quadformer.detectors.alarms import onset_flags
+    from quadformer.detectors.attack_types import TYPING_COLUMNS, OnlineTyper, alert_typer
+    from quadformer.detectors.streams import ScoredStream
+    from quadformer.resilience.step import OnlineStep
+
+    alarms = np.asarray(scores) > detector.threshold_
+    if not alarms.any():
+        return []
+    shape = alert_typer(rows, typing)
+    types = None
+    if shape is None and hasattr(detector, "predict_type"):
+        types = np.asarray(detector.predict_type(rows), dtype=object)
+    above = onset_flags(rows, detector)
+    typed = [c for c in TYPING_COLUMNS[1:] if c in rows.columns] if shape is not None else []
+    t = rows["t"].to_numpy(dtype=float)
+    alerts = []
+    for fid, idx in flight_slices(rows):
+        stream = ScoredStream(scores[idx], alarms[idx], None if types is None else types[idx],
+                              None if above is None else above[idx])
+        step = OnlineStep(stream, flight_ids=[fid], typer=None if shape is None else OnlineTyper(shape, gps_rate_hz))
+        values = rows[typed].to_numpy(dtype=float)[idx]
+        for k in range(len(idx)):
+            step.update_columns(t[idx[k]], dict(zip(typed, values[k, :, None])))
+        step.finish()
+        alerts += step.alerts
+    return alerts
 
 
 def logs_dataset(paths: list[Path], residues: str = "ekf", config: FilterConfig = FilterConfig(),

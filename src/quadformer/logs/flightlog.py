@@ -1,7 +1,9 @@
 """A flight log as typed, timestamped streams, and the validation layer every reader uses.
 
 ``FlightLog`` holds one ``pandas.DataFrame`` per stream (or ``None`` when the log lacks
-it), each with a float64 column ``t`` (seconds from the log start, strictly increasing)
+it), each with a float64 column ``t`` (seconds since the log's first sensor sample, strictly
+increasing; ``boot_t0`` beside it, the vehicle's time since boot at t = 0, as the live monitor
+counts)
 and exactly the columns of ``STREAMS``, in SI units, world frame ENU and body frame FLU
 (see ``frames``). Readers build raw frames with ``make_stream`` and hand them to
 ``assemble``, which runs the same checks for every format:
@@ -31,11 +33,13 @@ import pandas as pd
 
 from quadformer.geometry import frames
 
-__all__ = ["GPS_GAP", "IMU_GAP", "REQUIRED", "SOURCES", "STREAMS", "FlightLog", "LogError",
+__all__ = ["GPS_GAP", "IMU_GAP", "REQUIRED", "SENSOR_STREAMS", "SOURCES", "STREAMS", "FlightLog", "LogError",
            "assemble", "clean_stream", "find_segments", "gps_stream", "make_stream"]
 
 IMU_GAP = 0.5   # s, an IMU interval longer than this ends a segment
 GPS_GAP = 2.0   # s, a GPS interval longer than this ends a segment
+
+SENSOR_STREAMS = ("imu", "gps", "mag", "baro", "odometry", "attitude")   # t = 0: the first of these
 
 SOURCES = ("px4-ulog", "ardupilot-dataflash", "ros1-bag", "ros2-bag", "arrays")
 
@@ -108,7 +112,9 @@ class FlightLog:
     origin is (lat deg, lon deg, alt m) of the local ENU frame of ``gps``, ``estimate`` and
     ``truth``; origin_source says where it came from ("autopilot local origin", "first GPS
     fix", or "none" with a NaN origin when the log has neither). notes lists every repair or
-    choice the reader made; segments are the spans (s) without long gaps.
+    choice the reader made; segments are the spans (s) without long gaps. Times count from the
+    first sensor sample (``SENSOR_STREAMS``); boot_t0 is the vehicle's time since boot (s) at
+    t = 0, NaN where the log's clock is not the vehicle's (ROS bags, arrays).
     """
 
     source: str
@@ -127,6 +133,7 @@ class FlightLog:
     attitude: pd.DataFrame | None = None
     truth: pd.DataFrame | None = None
     segments: list[tuple[float, float]] = field(default_factory=list)
+    boot_t0: float = math.nan
 
     def __post_init__(self) -> None:
         errors = [] if self.source in SOURCES else [f"source {self.source!r} not in {SOURCES}"]
@@ -153,7 +160,7 @@ class FlightLog:
         return self.segments[-1][1] - self.segments[0][0] if self.segments else 0.0
 
     def segment(self, i: int) -> FlightLog:
-        """This log restricted to segment i (times kept as they are, from the log start)."""
+        """This log restricted to segment i (times kept as they are, from the first sensor sample)."""
         a, b = self.segments[i]
         cut = {}
         for name, df in self.streams.items():
@@ -283,8 +290,10 @@ def assemble(source: str, path: Path, streams: Mapping[str, pd.DataFrame | None]
              notes: list[str], vehicle: dict | None = None,
              origin: tuple[float, float, float] = (math.nan, math.nan, math.nan),
              origin_source: str = "none", imu_gap: float = IMU_GAP,
-             gps_gap: float = GPS_GAP) -> FlightLog:
-    """Validate raw streams (``clean_stream``), find segments and build the FlightLog."""
+             gps_gap: float = GPS_GAP, boot_start: float = math.nan) -> FlightLog:
+    """Validate raw streams (``clean_stream``), count time from the first sensor sample, find
+    segments and build the FlightLog. ``boot_start``: the vehicle's time since boot (s) at the
+    raw streams' t = 0 (NaN when the log's clock is not the vehicle's)."""
     for name, gap in (("imu_gap", imu_gap), ("gps_gap", gps_gap)):
         if not (isinstance(gap, (int, float)) and math.isfinite(gap) and gap > 0):
             raise ValueError(f"{name} must be a positive number of seconds, got {gap!r}")
@@ -295,6 +304,11 @@ def assemble(source: str, path: Path, streams: Mapping[str, pd.DataFrame | None]
     if all(v is None for v in clean.values()):
         raise LogError(f"{path}: no usable samples in any stream (IMU, GPS, baro, ...); "
                        "the log is empty or holds none of the topics/messages this reader knows")
+    firsts = [float(clean[n]["t"].iloc[0]) for n in SENSOR_STREAMS if clean[n] is not None]
+    zero = min(firsts) if firsts else min(float(df["t"].iloc[0]) for df in clean.values() if df is not None)
+    if zero != 0.0:
+        clean = {n: None if df is None else df.assign(t=df["t"].to_numpy() - zero) for n, df in clean.items()}
+        notes.append(f"time: t counts from the first sensor sample, {zero:.6f} s after the log's start")
     imu_t = clean["imu"]["t"].to_numpy() if clean["imu"] is not None else None
     gps_t = clean["gps"]["t"].to_numpy() if clean["gps"] is not None else None
     segments, gaps = find_segments(imu_t, gps_t, imu_gap, gps_gap)
@@ -307,4 +321,4 @@ def assemble(source: str, path: Path, streams: Mapping[str, pd.DataFrame | None]
         notes.append("segments: no IMU or GPS span; one segment over all samples")
     return FlightLog(source=source, path=Path(path), vehicle=dict(vehicle or {}), notes=notes,
                      origin=tuple(float(v) for v in origin), origin_source=origin_source,
-                     segments=segments, **clean)
+                     segments=segments, boot_t0=float(boot_start) + zero, **clean)

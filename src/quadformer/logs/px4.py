@@ -230,7 +230,7 @@ class _UlogReader:
             "truth": self.truth(origin),
         }
         return assemble("px4-ulog", self.path, streams, self.notes, vehicle, origin,
-                        origin_source, imu_gap, gps_gap)
+                        origin_source, imu_gap, gps_gap, boot_start=self.start * 1e-6)
 
     def vehicle(self) -> dict:
         info = self.ulog.msg_info_dict

@@ -1,14 +1,16 @@
 """The outputs of detection on flight logs, as ``quadformer detect`` writes them.
 
 Per log, a folder (named after the log; replaced whole, never left half written):
-``scores.csv`` (the flight table's rows with ``score`` and ``alarm``), ``alerts.csv``,
-``report.html`` and ``summary.json``; a readable log with nothing to score gets
-``report.html`` and ``summary.json`` saying why. Over the logs scored: ``summary.csv`` (a
+``scores.csv`` (the flight table's rows with ``score`` and ``alarm``; ``t`` in seconds since
+the log's first sensor sample, as the live monitor counts, ``boot_t`` the vehicle's time since
+boot beside it), ``alerts.csv``, ``report.html`` and ``summary.json``; a readable log with
+nothing to score gets ``report.html`` and ``summary.json`` saying why. Over the logs scored: ``summary.csv`` (a
 row per log) and ``alerts.csv`` (every alert, with its ``log``).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -36,11 +38,13 @@ def write_detection(res: LogDetection, folder: str | Path, log: str | Path, mode
         table = res.rows.copy()
         table["score"] = res.scores
         table["alarm"] = res.alarms.astype(np.int8)
+        table.insert(table.columns.get_loc("t") + 1, "boot_t", table["t"] + res.log.boot_t0)
         table.to_csv(tmp / "scores.csv", index=False)
         alerts_frame(res.alerts).to_csv(tmp / "alerts.csv", index=False)
         write_log_report(res, tmp, model)
         info = {"log": str(log), "format": res.log.source, "residues": res.residues, "sensors": res.sensors,
                 "detector": det.name, "model": model, "threshold": det.threshold_,
+                "boot_t0_s": None if math.isnan(res.log.boot_t0) else res.log.boot_t0,
                 "duration_s": res.log.duration, "segments": len(res.log.segments),
                 "steps": int(len(res.rows)), "alarmed_steps": int(res.alarms.sum()), "alerts": len(res.alerts),
                 "notes": [*res.log.notes, *res.notes]}

@@ -31,9 +31,10 @@ import torch
 
 from quadformer.detectors.alarms import AlertEvent, AlertTracker
 from quadformer.detectors.attack_types import OnlineTyper
-from quadformer.estimator.schema import as_columns
+from quadformer.estimator.schema import GROUPS, NIS, as_columns
 from quadformer.resilience.admission import Decision
 
+GPS_R, GPS_S = GROUPS["res_gps_r"].columns, GROUPS["res_gps_s"].columns   # the admission's inputs
 MAX_PENDING = 100          # alerts awaiting their confirmed type (one per alarm start within confirm_s)
 
 
@@ -80,7 +81,10 @@ class OnlineStep:
         ``{group: (n, width)}`` (as ``ResidueStream`` and the closed loop give them); ``attacked``:
         (n,) which fixes are spoofed (the oracle policy only). Raises ValueError for residues the
         detector cannot score (non-finite): nothing is decided for such a step."""
-        cols = as_columns(residues)
+        return self.update_columns(t, as_columns(residues), attacked)
+
+    def update_columns(self, t, cols: Mapping[str, Any], attacked=None) -> StepResult:
+        """``update`` for a residue row already in the flight table's columns ``{column: (n,)}``."""
         if self.stream is not None:
             st = self.stream.update(cols)
             score, alarm, types, above = st.score, np.asarray(st.alarm, dtype=bool), st.attack_type, st.above
@@ -89,9 +93,9 @@ class OnlineStep:
         dec = before = after = None
         if self.admission is not None:
             before = self.admission.state.numpy().copy()
-            nis = torch.as_tensor(np.asarray(residues["res_gps_nis"]))[:, 0]
-            r = torch.as_tensor(np.asarray(residues["res_gps_r"]))
-            s = torch.as_tensor(np.asarray(residues["res_gps_s"]))
+            nis = torch.as_tensor(np.asarray(cols[NIS]))
+            r = torch.as_tensor(np.stack([np.asarray(cols[c]) for c in GPS_R], axis=-1))
+            s = torch.as_tensor(np.stack([np.asarray(cols[c]) for c in GPS_S], axis=-1))
             w = r / torch.where(s > 0, s, torch.ones_like(s))
             hit = torch.zeros(self.n, dtype=torch.bool) if attacked is None else torch.as_tensor(
                 np.asarray(attacked, dtype=bool))
