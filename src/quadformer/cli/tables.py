@@ -26,7 +26,7 @@ def print_tables(results: dict) -> None:
 
 
 def print_typing(results: dict) -> None:
-    from quadformer.report.detection import typing_table
+    from quadformer.report.detection_tables import typing_table
 
     df = typing_table(results)
     if df is not None:
@@ -35,7 +35,7 @@ def print_typing(results: dict) -> None:
 
 
 def print_stress(results: dict) -> None:
-    from quadformer.report.detection import stress_table
+    from quadformer.report.detection_tables import stress_table
 
     df = stress_table(results)
     if df is None:
@@ -52,7 +52,7 @@ def print_stress(results: dict) -> None:
 
 
 def print_seeds(results: dict) -> None:
-    from quadformer.report.detection import seeds_table
+    from quadformer.report.detection_seeds import seeds_table
 
     typer.echo(f"\nPoint-wise F1 on test flights over seeds {', '.join(map(str, results['seeds']))}: "
                "mean ± std [min, max]")

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from quadformer.estimator.eskf import EKFState, NoiseModel
-from quadformer.estimator.online import OnlineFilter, StreamError
+from quadformer.estimator.online_filter import OnlineFilter, StreamError
 
 # values per sample of each stream, and what they are
 WIDTHS = {"imu": (6, "specific force and body rate"), "gps": (6, "position and velocity"),

@@ -318,7 +318,7 @@ def run_seeds(profile: str | Profile, methods: list[str], out: Path, cache_dir: 
     tables, report); ``out/results.json`` keeps every run's metrics per configuration and
     method and their mean, standard deviation (ddof 1) and min-max over the seeds, and
     ``out/report.html`` shows them."""
-    from quadformer.report.detection import write_seeds_report
+    from quadformer.report.detection_seeds import write_seeds_report
 
     prof = get_profile(profile)
     seeds = [int(s) for s in seeds]

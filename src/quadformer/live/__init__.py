@@ -8,5 +8,6 @@ by the detector's online stream, as ``quadformer detect`` does offline; alarms d
 resilient GPS admission rule and its actions (``alerts``; the vehicle side and the records:
 ``actions``). The monitor (``monitor``; settings ``config``, the vehicle followed and its local
 frame ``vehicle``, status line and summary ``status``) drives all of it from the link. A test
-sender streams recorded or simulated sensors as MAVLink over UDP (``sender``).
+sender streams recorded or simulated sensors as MAVLink over UDP (``sender``; the streams
+``vehicle_streams``, settings and report ``sender_config``, its end of the link ``sender_link``).
 """

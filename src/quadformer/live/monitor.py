@@ -51,7 +51,7 @@ from typing import Any, Callable
 import numpy as np
 
 from quadformer.detectors.attack_types import ShapeTyper
-from quadformer.estimator.online import GapError
+from quadformer.estimator.online_filter import GapError
 from quadformer.io import write_json
 from quadformer.live import status
 from quadformer.live.actions import Records, VehicleLink, autopilot_name

@@ -37,176 +37,29 @@ loop forever on one offset) and the message loop is bounded by the file size
 
 from __future__ import annotations
 
-import contextlib
-import io
 import math
 from pathlib import Path
 
 import numpy as np
-from pymavlink import DFReader
 
 from quadformer.geometry import frames
-from quadformer.logs._series import (first_fix, interp_linear, median_period, nearest_index,
-                                     step_lookup, take)
-from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, LogError, assemble, gps_stream, make_stream
+from quadformer.logs._series import first_fix, interp_linear, median_period, nearest_index, take
+from quadformer.logs.ardupilot_estimator import DataflashEstimator
+from quadformer.logs.ardupilot_messages import WANTED, col, collect_messages
+from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, assemble, gps_stream, make_stream
 
 __all__ = ["read_dataflash"]
-
-_HEADER = b"\xa3\x95"
-_WANTED = {
-    "IMU": ("I", "AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ"),
-    "GPS": ("I", "Status", "NSats", "Lat", "Lng", "Alt", "Spd", "GCrs", "VZ"),
-    "GPA": ("I", "HAcc", "VAcc", "SAcc", "VV"),
-    "BARO": ("I", "Alt"),
-    "MAG": ("I", "MagX", "MagY", "MagZ"),
-    "ATT": ("Roll", "Pitch", "Yaw"),
-    "XKF1": ("C", "Core", "PN", "PE", "PD", "VN", "VE", "VD"),
-    "XKF3": ("C", "Core", "IPN", "IPE", "IPD", "IVN", "IVE", "IVD"),
-    "XKF4": ("C", "Core", "SV", "SP", "SH", "OFN", "OFE", "PI"),
-    "ORGN": ("Type", "Lat", "Lng", "Alt"),
-    "SIM": ("Lat", "Lng", "Alt", "Q1", "Q2", "Q3", "Q4"),
-    "SIM2": ("VN", "VE", "VD"),
-    "VISP": ("PX", "PY", "PZ", "Roll", "Pitch", "Yaw"),
-    "VISV": ("VX", "VY", "VZ"),
-    "VISO": (),
-    "ARM": ("ArmState",),
-    "VER": ("BT", "BST", "Maj", "Min", "Pat", "FWT", "GH", "FWS", "APJ"),
-    "MSG": ("Message",),
-    "NKF3": (),
-    "PARM": ("Name", "Value"),
-}
-
-
-class _CorruptFormat(Exception):
-    pass
-
-
-class _CheckedFormats(dict):
-    """DFReader's format table, refusing formats whose length cannot hold the header."""
-
-    def __setitem__(self, key, fmt) -> None:
-        if getattr(fmt, "len", 0) < 3:
-            raise _CorruptFormat(f"message format {getattr(fmt, 'name', key)!r} (type {key}) "
-                                 f"has length {getattr(fmt, 'len', None)}")
-        super().__setitem__(key, fmt)
-
-
-class _GuardedReader(DFReader.DFReader_binary):
-    """DFReader_binary with a checked format table; always the pure-Python indexer, so that
-    the check applies while the file is indexed."""
-
-    def init_arrays_fast(self, progress_callback=None):
-        self.init_arrays(progress_callback)
-
-    def init_arrays(self, progress_callback=None):
-        self.formats = _CheckedFormats(self.formats)
-        super().init_arrays(progress_callback)
 
 
 def read_dataflash(path: str | Path, *, imu_gap: float = IMU_GAP,
                    gps_gap: float = GPS_GAP) -> FlightLog:
     """Read an ArduPilot DataFlash .bin log into a FlightLog (see the module docstring)."""
     path = Path(path)
-    rows, first_us, reports = _collect(path)
+    rows, first_us, reports = collect_messages(path)
     return _DataflashReader(path, rows, first_us, reports).read(imu_gap, gps_gap)
 
 
-def _collect(path: Path) -> tuple[dict[str, list[dict]], int, int]:
-    if not path.is_file():
-        raise LogError(f"{path}: no such file")
-    size = path.stat().st_size
-    if size == 0:
-        raise LogError(f"{path}: empty file (0 bytes); a DataFlash log starts with 0xA3 0x95")
-    with open(path, "rb") as fh:
-        if fh.read(2) != _HEADER:
-            raise LogError(f"{path}: does not start with the DataFlash message header 0xA3 0x95; "
-                           "not an ArduPilot .bin log (text .log files are not supported)")
-    rows: dict[str, list[dict]] = {k: [] for k in _WANTED}
-    first_us = None
-    out, err = io.StringIO(), io.StringIO()
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            reader = _GuardedReader(str(path), zero_time_base=True)
-            try:
-                reader._rewind()
-                budget = size // 3 + 16
-                last = -1
-                for _ in range(budget):
-                    m = reader.recv_msg()
-                    if m is None:
-                        break
-                    if reader.offset <= last:
-                        raise _CorruptFormat(f"the reader stopped advancing at offset {last}")
-                    last = reader.offset
-                    fmt = m.fmt
-                    if first_us is None and "TimeUS" in fmt.colhash:
-                        first_us = int(m.TimeUS)
-                    name = fmt.name
-                    if name in rows and "TimeUS" in fmt.colhash:
-                        row = {"TimeUS": int(m.TimeUS)}
-                        for f in _WANTED[name]:
-                            if f in fmt.colhash:
-                                row[f] = getattr(m, f)
-                        rows[name].append(row)
-                else:
-                    raise _CorruptFormat(f"more than {budget} messages in {size} bytes")
-            finally:
-                reader.filehandle.close()
-    except _CorruptFormat as exc:
-        raise LogError(f"{path}: corrupt DataFlash log: {exc}; the file is damaged") from exc
-    # DFReader raises many exception types on damaged input (struct.error, KeyError,
-    # IndexError, RecursionError, its own bare Exception for unknown format characters).
-    except Exception as exc:
-        raise LogError(f"{path}: not a readable DataFlash log ({type(exc).__name__}: {exc}); "
-                       "the file is truncated or corrupt") from exc
-    if first_us is None:
-        raise LogError(f"{path}: no timestamped (TimeUS) message; the log is empty or truncated "
-                       "before its first data message (logs timed in TimeMS only, from before "
-                       "ArduPilot 3.3, are not supported)")
-    text = out.getvalue() + err.getvalue()
-    reports = sum(text.count(k) for k in ("bad header", "Skipped", "Failed to parse", "bad msg"))
-    return rows, first_us, reports
-
-
-def _col(rows: list[dict], name: str, default=np.nan) -> np.ndarray:
-    return np.array([r.get(name, default) for r in rows], dtype=float)
-
-
-class _DataflashReader:
-    def __init__(self, path: Path, rows: dict[str, list[dict]], first_us: int, reports: int):
-        self.path = path
-        self.rows = rows
-        self.first_us = first_us
-        self.notes: list[str] = []
-        if reports:
-            self.notes.append(f"file: DFReader skipped damaged data ({reports} reports)")
-
-    def us(self, rows: list[dict]) -> np.ndarray:
-        """TimeUS after the first one, as float64 microseconds. The difference is taken on
-        Python integers: a damaged TimeUS may exceed the int64 range."""
-        first = self.first_us
-        return np.fromiter((r["TimeUS"] - first for r in rows), dtype=np.float64, count=len(rows))
-
-    def t(self, rows: list[dict]) -> np.ndarray:
-        return self.us(rows) * 1e-6
-
-    def instance(self, name: str, label: str, field: str = "I") -> list[dict]:
-        rows = self.rows[name]
-        if not rows or field not in rows[0]:
-            return rows
-        ids = sorted({r.get(field) for r in rows})
-        if len(ids) > 1:
-            self.notes.append(f"{label}: {name} instances {ids} logged; kept instance {ids[0]} "
-                              f"(dropped {sum(r.get(field) != ids[0] for r in rows)} samples)")
-        return [r for r in rows if r.get(field) == ids[0]]
-
-    def require(self, rows: list[dict], name: str, fields: tuple[str, ...]) -> None:
-        missing = [f for f in fields if f not in rows[0]]
-        if missing:
-            raise LogError(f"{self.path}: {name} messages lack field(s) {', '.join(missing)} "
-                           f"(have: {', '.join(sorted(rows[0]))}); this ArduPilot log layout "
-                           "is not supported")
-
+class _DataflashReader(DataflashEstimator):
     def read(self, imu_gap: float, gps_gap: float) -> FlightLog:
         vehicle = self.vehicle()
         self.arming()
@@ -271,9 +124,9 @@ class _DataflashReader:
         if not rows:
             self.notes.append("imu: no IMU messages")
             return None
-        self.require(rows, "IMU", _WANTED["IMU"][1:])
-        acc = frames.frd_to_flu(np.column_stack([_col(rows, k) for k in ("AccX", "AccY", "AccZ")]))
-        gyr = frames.frd_to_flu(np.column_stack([_col(rows, k) for k in ("GyrX", "GyrY", "GyrZ")]))
+        self.require(rows, "IMU", WANTED["IMU"][1:])
+        acc = frames.frd_to_flu(np.column_stack([col(rows, k) for k in ("AccX", "AccY", "AccZ")]))
+        gyr = frames.frd_to_flu(np.column_stack([col(rows, k) for k in ("GyrX", "GyrY", "GyrZ")]))
         return make_stream("imu", self.t(rows), {
             "ax": acc[:, 0], "ay": acc[:, 1], "az": acc[:, 2],
             "gx": gyr[:, 0], "gy": gyr[:, 1], "gz": gyr[:, 2]})
@@ -285,8 +138,8 @@ class _DataflashReader:
             return None
         self.require(rows, "GPS", ("Status", "Lat", "Lng", "Alt"))
         t = self.t(rows)
-        lat, lon, alt = _col(rows, "Lat"), _col(rows, "Lng"), _col(rows, "Alt")
-        fix = _col(rows, "Status")
+        lat, lon, alt = col(rows, "Lat"), col(rows, "Lng"), col(rows, "Alt")
+        fix = col(rows, "Status")
         keep = fix >= 2
         if (~keep).any():
             self.notes.append(f"gps: dropped {int((~keep).sum())} samples without a position fix "
@@ -299,10 +152,10 @@ class _DataflashReader:
         if not keep.any():
             self.notes.append("gps: no sample with a valid fix")
             return None
-        spd, crs = _col(rows, "Spd"), np.deg2rad(_col(rows, "GCrs"))
-        vel = np.column_stack([spd * np.sin(crs), spd * np.cos(crs), -_col(rows, "VZ")])
+        spd, crs = col(rows, "Spd"), np.deg2rad(col(rows, "GCrs"))
+        vel = np.column_stack([spd * np.sin(crs), spd * np.cos(crs), -col(rows, "VZ")])
         out = {"t": t, "lat": lat, "lon": lon, "alt": alt, "fix_type": fix,
-               "satellites": _col(rows, "NSats"), "vel": vel}
+               "satellites": col(rows, "NSats"), "vel": vel}
         gpa = self.instance("GPA", "gps")
         if gpa:
             tg, tr = self.us(gpa), self.us(rows)
@@ -310,8 +163,8 @@ class _DataflashReader:
             j = nearest_index(tr, tg[order], 0.0)
             j = np.where(j >= 0, order[np.clip(j, 0, None)], -1)
             for src, dst in (("HAcc", "eph"), ("VAcc", "epv"), ("SAcc", "speed_acc")):
-                out[dst] = take(_col(gpa, src), j)
-            vv = take(_col(gpa, "VV"), j)
+                out[dst] = take(col(gpa, src), j)
+            vv = take(col(gpa, "VV"), j)
             if (vv == 0).any():
                 vel[vv == 0, 2] = np.nan
                 self.notes.append(f"gps: vz NaN in {int((vv == 0).sum())} samples (GPA.VV = 0)")
@@ -358,110 +211,7 @@ class _DataflashReader:
             return None
         self.require(rows, name, fields)
         return make_stream(label, self.t(rows),
-                           convert(np.column_stack([_col(rows, f) for f in fields])))
-
-    # ------------------------------------------------------------ EKF cores
-    def cores(self) -> dict:
-        """Primary-core signal from XKF4.PI and the core field name per message."""
-        x4 = self.rows["XKF4"]
-        info = {"field": {}}
-        for name in ("XKF1", "XKF3", "XKF4"):
-            rows = self.rows[name]
-            info["field"][name] = next((f for f in ("C", "Core") if rows and f in rows[0]), None)
-        if x4 and "PI" in x4[0]:
-            t = self.t(x4)
-            order = np.argsort(t, kind="stable")
-            info["t"], info["primary"] = t[order], _col(x4, "PI")[order]
-            switches = np.flatnonzero(np.diff(info["primary"]) != 0)
-            if len(switches):
-                self.notes.append("innovations/estimate: primary EKF core switched at t = "
-                                  + ", ".join(f"{info['t'][i + 1]:.3f}" for i in switches[:10])
-                                  + " s")
-        else:
-            info["t"], info["primary"] = np.array([0.0]), np.array([0.0])
-            if x4:
-                self.notes.append("innovations/estimate: XKF4 has no PI (primary core) field; "
-                                  "core 0 used")
-        return info
-
-    def primary_rows(self, name: str, cores: dict, label: str) -> tuple[list[dict], np.ndarray]:
-        rows = self.rows[name]
-        field = cores["field"][name]
-        if not rows:
-            return [], np.array([])
-        t = self.t(rows)
-        core = _col(rows, field) if field else np.zeros(len(rows))
-        if field is None:
-            self.notes.append(f"{label}: {name} has no core field; all rows taken as core 0")
-        keep = core == step_lookup(t, cores["t"], cores["primary"])
-        ids = sorted(set(core.tolist()))
-        if len(ids) > 1:
-            self.notes.append(f"{label}: {name} logged for EKF cores {[int(i) for i in ids]}; "
-                              "kept the primary core's rows")
-        return [r for r, k in zip(rows, keep) if k], core[keep]
-
-    def innovations(self, cores: dict):
-        rows, core = self.primary_rows("XKF3", cores, "innovations")
-        if not rows:
-            ekf2 = " (EKF2 NKF* messages are present but not read)" if self.rows["NKF3"] else ""
-            self.notes.append(f"innovations: no XKF3 (EKF3) messages{ekf2}")
-            return None
-        self.require(rows, "XKF3", ("IPN", "IPE", "IPD", "IVN", "IVE", "IVD"))
-        t = self.t(rows)
-        pos = frames.ned_to_enu(np.column_stack([_col(rows, k) for k in ("IPN", "IPE", "IPD")]))
-        vel = frames.ned_to_enu(np.column_stack([_col(rows, k) for k in ("IVN", "IVE", "IVD")]))
-        values = {"pos_x": pos[:, 0], "pos_y": pos[:, 1], "pos_z": pos[:, 2],
-                  "vel_x": vel[:, 0], "vel_y": vel[:, 1], "vel_z": vel[:, 2]}
-        x4 = self.rows["XKF4"]
-        if x4 and all(k in x4[0] for k in ("SV", "SP", "SH")):
-            j = self._same_core_nearest(t, core, x4, cores["field"]["XKF4"])
-            for src, dst in (("SP", "ratio_pos"), ("SV", "ratio_vel"), ("SH", "ratio_hgt")):
-                values[dst] = take(_col(x4, src) ** 2, j)
-            self.notes.append("innovations: ratio_pos/vel/hgt = XKF4 SP^2/SV^2/SH^2 (logged as "
-                              "square roots of the test ratios); variances are not logged")
-        return make_stream("innovations", t, values, self.notes)
-
-    def _same_core_nearest(self, t: np.ndarray, core: np.ndarray, rows: list[dict],
-                           field: str | None) -> np.ndarray:
-        ts = self.t(rows)
-        rc = _col(rows, field) if field else np.zeros(len(rows))
-        j = np.full(len(t), -1)
-        for c in np.unique(core):
-            idx = np.flatnonzero(rc == c)
-            if not len(idx):
-                continue
-            order = idx[np.argsort(ts[idx], kind="stable")]
-            k = nearest_index(t[core == c], ts[order], 0.5 * median_period(ts[order]))
-            j[core == c] = np.where(k >= 0, order[np.clip(k, 0, None)], -1)
-        return j
-
-    def estimate(self, cores: dict):
-        rows, core = self.primary_rows("XKF1", cores, "estimate")
-        if not rows:
-            self.notes.append("estimate: no XKF1 messages")
-            return None
-        self.require(rows, "XKF1", ("PN", "PE", "PD", "VN", "VE", "VD"))
-        t = self.t(rows)
-        pos = frames.ned_to_enu(np.column_stack([_col(rows, k) for k in ("PN", "PE", "PD")]))
-        vel = frames.ned_to_enu(np.column_stack([_col(rows, k) for k in ("VN", "VE", "VD")]))
-        reset = np.zeros(len(t), bool)
-        reset[1:] |= np.diff(core) != 0
-        x4 = self.rows["XKF4"]
-        if x4 and "OFN" in x4[0] and "OFE" in x4[0]:
-            j = self._same_core_nearest(t, core, x4, cores["field"]["XKF4"])
-            off = take(np.column_stack([_col(x4, "OFN"), _col(x4, "OFE")]), j)
-            same_core = np.concatenate([[False], np.diff(core) == 0])
-            changed = np.concatenate([[False], np.any(np.diff(off, axis=0) != 0, axis=1)])
-            changed &= same_core & np.isfinite(off).all(axis=1) & \
-                np.concatenate([[False], np.isfinite(off[:-1]).all(axis=1)])
-            reset |= changed
-        if reset.any():
-            self.notes.append(f"estimate: {int(reset.sum())} position resets (core switch or "
-                              "XKF4 OFN/OFE change) at t = "
-                              + ", ".join(f"{v:.3f}" for v in t[reset][:10]) + " s")
-        return make_stream("estimate", t, {"x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2],
-                                           "vx": vel[:, 0], "vy": vel[:, 1], "vz": vel[:, 2],
-                                           "reset": reset})
+                           convert(np.column_stack([col(rows, f) for f in fields])))
 
     # ------------------------------------------------------------ optional streams
     def odometry(self):
@@ -470,10 +220,10 @@ class _DataflashReader:
         rows = self.rows["VISP"]
         if not rows:
             return None
-        self.require(rows, "VISP", _WANTED["VISP"])
+        self.require(rows, "VISP", WANTED["VISP"])
         t = self.t(rows)
-        pos = frames.ned_to_enu(np.column_stack([_col(rows, k) for k in ("PX", "PY", "PZ")]))
-        q = frames.euler_to_quat(*(np.deg2rad(_col(rows, k)) for k in ("Roll", "Pitch", "Yaw")))
+        pos = frames.ned_to_enu(np.column_stack([col(rows, k) for k in ("PX", "PY", "PZ")]))
+        q = frames.euler_to_quat(*(np.deg2rad(col(rows, k)) for k in ("Roll", "Pitch", "Yaw")))
         q = frames.quat_ned_frd_to_enu_flu(q)
         values = {"x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2],
                   "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3]}
@@ -483,7 +233,7 @@ class _DataflashReader:
             order = np.argsort(tv, kind="stable")
             j = nearest_index(t, tv[order], 0.5 * median_period(tv[order]))
             j = np.where(j >= 0, order[np.clip(j, 0, None)], -1)
-            vel = frames.ned_to_enu(take(np.column_stack([_col(visv, k) for k in ("VX", "VY", "VZ")]), j))
+            vel = frames.ned_to_enu(take(np.column_stack([col(visv, k) for k in ("VX", "VY", "VZ")]), j))
             values.update({"vx": vel[:, 0], "vy": vel[:, 1], "vz": vel[:, 2]})
         self.notes.append("odometry: VISP/VISV in the vision system's own NED frame, converted "
                           "to ENU axes (its origin and heading are its own)")
@@ -496,21 +246,21 @@ class _DataflashReader:
         self.require(rows, "SIM", ("Lat", "Lng", "Alt"))
         t = self.t(rows)
         if all(math.isfinite(v) for v in origin):
-            pos = frames.geodetic_to_enu(_col(rows, "Lat"), _col(rows, "Lng"), _col(rows, "Alt"),
+            pos = frames.geodetic_to_enu(col(rows, "Lat"), col(rows, "Lng"), col(rows, "Alt"),
                                          origin)
         else:
             pos = np.full((len(t), 3), np.nan)
         values = {"x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2]}
         if all(k in rows[0] for k in ("Q1", "Q2", "Q3", "Q4")):
             q = frames.quat_ned_frd_to_enu_flu(frames.wxyz_to_xyzw(
-                np.column_stack([_col(rows, k) for k in ("Q1", "Q2", "Q3", "Q4")])))
+                np.column_stack([col(rows, k) for k in ("Q1", "Q2", "Q3", "Q4")])))
             values.update({"qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3]})
         sim2 = self.rows["SIM2"]
         if sim2 and all(k in sim2[0] for k in ("VN", "VE", "VD")):
             t2 = self.t(sim2)
             order = np.argsort(t2, kind="stable")
             v = frames.ned_to_enu(interp_linear(
-                t, t2[order], np.column_stack([_col(sim2, k) for k in ("VN", "VE", "VD")])[order]))
+                t, t2[order], np.column_stack([col(sim2, k) for k in ("VN", "VE", "VD")])[order]))
             values.update({"vx": v[:, 0], "vy": v[:, 1], "vz": v[:, 2]})
             self.notes.append("truth: SIM position/attitude with SIM2 velocity interpolated to "
                               "the SIM times")

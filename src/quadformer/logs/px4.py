@@ -58,143 +58,28 @@ Pitfalls handled (each noted in ``FlightLog.notes``):
 from __future__ import annotations
 
 import contextlib
-import io
 import math
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
-from pyulog import ULog
 
 from quadformer.geometry import frames
-from quadformer.logs._series import (first_fix, interp_linear, median_period, nearest_index,
-                                     quat_interp, relative_seconds, relative_ticks, row_max,
-                                     step_lookup, take)
-from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, LogError, assemble, gps_stream, make_stream
+from quadformer.logs._series import first_fix, interp_linear, quat_interp
+from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, assemble, gps_stream, make_stream
+from quadformer.logs.px4_estimator import UlogEstimator
+from quadformer.logs.px4_topics import INVALID_RELATIVE, load_ulog
 
 __all__ = ["read_ulog"]
-
-_INVALID_RELATIVE = 0x7FFFFFFF   # PX4's RELATIVE_TIMESTAMP_INVALID
 
 
 def read_ulog(path: str | Path, *, imu_gap: float = IMU_GAP, gps_gap: float = GPS_GAP) -> FlightLog:
     """Read a PX4 ULog file into a FlightLog (see the module docstring for the mapping)."""
     path = Path(path)
-    ulog = _load(path)
+    ulog = load_ulog(path)
     return _UlogReader(ulog, path).read(imu_gap, gps_gap)
 
 
-class _WorkLimit(Exception):
-    pass
-
-
-class _BoundedBytes(io.BytesIO):
-    """The file's bytes for pyulog, with a bound on the reading work.
-
-    On a header it cannot use, pyulog's definitions parser moves on by one byte after
-    reading the whole claimed message (up to 64 KiB): over a damaged stretch this is
-    quadratic work, minutes for a few hundred KiB. A clean parse reads each byte about once
-    in about one read call per byte or fewer, so reads are limited to 2.5 calls and 8 bytes
-    per byte of file (plus a margin); beyond that the file is reported as corrupt."""
-
-    def __init__(self, data: bytes) -> None:
-        super().__init__(data)
-        self.calls_left = int(2.5 * len(data)) + 10_000
-        self.bytes_left = 8 * len(data) + (1 << 20)
-
-    def read(self, size: int | None = -1) -> bytes:
-        out = super().read(size)
-        self.calls_left -= 1
-        self.bytes_left -= len(out)
-        if self.calls_left < 0 or self.bytes_left < 0:
-            raise _WorkLimit("the parser kept re-reading the same bytes")
-        return out
-
-
-def _load(path: Path) -> ULog:
-    if not path.is_file():
-        raise LogError(f"{path}: no such file")
-    if path.stat().st_size == 0:
-        raise LogError(f"{path}: empty file (0 bytes); a ULog file starts with the 'ULog' header")
-    captured = io.StringIO()
-    try:
-        with contextlib.redirect_stdout(captured):
-            return ULog(_BoundedBytes(path.read_bytes()))
-    # pyulog raises many exception types on damaged input (struct.error, IndexError,
-    # ValueError, UnicodeDecodeError, its own ULogException, ...): all mean the same here.
-    except Exception as exc:
-        raise LogError(f"{path}: not a readable PX4 ULog file ({type(exc).__name__}: {exc}); "
-                       "the file is truncated, corrupt or of another format") from exc
-
-
-class _UlogReader:
-    def __init__(self, ulog: ULog, path: Path) -> None:
-        self.ulog = ulog
-        self.path = path
-        self.start = int(ulog.start_timestamp)
-        self.notes: list[str] = []
-        self.by_name: dict[str, list] = {}
-        for d in sorted(ulog.data_list, key=lambda d: (d.name, d.multi_id)):
-            if len(d.data.get("timestamp", ())):
-                self.by_name.setdefault(d.name, []).append(d)
-
-    # ---------------------------------------------------------------- helpers
-    def instances(self, name: str) -> list:
-        return self.by_name.get(name, [])
-
-    def dataset(self, name: str):
-        inst = self.instances(name)
-        return inst[0] if inst else None
-
-    def field(self, d, *names: str, required: bool = True) -> np.ndarray | None:
-        for n in names:
-            if n in d.data:
-                return d.data[n]
-        if required:
-            fields = ", ".join(sorted(k for k in d.data if "[" not in k)[:40])
-            raise LogError(f"{self.path}: topic {d.name} lacks field {' / '.join(names)} "
-                           f"(fields: {fields}); this PX4 message layout is not supported")
-        return None
-
-    def vector(self, d, base: str, n: int, required: bool = True) -> np.ndarray | None:
-        cols = [self.field(d, f"{base}[{i}]", required=required) for i in range(n)]
-        if any(c is None for c in cols):
-            return None
-        return np.stack([c.astype(np.float64) for c in cols], axis=-1)
-
-    def times(self, d, label: str, use_sample: bool = True) -> np.ndarray:
-        stamps = d.data["timestamp"]
-        sample = d.data.get("timestamp_sample") if use_sample else None
-        if sample is not None and len(sample) and np.all(sample > 0) and np.all(sample <= stamps):
-            stamps = sample
-        t = relative_seconds(stamps, self.start, 1e-6)
-        zero = np.asarray(stamps) == 0
-        if zero.any():
-            t[zero] = np.nan
-            self.notes.append(f"{label}: {int(zero.sum())} of {len(t)} {d.name} samples have "
-                              "timestamp 0 (never set by the publisher); dropped")
-        early = np.isfinite(t) & (t < 0)
-        if early.any():
-            self.notes.append(f"{label}: {int(early.sum())} {d.name} samples stamped before the "
-                              f"log start (earliest {np.nanmin(t):.3f} s); kept with negative t")
-        return t
-
-    def embedded(self, d, rel_field: str, label: str) -> tuple[np.ndarray, np.ndarray]:
-        """Indices of the distinct samples of a sensor embedded in old ``sensor_combined``
-        rows (``timestamp + <sensor>_timestamp_relative``, repeated until a new sample
-        arrives) and their times; rows marked invalid are left out."""
-        rel = self.field(d, rel_field).astype(np.int64)
-        stamps = d.data["timestamp"]
-        valid = (rel != _INVALID_RELATIVE) & (np.asarray(stamps) != 0)
-        with np.errstate(over="ignore"):
-            ticks = relative_ticks(stamps, self.start) + rel
-        idx = np.flatnonzero(valid)
-        _, first = np.unique(ticks[idx], return_index=True)
-        idx = np.sort(idx[first])
-        self.notes.append(f"{label}: from old sensor_combined: {len(idx)} distinct samples in "
-                          f"{len(rel)} rows ({int((~valid).sum())} rows without {label} data)")
-        return idx, ticks[idx] * 1e-6
-
+class _UlogReader(UlogEstimator):
     # ---------------------------------------------------------------- streams
     def read(self, imu_gap: float, gps_gap: float) -> FlightLog:
         u = self.ulog
@@ -258,7 +143,7 @@ class _UlogReader:
         acc = self.vector(d, "accelerometer_m_s2", 3)
         rel = self.field(d, "accelerometer_timestamp_relative", required=False)
         rel = np.zeros(len(t), np.int64) if rel is None else rel.astype(np.int64)
-        invalid = rel == _INVALID_RELATIVE
+        invalid = rel == INVALID_RELATIVE
         t_acc = t + np.where(invalid, 0, rel) * 1e-6
         if invalid.any():
             acc[invalid] = np.nan
@@ -370,171 +255,6 @@ class _UlogReader:
         m = frames.frd_to_flu(m)
         return make_stream("mag", t, {"mx": m[:, 0], "my": m[:, 1], "mz": m[:, 2]})
 
-    def primary_mask(self, label: str, t: np.ndarray, instance: int, n_instances: int) -> np.ndarray:
-        sel = self.dataset("estimator_selector_status")
-        if n_instances <= 1:
-            return np.ones(len(t), bool)
-        if sel is None:
-            return np.full(len(t), instance == 0)
-        st = self.times(sel, "estimator_selector_status", use_sample=False)
-        ok = np.isfinite(st)
-        primary = self.field(sel, "primary_instance")[ok]
-        return step_lookup(t, st[ok], primary) == instance
-
-    def innovations(self):
-        inst = self.instances("estimator_innovations")
-        if inst:
-            return self._innovations_new(inst)
-        d = self.dataset("ekf2_innovations")
-        if d is not None:
-            return self._innovations_old(d)
-        self.notes.append("innovations: no estimator_innovations or ekf2_innovations topic")
-        return None
-
-    def _match(self, t: np.ndarray, name: str, multi_id: int):
-        """The dataset ``name`` of one instance and, per row time t, its nearest sample."""
-        cand = [d for d in self.instances(name) if d.multi_id == multi_id]
-        if not cand:
-            return None, np.full(len(t), -1)
-        d = cand[0]
-        ts = self.times(d, "innovations", use_sample=True)
-        ok = np.isfinite(ts)
-        idx_ok = np.flatnonzero(ok)
-        order = np.argsort(ts[ok], kind="stable")
-        j = nearest_index(t, ts[ok][order], 0.5 * median_period(ts[ok][order]))
-        return d, np.where(j >= 0, idx_ok[order][np.clip(j, 0, None)], -1)
-
-    def _innovations_new(self, inst: list):
-        parts, ids = [], [d.multi_id for d in inst]
-        sel = self.dataset("estimator_selector_status")
-        if len(inst) > 1:
-            how = ("the primary instance per estimator_selector_status" if sel is not None
-                   else "instance 0 (no estimator_selector_status)")
-            self.notes.append(f"innovations: estimator instances {ids} logged; kept rows of {how}")
-        for d in inst:
-            t = self.times(d, "innovations")
-            rows = self.primary_mask("innovations", t, d.multi_id, len(inst))
-            if not rows.any():
-                continue
-            hp = self.vector(d, "gps_hpos", 2)
-            vp = self.field(d, "gps_vpos").astype(float)
-            hv = self.vector(d, "gps_hvel", 2)
-            vv = self.field(d, "gps_vvel").astype(float)
-            pos = frames.ned_to_enu(np.column_stack([hp, vp]))
-            vel = frames.ned_to_enu(np.column_stack([hv, vv]))
-            values = {"pos_x": pos[:, 0], "pos_y": pos[:, 1], "pos_z": pos[:, 2],
-                      "vel_x": vel[:, 0], "vel_y": vel[:, 1], "vel_z": vel[:, 2]}
-            dv, j = self._match(t, "estimator_innovation_variances", d.multi_id)
-            if dv is not None:
-                pv = frames.ned_var_to_enu(take(np.column_stack(
-                    [self.vector(dv, "gps_hpos", 2), self.field(dv, "gps_vpos")]), j))
-                vvar = frames.ned_var_to_enu(take(np.column_stack(
-                    [self.vector(dv, "gps_hvel", 2), self.field(dv, "gps_vvel")]), j))
-                for k, a in enumerate("xyz"):
-                    values[f"var_pos_{a}"] = pv[:, k]
-                    values[f"var_vel_{a}"] = vvar[:, k]
-            dr, j = self._match(t, "estimator_innovation_test_ratios", d.multi_id)
-            if dr is not None:
-                values["ratio_pos"] = take(row_max(self.vector(dr, "gps_hpos", 2)), j)
-                values["ratio_hgt"] = take(self.field(dr, "gps_vpos"), j)
-                values["ratio_vel"] = take(row_max(np.column_stack(
-                    [self.vector(dr, "gps_hvel", 2), self.field(dr, "gps_vvel")])), j)
-            parts.append(make_stream("innovations", t, values)[rows])
-        if not parts:
-            self.notes.append("innovations: no rows from the primary estimator instance")
-            return None
-        if not self.instances("estimator_innovation_variances"):
-            self.notes.append("innovations: no estimator_innovation_variances; variances NaN")
-        if not self.instances("estimator_innovation_test_ratios"):
-            self.notes.append("innovations: no estimator_innovation_test_ratios; ratios NaN")
-        out = pd.concat(parts, ignore_index=True) if len(parts) > 1 else parts[0]
-        return out.sort_values("t", kind="stable").reset_index(drop=True)
-
-    def _innovations_old(self, d):
-        t = self.times(d, "innovations")
-        innov = self.vector(d, "vel_pos_innov", 6)
-        var = self.vector(d, "vel_pos_innov_var", 6, required=False)
-        vel, pos = frames.ned_to_enu(innov[:, :3]), frames.ned_to_enu(innov[:, 3:])
-        values = {"pos_x": pos[:, 0], "pos_y": pos[:, 1], "pos_z": pos[:, 2],
-                  "vel_x": vel[:, 0], "vel_y": vel[:, 1], "vel_z": vel[:, 2]}
-        if var is not None:
-            vv, pv = frames.ned_var_to_enu(var[:, :3]), frames.ned_var_to_enu(var[:, 3:])
-            for k, a in enumerate("xyz"):
-                values[f"var_pos_{a}"] = pv[:, k]
-                values[f"var_vel_{a}"] = vv[:, k]
-        ds, j = self._match(t, "estimator_status", 0)
-        if ds is not None:
-            for col, f in (("ratio_pos", "pos_test_ratio"), ("ratio_vel", "vel_test_ratio"),
-                           ("ratio_hgt", "hgt_test_ratio")):
-                src = self.field(ds, f, required=False)
-                if src is not None:
-                    values[col] = take(src, j)
-        self.notes.append("innovations: old ekf2_innovations (velocity/position innovations of "
-                          "the fused aiding source); test ratios from estimator_status")
-        return make_stream("innovations", t, values)
-
-    def local_position(self):
-        d = self.dataset("vehicle_local_position")
-        if d is None:
-            self.notes.append("estimate: no vehicle_local_position topic")
-            return None, None
-        t = self.times(d, "estimate")
-        ned = np.stack([self.field(d, k).astype(float) for k in ("x", "y", "z")], axis=-1)
-        vel = np.stack([self.field(d, k).astype(float) for k in ("vx", "vy", "vz")], axis=-1)
-        ref = np.stack([d.data[k].astype(float) if k in d.data else np.full(len(t), np.nan)
-                        for k in ("ref_lat", "ref_lon", "ref_alt")], axis=-1)
-        valid = np.isfinite(ref).all(axis=1) & ~((ref[:, 0] == 0) & (ref[:, 1] == 0))
-        valid &= (np.abs(ref[:, 0]) <= 90) & (np.abs(ref[:, 1]) <= 180)
-        xy_global = self.field(d, "xy_global", required=False)
-        if xy_global is not None:
-            valid &= xy_global != 0
-        reset = np.zeros(len(t), bool)
-        for k in ("xy_reset_counter", "z_reset_counter"):
-            c = self.field(d, k, required=False)
-            if c is not None and len(c) > 1:
-                reset[1:] |= np.diff(c.astype(np.int64)) != 0
-        raw = {"t": t, "ned": ned, "vel": frames.ned_to_enu(vel), "ref": ref, "valid": valid,
-               "reset": reset}
-        if reset.any():
-            dxy = self.vector(d, "delta_xy", 2, required=False)
-            dz = self.field(d, "delta_z", required=False)
-            big_xy = row_max(np.hypot(dxy[reset, 0], dxy[reset, 1])[None])[0] \
-                if dxy is not None else np.nan
-            big_z = row_max(np.abs(dz[reset])[None].astype(float))[0] if dz is not None else np.nan
-            self.notes.append(f"estimate: {int(reset.sum())} position resets (reset counters) at t = "
-                              + ", ".join(f"{v:.3f}" for v in t[reset][:10])
-                              + f" s; largest |delta_xy| {big_xy:.3f} m, |delta_z| {big_z:.3f} m")
-        if not valid.any():
-            self.notes.append("estimate: the autopilot logged no local origin (ref_lat/ref_lon "
-                              "unset); positions are in the estimator's own local frame")
-            return raw, None
-        origin = tuple(float(v) for v in ref[np.argmax(valid)])
-        return raw, origin
-
-    def estimate_stream(self, raw: dict | None, origin):
-        if raw is None:
-            return None
-        pos = frames.ned_to_enu(raw["ned"])
-        reset = raw["reset"].copy()
-        valid = raw["valid"]
-        if valid.any() and all(math.isfinite(v) for v in origin):
-            refs, inverse = np.unique(raw["ref"][valid], axis=0, return_inverse=True)
-            offsets = frames.geodetic_to_enu(refs[:, 0], refs[:, 1], refs[:, 2], origin)
-            pos[valid] += offsets[inverse.reshape(-1)]
-            if len(refs) > 1:
-                idx = np.flatnonzero(valid)
-                moved = idx[1:][np.any(raw["ref"][idx[1:]] != raw["ref"][idx[:-1]], axis=1)]
-                reset[moved] = True
-                self.notes.append(f"estimate: the local origin moved {len(moved)} times; positions "
-                                  "re-expressed about the first origin and marked as resets")
-            own = int((~valid).sum())
-            if own:
-                self.notes.append(f"estimate: {own} samples before the local origin was set are in "
-                                  "the estimator's own frame")
-        return make_stream("estimate", raw["t"], {
-            "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2], "vx": raw["vel"][:, 0],
-            "vy": raw["vel"][:, 1], "vz": raw["vel"][:, 2], "reset": reset})
-
     def odometry(self):
         d = self.dataset("vehicle_visual_odometry")
         if d is None:
@@ -564,15 +284,6 @@ class _UlogReader:
         return make_stream("odometry", t, {
             "x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "vx": v[:, 0], "vy": v[:, 1], "vz": v[:, 2],
             "qx": qe[:, 0], "qy": qe[:, 1], "qz": qe[:, 2], "qw": qe[:, 3]})
-
-    def attitude(self):
-        d = self.dataset("vehicle_attitude")
-        if d is None:
-            self.notes.append("attitude: no vehicle_attitude topic")
-            return None
-        q = frames.quat_ned_frd_to_enu_flu(frames.wxyz_to_xyzw(self.vector(d, "q", 4)))
-        return make_stream("attitude", self.times(d, "attitude"),
-                           {"qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3]})
 
     def truth(self, origin):
         lp = self.dataset("vehicle_local_position_groundtruth")

@@ -32,7 +32,9 @@ import numpy as np
 import pandas as pd
 
 from quadformer.config import SENSOR_NAMES
-from quadformer.estimator.online import CALL_ORDER, MAX_GPS_DELAY, FilterConfig, GapError, ResidueStream, spaced
+from quadformer.estimator.filter_config import MAX_GPS_DELAY, FilterConfig
+from quadformer.estimator.online import CALL_ORDER, ResidueStream, spaced
+from quadformer.estimator.online_filter import GapError
 from quadformer.estimator.schema import GROUPS, RESIDUES, as_columns
 from quadformer.logs.flightlog import FlightLog, LogError
 

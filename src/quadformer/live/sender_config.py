@@ -1,0 +1,72 @@
+"""The test sender's settings (pacing, flow control, the faults it injects) and its report: what
+it sent, what it dropped or damaged, and what the receiver sent back."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = ["FAULTY", "SenderConfig", "SendReport"]
+
+FAULTY = ("imu", "gps", "mag", "baro", "vio", "attitude")
+
+
+@dataclass(frozen=True)
+class SenderConfig:
+    speed: float | None = None              # x real time; None: no pacing
+    window: int = 128                       # packets ahead of the receiver's answers (0: no flow control)
+    loss: float = 0.0                       # probability a data packet is not sent
+    duplicate: float = 0.0                  # ... is sent twice
+    reorder: float = 0.0                    # ... is held back behind the next one
+    corrupt: float = 0.0                    # ... has one payload byte flipped
+    seed: int = 0
+    skip: tuple[str, ...] = ()              # streams never sent: imu, gps, mag, baro, vio, attitude
+    outages: tuple[tuple[float, float, tuple[str, ...]], ...] = ()   # (start s, length s, streams) of vehicle
+                                            # time during which those streams are not sent
+    pause: tuple[float, float] | None = None            # (vehicle time, wall seconds): the link goes silent
+    restart_at: float | None = None         # vehicle time at which the clock restarts ...
+    restart_to: float = 1.0                 # ... at this time since boot
+    boot_s: float = 1.0                     # time since boot of the first sample
+    loops: int = 1                          # play the streams this many times, end to end (time continues,
+                                            # positions continue from where the previous loop ended)
+    system: int = 1                         # the vehicle's MAVLink identity
+    component: int = 1
+    autopilot: str = "px4"                  # px4 or ardupilot (its HEARTBEAT)
+    record: bool = False                    # keep the data as encoded (tests; memory grows with the flight)
+    peer_timeout_s: float = 10.0            # udpin: wait this long for the receiver's first packet
+    sync_timeout_s: float = 10.0            # give up waiting for a TIMESYNC answer after this long
+    timeout_s: float = 300.0                # overall wall-clock bound
+    linger_s: float = 0.3                   # keep reading the receiver's messages after the end
+
+    def __post_init__(self) -> None:
+        for name in ("loss", "duplicate", "reorder", "corrupt"):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"sender.{name} must be a probability, got {v!r}")
+        unknown = set(self.skip) | {n for o in self.outages for n in o[2]}
+        if unknown - set(FAULTY):
+            raise ValueError(f"sender: unknown stream(s) {sorted(unknown - set(FAULTY))}; choose from {FAULTY}")
+        if self.speed is not None and not self.speed > 0:
+            raise ValueError(f"sender.speed must be > 0, got {self.speed!r}")
+        if self.loops < 1 or self.window < 0:
+            raise ValueError("sender.loops must be >= 1 and sender.window >= 0")
+
+
+@dataclass
+class SendReport:
+    sent: int = 0                           # packets written (duplicates counted twice)
+    data: int = 0                           # data packets produced (before faults)
+    lost: int = 0
+    duplicated: int = 0
+    reordered: int = 0
+    corrupted: int = 0
+    paused_s: float = 0.0
+    syncs: int = 0
+    stalls: int = 0                         # TIMESYNC answers that never came (receiver stalled)
+    wall_s: float = 0.0
+    vehicle_s: float = 0.0                  # vehicle time played
+    statustexts: list[tuple[int, str]] = field(default_factory=list)
+    commands: list[tuple[int, tuple[float, ...]]] = field(default_factory=list)
+    received: dict[str, int] = field(default_factory=dict)
+    record: dict[str, Any] | None = None    # frames of the data as encoded (``record=True``)
+    timed_out: bool = False

@@ -1,0 +1,102 @@
+"""The test sender's end of the link: the receiver as the sender sees it (answers, commands,
+status texts), packets with the link's sequence numbers, and the data packets as they left."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import pandas as pd
+
+from quadformer.live.mavlink import Attitude, Baro, Gps, Imu, Mag, Odometry, Origin, decode, mavlink2
+from quadformer.live.sender_config import SendReport
+
+__all__ = ["Peer", "Recorder", "pack"]
+
+
+class Peer:
+    """The receiver as the sender sees it: answers, commands, status texts."""
+
+    def __init__(self, conn, report: SendReport):
+        self.conn, self.report = conn, report
+        self.answered = -1
+        self.seen = False
+
+    def poll(self) -> None:
+        while True:
+            m = self.conn.recv_msg()
+            if m is None:
+                return
+            kind = m.get_type()
+            if kind == "BAD_DATA":
+                continue
+            self.seen = True
+            self.report.received[kind] = self.report.received.get(kind, 0) + 1
+            if kind == "TIMESYNC" and m.tc1 != 0:
+                self.answered = max(self.answered, int(m.ts1))
+            elif kind == "STATUSTEXT":
+                self.report.statustexts.append((int(m.severity), m.text))
+            elif kind == "COMMAND_LONG":
+                self.report.commands.append((int(m.command), (m.param1, m.param2, m.param3, m.param4, m.param5,
+                                                              m.param6, m.param7)))
+                self.conn.mav.command_ack_send(m.command, mavlink2.MAV_RESULT_ACCEPTED, 100, 0,
+                                               m.get_srcSystem(), m.get_srcComponent())
+
+    def wait(self, ts: int, timeout: float) -> bool:
+        """Until the receiver answered TIMESYNC ``ts`` (processed every packet before it)."""
+        end = time.monotonic() + timeout
+        while True:
+            self.poll()
+            if self.answered >= ts:
+                return True
+            now = time.monotonic()
+            if now >= end:
+                return False
+            self.conn.select(min(0.05, end - now))
+
+
+def pack(conn, msg) -> bytes:
+    """The bytes of ``msg`` with the link's next sequence number (as ``MAVLink.send`` does)."""
+    buf = msg.pack(conn.mav)
+    conn.mav.seq = (conn.mav.seq + 1) % 256
+    return buf
+
+
+class Recorder:
+    """The data packets that left intact, parsed back and decoded (samples in lists)."""
+
+    def __init__(self):
+        self.parser = mavlink2.MAVLink(None)
+        self.parser.robust_parsing = True
+        self.rows: dict[str, list] = {k: [] for k in ("imu", "gps", "mag", "baro", "odometry", "attitude")}
+        self.origin: tuple[float, float, float] | None = None
+
+    def add(self, buf: bytes) -> None:
+        for m in self.parser.parse_buffer(buf) or []:
+            for s in decode(m):
+                if isinstance(s, Imu):
+                    self.rows["imu"].append([s.t, *s.x])
+                elif isinstance(s, Mag):
+                    self.rows["mag"].append([s.t, *s.field])
+                elif isinstance(s, Baro):
+                    self.rows["baro"].append([s.t, s.alt])
+                elif isinstance(s, Gps):
+                    self.rows["gps"].append([s.t, s.lat, s.lon, s.alt, *s.vel, s.eph, s.epv, s.speed_acc,
+                                             s.fix_type, s.satellites])
+                elif isinstance(s, Odometry):
+                    self.rows["odometry"].append([s.t, *s.pos, *s.vel, *s.q])
+                elif isinstance(s, Attitude):
+                    self.rows["attitude"].append([s.t, *s.q])
+                elif isinstance(s, Origin) and self.origin is None:
+                    self.origin = (s.lat, s.lon, s.alt)
+
+    def frames(self) -> dict[str, Any]:
+        cols = {"imu": ["t", "ax", "ay", "az", "gx", "gy", "gz"],
+                "gps": ["t", "lat", "lon", "alt", "vx", "vy", "vz", "eph", "epv", "speed_acc", "fix_type",
+                        "satellites"],
+                "mag": ["t", "mx", "my", "mz"], "baro": ["t", "alt"],
+                "odometry": ["t", "x", "y", "z", "vx", "vy", "vz", "qx", "qy", "qz", "qw"],
+                "attitude": ["t", "qx", "qy", "qz", "qw"]}
+        out: dict[str, Any] = {k: (pd.DataFrame(v, columns=cols[k]) if v else None) for k, v in self.rows.items()}
+        out["origin"] = self.origin
+        return out

@@ -1,0 +1,165 @@
+"""What a vehicle streams, for the test sender: a recorded log's or a simulated flight's sensors,
+and those streams as encoded MAVLink messages in sending order, loop after loop."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from quadformer.estimator.online import CALL_ORDER
+from quadformer.geometry.frames import enu_to_geodetic
+from quadformer.live.mavlink import (
+    encode_attitude,
+    encode_gps_raw_int,
+    encode_highres_imu,
+    encode_odometry,
+    encode_scaled_pressure,
+    msec,
+    usec,
+)
+from quadformer.live.sender_config import SenderConfig
+
+__all__ = ["RANK", "SIM_ORIGIN", "VehicleStreams", "events"]
+
+#: a default geodetic origin for simulated flights (deg, deg, m)
+SIM_ORIGIN = (47.3977418, 8.5455939, 488.0)
+RANK = {name: i for i, name in enumerate(CALL_ORDER)}
+
+
+@dataclass
+class VehicleStreams:
+    """Sensor streams of one vehicle; times in seconds (any zero), arrays row per sample."""
+    imu_t: np.ndarray
+    imu: np.ndarray                          # (N, 6) specific force, body rate, FLU
+    gps_t: np.ndarray
+    gps_enu: np.ndarray                      # (K, 3) ENU m about ``origin``
+    gps_vel: np.ndarray                      # (K, 3) ENU m/s (NaN: not given)
+    origin: tuple[float, float, float] = SIM_ORIGIN
+    gps_acc: np.ndarray | None = None        # (K, 3) eph, epv m, speed accuracy m/s (NaN: not given)
+    gps_fix: np.ndarray | None = None        # (K,) fix type (default 3)
+    gps_geo: np.ndarray | None = None        # (K, 3) lat, lon, alt as recorded (used when given)
+    mag_t: np.ndarray | None = None
+    mag: np.ndarray | None = None            # (M, 3) gauss, FLU
+    baro_t: np.ndarray | None = None
+    baro: np.ndarray | None = None           # (L,) m
+    vio_t: np.ndarray | None = None
+    vio: np.ndarray | None = None            # (V, 7) ENU velocity, quaternion xyzw FLU -> ENU
+    att_t: np.ndarray | None = None
+    att: np.ndarray | None = None            # (A, 4) quaternion xyzw FLU -> ENU
+    send_origin: bool = False                # send GPS_GLOBAL_ORIGIN first
+
+    @classmethod
+    def from_simulation(cls, sensors: dict[str, Any], flight: int = 0,
+                        origin: tuple[float, float, float] = SIM_ORIGIN) -> "VehicleStreams":
+        """Flight ``flight`` of ``simulate_batch(..., record_sensors=True)["sensors"]``. The
+        autopilot's attitude is the simulated filter's initial one, sent once at the first
+        IMU stamp (what the replay's start needs)."""
+        def a(key: str) -> np.ndarray:
+            v = sensors[key][flight]
+            return np.asarray(v.numpy() if hasattr(v, "numpy") else v, dtype=float)
+
+        gps = a("gps")
+        out = cls(imu_t=np.asarray(sensors["imu_t"], float), imu=a("imu"), gps_t=np.asarray(sensors["gps_t"], float),
+                  gps_enu=gps[:, :3], gps_vel=gps[:, 3:6], origin=tuple(origin))
+        if "mag" in sensors:
+            out.mag_t, out.mag = np.asarray(sensors["mag_t"], float), a("mag")
+        if "baro" in sensors:
+            out.baro_t, out.baro = np.asarray(sensors["baro_t"], float), a("baro")[:, 0]
+        if "vio" in sensors:
+            out.vio_t, out.vio = np.asarray(sensors["vio_t"], float), a("vio")
+        q0 = sensors["ekf0"].q[flight].numpy()
+        out.att_t, out.att = out.imu_t[:1].copy(), q0[None]
+        return out
+
+    @classmethod
+    def from_log(cls, log) -> "VehicleStreams":
+        """A ``FlightLog``'s sensors (imu, gps, mag, baro, odometry, attitude); its origin is
+        sent as GPS_GLOBAL_ORIGIN when it has one."""
+        gps = log.gps
+        origin = tuple(float(v) for v in log.origin)
+        has_origin = all(math.isfinite(v) for v in origin)
+        geo = gps[["lat", "lon", "alt"]].to_numpy()
+        out = cls(imu_t=log.imu["t"].to_numpy(), imu=log.imu[["ax", "ay", "az", "gx", "gy", "gz"]].to_numpy(),
+                  gps_t=gps["t"].to_numpy(), gps_enu=gps[["x", "y", "z"]].to_numpy(),
+                  gps_vel=gps[["vx", "vy", "vz"]].to_numpy(), origin=origin if has_origin else tuple(geo[0]),
+                  gps_acc=gps[["eph", "epv", "speed_acc"]].to_numpy(),
+                  gps_fix=np.nan_to_num(gps["fix_type"].to_numpy(), nan=3.0), gps_geo=geo, send_origin=has_origin)
+        if log.mag is not None:
+            out.mag_t, out.mag = log.mag["t"].to_numpy(), log.mag[["mx", "my", "mz"]].to_numpy()
+        if log.baro is not None:
+            out.baro_t, out.baro = log.baro["t"].to_numpy(), log.baro["alt"].to_numpy()
+        if log.odometry is not None:
+            o = log.odometry
+            out.vio_t, out.vio = o["t"].to_numpy(), o[["vx", "vy", "vz", "qx", "qy", "qz", "qw"]].to_numpy()
+        if log.attitude is not None:
+            out.att_t, out.att = log.attitude["t"].to_numpy(), log.attitude[["qx", "qy", "qz", "qw"]].to_numpy()
+        return out
+
+    @property
+    def start(self) -> float:
+        return float(min(t[0] for t in self._times() if t is not None and len(t)))
+
+    @property
+    def end(self) -> float:
+        return float(max(t[-1] for t in self._times() if t is not None and len(t)))
+
+    def _times(self):
+        return (self.imu_t, self.gps_t, self.mag_t, self.baro_t, self.vio_t, self.att_t)
+
+
+def events(s: VehicleStreams, cfg: SenderConfig):
+    """(vehicle time, encoded time, stream, message) in sending order, loop after loop."""
+    period = s.end - s.start + float(np.median(np.diff(s.imu_t)))
+    shift_pos = s.gps_enu[-1] - s.gps_enu[0]
+    offset = cfg.boot_s - s.start
+    for k in range(cfg.loops):
+        dt_k = k * period
+        enu = s.gps_enu + k * shift_pos
+        geo = s.gps_geo if (s.gps_geo is not None and k == 0) else enu_to_geodetic(enu, s.origin)
+        n_gps = len(s.gps_t)
+        acc = s.gps_acc if s.gps_acc is not None else np.full((n_gps, 3), np.nan)
+        fix = s.gps_fix if s.gps_fix is not None else np.full(n_gps, 3.0)
+
+        def enc_t(t: float) -> float:
+            if cfg.restart_at is not None and t >= cfg.restart_at:
+                return t - cfg.restart_at + cfg.restart_to
+            return t + offset
+
+        # (clock: 0 before a restart, 1 after; decoded stamp; rank; vehicle t; stream; index)
+        items: list[tuple[int, float, int, float, str, int]] = []
+        for stream, times, quant in (("attitude", s.att_t, msec), ("mag", s.mag_t, usec), ("baro", s.baro_t, msec),
+                                     ("vio", s.vio_t, usec), ("gps", s.gps_t, usec), ("imu", s.imu_t, usec)):
+            if times is None:
+                continue
+            scale = 1e-3 if quant is msec else 1e-6
+            r = RANK[stream]
+            for i, t in enumerate(times):
+                tv = float(t) + dt_k
+                clock = int(cfg.restart_at is not None and tv >= cfg.restart_at)
+                items.append((clock, quant(enc_t(tv)) * scale, r, tv, stream, i))
+        items.sort(key=lambda e: e[:3])
+        j = 0
+        while j < len(items):
+            _, stamp, _, tv, stream, i = items[j]
+            te = enc_t(tv)
+            if stream == "imu":
+                yield tv, stamp, "imu", encode_highres_imu(te, imu=s.imu[i])
+            elif stream == "mag":
+                nxt = items[j + 1] if j + 1 < len(items) else None
+                if nxt is not None and nxt[4] == "imu" and nxt[1] == stamp and "imu" not in cfg.skip:
+                    yield tv, stamp, "imu+mag", encode_highres_imu(te, imu=s.imu[nxt[5]], mag=s.mag[i])
+                    j += 2
+                    continue
+                yield tv, stamp, "mag", encode_highres_imu(te, mag=s.mag[i])
+            elif stream == "baro":
+                yield tv, stamp, "baro", encode_scaled_pressure(te, s.baro[i])
+            elif stream == "vio":
+                yield tv, stamp, "vio", encode_odometry(te, np.zeros(3), s.vio[i, :3], s.vio[i, 3:7])
+            elif stream == "gps":
+                yield tv, stamp, "gps", encode_gps_raw_int(te, *geo[i], s.gps_vel[i], *acc[i], fix_type=int(fix[i]))
+            else:
+                yield tv, stamp, "attitude", encode_attitude(te, s.att[i])
+            j += 1
