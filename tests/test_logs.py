@@ -47,7 +47,19 @@ def logs():
 
 
 def _ulog_t(u: ULog, d) -> np.ndarray:
+    """Seconds from the ULog's start (its header stamp)."""
     return (d.data["timestamp"].astype(np.int64) - u.start_timestamp) * 1e-6
+
+
+def _zero(log) -> float:
+    """Where the log's t = 0 (its first sensor sample) lies after the file's start: the header
+    stamp (ULog) or the first TimeUS (DataFlash)."""
+    if log.source == "px4-ulog":
+        return log.boot_t0 - ULog(str(log.path), []).start_timestamp * 1e-6
+    reader = DFReader.DFReader_binary(str(log.path), zero_time_base=True)
+    while "TimeUS" not in (m := reader.recv_msg()).fmt.colhash:
+        pass
+    return log.boot_t0 - m.TimeUS * 1e-6
 
 
 def _dataflash(path: Path, kind: str) -> list[dict]:
@@ -235,16 +247,18 @@ def test_px4_imu_matches_pyulog_with_frd_to_flu(logs):
     log = logs("sample_px4_events.ulg")
     u = ULog(str(EVENTS), ["sensor_combined"])
     d = u.get_dataset("sensor_combined")
-    np.testing.assert_allclose(log.imu["t"], _ulog_t(u, d))
+    # (this log stamps UNIX time: boot_t0, about 1.7e9 s, holds it to a few tenths of a microsecond)
+    np.testing.assert_allclose(log.imu["t"], _ulog_t(u, d) - _zero(log), rtol=0, atol=1e-6)
     np.testing.assert_allclose(log.imu["ay"], -d.data["accelerometer_m_s2[1]"].astype(float))
     np.testing.assert_allclose(log.imu["gz"], -d.data["gyro_rad[2]"].astype(float))
 
 
 def test_px4_timestamps_before_the_log_start_become_negative_not_wrapped(logs):
     log = logs("sample_logging_tagged_and_default_params.ulg")
-    # vehicle_air_data's first sample is stamped 28 ms before the log start
-    assert log.baro["t"].iloc[0] == pytest.approx(-0.028, abs=1e-3)
-    assert log.mag["t"].iloc[0] < 0
+    # vehicle_air_data's first sample is stamped 28 ms before the log start, the magnetometer's
+    # earlier still: the log's first sensor sample, t = 0
+    assert log.baro["t"].iloc[0] + _zero(log) == pytest.approx(-0.028, abs=1e-3)
+    assert log.mag["t"].iloc[0] == 0.0 and _zero(log) < -0.028
     assert _has(log.notes, "baro", "before the log start")
     # zero timestamps (never set, old ekf2_innovations) are dropped, not placed at -112 s
     old = logs("sample.ulg")
@@ -300,14 +314,14 @@ def test_px4_local_origin_far_from_the_first_fix_and_reset(logs):
     g, e = log.gps, log.estimate
     est = interp_linear(g["t"], e["t"], e[["x", "y"]].to_numpy())
     diff = g[["x", "y"]].to_numpy() - est
-    t = g["t"].to_numpy()
+    t = g["t"].to_numpy() + _zero(log)                 # s after the file's start
     after = t > 20.1
     assert np.nanmax(np.abs(diff[after])) < 0.2
     before = (t > 10.0) & (t < 19.9)
     assert np.median(diff[before, 1]) == pytest.approx(-4.0, abs=0.1)   # estimate 4 m north
     # the EKF reset at 20 s jumps the estimate 4 m south and is marked
-    k = int(np.flatnonzero(e["reset"].to_numpy() & (e["t"].to_numpy() > 15))[0])
-    assert e["t"].iloc[k] == pytest.approx(20.0, abs=0.05)
+    k = int(np.flatnonzero(e["reset"].to_numpy() & (e["t"].to_numpy() + _zero(log) > 15))[0])
+    assert e["t"].iloc[k] + _zero(log) == pytest.approx(20.0, abs=0.05)
     assert e["y"].iloc[k] - e["y"].iloc[k - 1] == pytest.approx(-4.0, abs=0.05)
     assert int(e["reset"].sum()) == 2 and _has(log.notes, "largest |delta_xy| 4.000 m")
 
@@ -360,13 +374,13 @@ def test_px4_primary_estimator_instance(logs):
     log = logs("px4_ekf_switch.ulg")
     u = ULog(str(FIX / "px4_ekf_switch.ulg"))
     sel = u.get_dataset("estimator_selector_status")
-    ts = _ulog_t(u, sel)
+    ts = _ulog_t(u, sel) - _zero(log)
     switch = ts[np.argmax(sel.data["primary_instance"] == 1)]
     inst = {d.multi_id: d for d in u.data_list if d.name == "estimator_innovations"}
     inn = log.innovations
     for k, rows in ((0, inn["t"] < switch), (1, inn["t"] >= switch)):
         d = inst[k]
-        t = (d.data["timestamp_sample"].astype(np.int64) - u.start_timestamp) * 1e-6
+        t = (d.data["timestamp_sample"].astype(np.int64) - u.start_timestamp) * 1e-6 - _zero(log)
         lo, hi = (0.0, switch) if k == 0 else (switch, np.inf)
         want = (t >= lo) & (t < hi)
         np.testing.assert_allclose(inn.loc[rows, "t"], t[want])
@@ -426,8 +440,9 @@ def test_dataflash_values_and_frames(logs):
     np.testing.assert_allclose(log.imu["ax"], [r["AccX"] for r in imu])
     np.testing.assert_allclose(log.imu["az"], [-r["AccZ"] for r in imu])
     np.testing.assert_allclose(log.imu["gy"], [-r["GyrY"] for r in imu])
-    t0 = imu[0]["TimeUS"]
-    assert log.imu["t"].iloc[0] == pytest.approx((t0 - 15_052_310) * 1e-6)
+    # t = 0 at the first IMU sample, 30.821 ms after the file's first TimeUS; the boot clock beside
+    assert log.imu["t"].iloc[0] == 0.0 and log.boot_t0 == pytest.approx(imu[0]["TimeUS"] * 1e-6)
+    assert _zero(log) == pytest.approx((imu[0]["TimeUS"] - 15_052_310) * 1e-6)
     assert log.imu["az"].median() == pytest.approx(9.81, abs=0.05)
     # mag in gauss: the field near Canberra is about 0.58 G and points up (southern hemisphere)
     m = np.linalg.norm(log.mag[["mx", "my", "mz"]].to_numpy(), axis=1)
@@ -451,13 +466,13 @@ def test_dataflash_test_ratios_are_squared_and_primary_core(logs):
     np.testing.assert_allclose(log.innovations["pos_z"], [-r["IPD"] for r in x3])
     # the real log's EKF reset (first GPS fusion) is marked
     e = log.estimate
-    assert e.loc[e["reset"], "t"].tolist() == [pytest.approx(26.330, abs=1e-3)]
+    assert (e.loc[e["reset"], "t"] + _zero(log)).tolist() == [pytest.approx(26.330, abs=1e-3)]
 
 
 def test_dataflash_primary_core_switch(logs):
     log = logs("copter_core_switch.bin")
     inn, e = log.innovations, log.estimate
-    t_switch = 40.0 - 15.05231
+    t_switch = 40.0 - 15.05231 - _zero(log)
     before, after = inn["t"] < t_switch - 0.05, inn["t"] > t_switch + 0.05
     # core 1's rows carry a +1 m north offset in the variant
     assert inn.loc[before, "pos_y"].abs().max() < 0.5
@@ -471,7 +486,7 @@ def test_dataflash_primary_core_switch(logs):
 def test_dataflash_recorded_only_while_armed_splits_segments(logs):
     log = logs("copter_armed_only.bin")
     assert len(log.segments) == 2
-    (a0, b0), (a1, b1) = log.segments
+    (a0, b0), (a1, b1) = np.array(log.segments) + _zero(log)   # s after the file's start
     assert (a0, b0, a1, b1) == pytest.approx((11.99, 21.91, 36.11, 45.91), abs=0.05)
     for i in range(2):
         part = log.segment(i)
@@ -500,8 +515,8 @@ def test_rosbag_round_trip_gives_the_simulated_streams(name, sim, logs):
     assert log.source == ("ros1-bag" if name.endswith(".bag") else "ros2-bag")
     assert log.vehicle["storage"] == {"sim_flight_ros1.bag": "rosbag1", "sim_flight_ros2": "sqlite3",
                                       "sim_flight_ros2_mcap": "mcap"}[name]
-    # header stamps are used: t is simulated time minus the bag start (first receive time)
-    start = sim["imu_t"][0] + sim["latency_ns"] * 1e-9
+    # header stamps are used: t is simulated time from the first sensor sample's stamp
+    start = min(sim["imu_t"][0], sim["gps_t"][0])
     np.testing.assert_allclose(log.imu["t"], sim["imu_t"] - start, atol=1e-9)
     np.testing.assert_allclose(log.gps["t"], sim["gps_t"] - start, atol=1e-9)
     np.testing.assert_array_equal(log.imu[["ax", "ay", "az", "gx", "gy", "gz"]].to_numpy(), sim["imu"])
@@ -583,10 +598,10 @@ def test_rosbag_missing_stamps_nans_time_jumps_and_gaps(tmp_path):
     assert _has(notes, "imu: time went backwards 1 times")
     assert _has(notes, "imu: dropped 1 of 150 samples with a non-finite")
     assert len(log.imu) == 149 and np.all(np.diff(log.imu["t"]) > 0)
-    # the receive time (1 ms after the stamp) stands in for the missing stamp
+    # the receive time (1 ms after the stamp) stands in for the missing stamp (t = 0: the first stamp)
     t = log.imu["t"].to_numpy()
-    assert np.isclose(t, 0.1, atol=1e-9).any() and not np.isclose(t, 0.099, atol=1e-9).any()
-    assert len(log.segments) == 2 and log.segments[1][0] == pytest.approx(3.0 - 0.001, abs=1e-6)
+    assert np.isclose(t, 0.101, atol=1e-9).any() and not np.isclose(t, 0.1, atol=1e-9).any()
+    assert len(log.segments) == 2 and log.segments[1][0] == pytest.approx(3.0, abs=1e-6)
     assert log.gps is not None and log.origin == pytest.approx((10.0, 20.0, 30.0))
     assert np.isnan(log.gps["eph"]).all()   # covariance type UNKNOWN
 

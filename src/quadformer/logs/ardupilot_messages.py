@@ -12,7 +12,7 @@ from pymavlink import DFReader
 
 from quadformer.logs.flightlog import LogError
 
-__all__ = ["WANTED", "DataflashMessages", "col", "collect_messages"]
+__all__ = ["OLDER_EKFS", "WANTED", "DataflashMessages", "col", "collect_messages", "message_us"]
 
 _HEADER = b"\xa3\x95"
 WANTED = {
@@ -36,7 +36,17 @@ WANTED = {
     "MSG": ("Message",),
     "NKF3": (),
     "PARM": ("Name", "Value"),
+    "EV": ("Id",),
+    "ERR": ("Subsys", "ECode"),
+    "MODE": ("Mode", "ModeNum"),
 }
+#: the estimator messages of older EKFs, read as XKF1/3/4 where a log has no EKF3 messages:
+#: EKF2 (``NKF*``, ArduPilot 3.4 to 4.x; core 0, other cores are other message types) and
+#: ArduPilot's first EKF (``EKF*``, before 3.4). Their fields carry EKF3's names.
+OLDER_EKFS = {"NKF": ("NKF1", "NKF3", "NKF4"), "EKF": ("EKF1", "EKF3", "EKF4")}
+for _family in OLDER_EKFS.values():
+    for _new, _old in zip(("XKF1", "XKF3", "XKF4"), _family):
+        WANTED[_old] = tuple(f for f in WANTED[_new] if f not in ("C", "Core", "PI"))
 
 
 class _CorruptFormat(Exception):
@@ -77,6 +87,8 @@ def collect_messages(path: Path) -> tuple[dict[str, list[dict]], int, int]:
                            "not an ArduPilot .bin log (text .log files are not supported)")
     rows: dict[str, list[dict]] = {k: [] for k in WANTED}
     first_us = None
+    last_us = None          # the last timed message's stamp: the time of untimed ones (EV, ERR)
+    clocks = {"TimeUS": 0, "TimeMS": 0}
     out, err = io.StringIO(), io.StringIO()
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -93,11 +105,15 @@ def collect_messages(path: Path) -> tuple[dict[str, list[dict]], int, int]:
                         raise _CorruptFormat(f"the reader stopped advancing at offset {last}")
                     last = reader.offset
                     fmt = m.fmt
-                    if first_us is None and "TimeUS" in fmt.colhash:
-                        first_us = int(m.TimeUS)
                     name = fmt.name
-                    if name in rows and "TimeUS" in fmt.colhash:
-                        row = {"TimeUS": int(m.TimeUS)}
+                    stamp = message_us(m, fmt.colhash, name)
+                    if stamp is not None:
+                        clocks["TimeUS" if "TimeUS" in fmt.colhash else "TimeMS"] += 1
+                        last_us = stamp
+                        if first_us is None:
+                            first_us = stamp
+                    if name in rows and last_us is not None:
+                        row = {"TimeUS": last_us}
                         for f in WANTED[name]:
                             if f in fmt.colhash:
                                 row[f] = getattr(m, f)
@@ -114,12 +130,26 @@ def collect_messages(path: Path) -> tuple[dict[str, list[dict]], int, int]:
         raise LogError(f"{path}: not a readable DataFlash log ({type(exc).__name__}: {exc}); "
                        "the file is truncated or corrupt") from exc
     if first_us is None:
-        raise LogError(f"{path}: no timestamped (TimeUS) message; the log is empty or truncated "
-                       "before its first data message (logs timed in TimeMS only, from before "
-                       "ArduPilot 3.3, are not supported)")
+        raise LogError(f"{path}: no timestamped (TimeUS or TimeMS) message; the log is empty or "
+                       "truncated before its first data message")
     text = out.getvalue() + err.getvalue()
     reports = sum(text.count(k) for k in ("bad header", "Skipped", "Failed to parse", "bad msg"))
+    if clocks["TimeMS"]:
+        rows["time"] = [{"TimeUS": first_us, "clock": "TimeMS" if not clocks["TimeUS"] else "mixed"}]
     return rows, first_us, reports
+
+
+def message_us(m, colhash, name: str) -> int | None:
+    """A message's time since boot in microseconds: ``TimeUS``; ``TimeMS`` (milliseconds, the
+    clock of logs before ArduPilot 3.3) or, for the GPS messages of those logs, whose ``TimeMS``
+    is the GPS time of week, ``T`` (ms since boot); None for an untimed message."""
+    if "TimeUS" in colhash:
+        return int(m.TimeUS)
+    if name.startswith("GPS") and "T" in colhash:
+        return int(m.T) * 1000
+    if "TimeMS" in colhash:
+        return int(m.TimeMS) * 1000
+    return None
 
 
 def col(rows: list[dict], name: str, default=np.nan) -> np.ndarray:
@@ -137,6 +167,26 @@ class DataflashMessages:
         self.notes: list[str] = []
         if reports:
             self.notes.append(f"file: DFReader skipped damaged data ({reports} reports)")
+        clock = rows.pop("time", None)
+        if clock:
+            self.notes.append("time: messages timed in TimeMS (milliseconds since boot; ArduPilot before 3.3"
+                              + (", beside TimeUS in this log" if clock[0]["clock"] == "mixed" else "")
+                              + "); GPS at its T (ms since boot); untimed messages (EV, ERR) at the last "
+                              "timed message before them")
+        self.older_ekf()
+
+    def older_ekf(self) -> None:
+        """EKF2's or the first EKF's estimator messages as XKF1/3/4 where the log has no EKF3's."""
+        if any(self.rows[n] for n in ("XKF1", "XKF3", "XKF4")):
+            return
+        for family, names in OLDER_EKFS.items():
+            if any(self.rows[n] for n in names):
+                for new, old in zip(("XKF1", "XKF3", "XKF4"), names):
+                    self.rows[new] = self.rows[old]
+                what = "EKF2 (core 0)" if family == "NKF" else "ArduPilot's first EKF (before 3.4)"
+                self.notes.append(f"innovations/estimate: {', '.join(names)} of {what} read as XKF1/3/4; "
+                                  "the log has no EKF3 messages")
+                return
 
     def us(self, rows: list[dict]) -> np.ndarray:
         """TimeUS after the first one, as float64 microseconds. The difference is taken on
