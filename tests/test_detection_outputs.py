@@ -39,7 +39,11 @@ def test_write_detection_writes_a_logs_scores_alerts_report_and_summary(chi2, tm
     assert {p.name for p in folder.iterdir()} == SCORED
     assert [p.name for p in folder.parent.iterdir()] == ["events"]          # nothing left beside it
     scores = pd.read_csv(folder / "scores.csv")
-    assert list(scores.columns) == [*res.rows.columns, "score", "alarm"] and len(scores) == len(res.rows)
+    cols = list(res.rows.columns)
+    assert list(scores.columns) == [*cols[:cols.index("t") + 1], "boot_t", *cols[cols.index("t") + 1:],
+                                    "score", "alarm"] and len(scores) == len(res.rows)
+    np.testing.assert_allclose(scores.boot_t - scores.t, res.log.boot_t0, rtol=0, atol=1e-6)
+    assert info["boot_t0_s"] == res.log.boot_t0
     np.testing.assert_allclose(scores.score, res.scores, rtol=1e-15)
     np.testing.assert_array_equal(scores.alarm, (res.scores > chi2.threshold_).astype(int))
     alerts = pd.read_csv(folder / "alerts.csv")
