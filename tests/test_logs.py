@@ -24,7 +24,7 @@ from quadformer.geometry import frames
 from quadformer.logs._series import interp_linear
 from quadformer.logs.flightlog import assemble, clean_stream, find_segments, make_stream
 
-from logs_support import FIX, time_limit
+from logs_support import FIX, time_limit, write_dataflash
 
 PX4_LOGS = ["sample.ulg", "sample_appended_multiple.ulg", "sample_log_small.ulg",
             "sample_logging_tagged_and_default_params.ulg", "sample_px4_events.ulg"]
@@ -501,6 +501,47 @@ def test_dataflash_visual_odometry(logs):
     dot = np.abs((o[["qx", "qy", "qz", "qw"]].to_numpy() * m[["qx", "qy", "qz", "qw"]].to_numpy()).sum(1))
     np.testing.assert_allclose(dot, 1.0, atol=1e-4)   # Euler (deg, float32) vs SIM quaternion
     assert np.isfinite(o[["vx", "vy", "vz"]]).all().all()
+
+
+def test_dataflash_of_arducopter_before_3_3_timed_in_milliseconds(tmp_path):
+    """ArduCopter 3.2/3.3 logs: TimeMS (ms since boot) instead of TimeUS, GPS.TimeMS the GPS time
+    of week with boot time in GPS.T, ArduPilot's first EKF (EKF1/3/4, no core field), untimed
+    EV and ERR. Written here in that layout; read with its times and estimator messages."""
+    boot0 = 20_000                                             # ms since boot of the first IMU sample
+    msgs = [("EV", [10])]                                      # armed, before any timed message
+    for k in range(500):                                       # 10 s of IMU at 50 Hz
+        ms = boot0 + 20 * k
+        msgs.append(("IMU", [ms, 0.0, 0.0, 0.01, 0.1, 0.0, -9.81]))
+        if k % 10 == 0:                                        # 5 Hz GPS, baro and EKF
+            msgs.append(("GPS", [3, 379_000_000 + ms, 1813, 9, 1.2, int(42.85e7), int(-2.68e7) + k, 0.0,
+                                 514.0, 0.5, 90.0, 0.0, ms + 3]))
+            msgs.append(("BARO", [ms, 0.01 * k, 95_000.0, 25.0]))
+            msgs.append(("EKF1", [ms, 0.0, 0.0, 90.0, 0.0, 0.5, 0.0, 0.0, 0.1 * k, 0.0, 0.0, 0.0, 0.0]))
+            msgs.append(("EKF3", [ms, 0.1, 0.2, 0.0, 0.3, 0.4, -0.5, 0.0, 0.0, 0.0, 0.0]))
+            msgs.append(("EKF4", [ms, 0.5, 0.6, 0.7, 0.0, 0.0, 0.0, 0.0, 0, 0, 0]))
+        if k == 250:
+            msgs.append(("ERR", [11, 2]))                      # GPS glitch, untimed
+    path = write_dataflash(tmp_path / "copter-3.2.BIN", {
+        "IMU": ("Iffffff", "TimeMS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ"),
+        "GPS": ("BIHBfLLfffffI", "Status,TimeMS,Week,NSats,HDop,Lat,Lng,RelAlt,Alt,Spd,GCrs,VZ,T"),
+        "BARO": ("Ifff", "TimeMS,Alt,Press,Temp"),
+        "EKF1": ("Iffffffffffff", "TimeMS,Roll,Pitch,Yaw,VN,VE,VD,PN,PE,PD,GX,GY,GZ"),
+        "EKF3": ("Iffffffffff", "TimeMS,IVN,IVE,IVD,IPN,IPE,IPD,IMX,IMY,IMZ,IVT"),
+        "EKF4": ("IfffffffBBB", "TimeMS,SV,SP,SH,SMX,SMY,SMZ,SVT,OFN,EFE,FS"),
+        "EV": ("B", "Id"), "ERR": ("BB", "Subsys,ECode")}, msgs)
+    log = read_log(path)
+    assert log.source == "ardupilot-dataflash" and log.boot_t0 == pytest.approx(20.0)
+    np.testing.assert_allclose(log.imu.t, 0.02 * np.arange(500), atol=1e-9)
+    np.testing.assert_allclose(log.gps.t, 0.2 * np.arange(50) + 0.003, atol=1e-9)   # GPS.T, not the time of week
+    assert log.gps.satellites.iloc[0] == 9 and log.gps.lat.iloc[0] == pytest.approx(42.85)
+    assert log.imu.az.median() == pytest.approx(9.81)                                 # FRD -> FLU
+    inn, est = log.innovations, log.estimate
+    assert len(inn) == len(est) == 50
+    np.testing.assert_allclose(inn.pos_z, 0.5)                         # IPD -0.5 (down) -> up
+    np.testing.assert_allclose(inn.ratio_pos, 0.36, rtol=1e-6)         # SP squared
+    np.testing.assert_allclose(est.x, 0.1 * np.arange(0, 500, 10), rtol=1e-6)        # PE: east
+    assert _has(log.notes, "time: messages timed in TimeMS") and _has(log.notes, "EKF1, EKF3, EKF4 of ArduPilot's first EKF")
+    assert len(log.segments) == 1
 
 
 # ============================================================================ ROS
