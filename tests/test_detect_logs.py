@@ -82,6 +82,8 @@ def test_detect_refuses_a_detector_whose_residues_the_source_cannot_provide(mode
                               "--out", str(tmp_path / "o")])
     assert res.exit_code == 2
     assert "reads res_gps_corr" in res.output and "do not provide" in res.output and "--residues ekf" in res.output
+    assert res.output.count(str(EVENTS)) == 1                       # the path once
+    assert "simulate --sensors" not in res.output                   # one remedy: the model's own sensors are not it
     assert not (tmp_path / "o" / EVENTS.name).exists()
     res = runner.invoke(app, ["detect", str(COPTER), "--model", str(models["chi2"]), "--residues", "autopilot",
                               "--out", str(tmp_path / "o")])
@@ -346,7 +348,11 @@ def test_a_log_without_gps_gets_a_report_saying_why(models, tmp_path):
     out = tmp_path / "det"
     res = runner.invoke(app, ["detect", str(FIX / "sample.ulg"), "--model", str(models["chi2"]), "--out", str(out)])
     assert res.exit_code == 0, res.output
-    assert "nothing scored" in res.output and "no GPS samples" in res.output
+    assert "nothing scored" in res.output and "no GPS fixes" in res.output and "--residues" not in res.output
     s = json.loads((out / "sample.ulg" / "summary.json").read_text())
     assert s["scored"] is False and "no GPS" in s["reason"]
     assert "Nothing scored" in (out / "sample.ulg" / "report.html").read_text()
+    # the other residue source says the same, instead of sending the user back
+    res = runner.invoke(app, ["detect", str(FIX / "sample.ulg"), "--model", str(models["chi2"]), "--residues",
+                              "autopilot", "--out", str(tmp_path / "ap")])
+    assert "no GPS fixes" in res.output and "--residues" not in res.output and res.output.count("sample.ulg") == 1

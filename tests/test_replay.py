@@ -122,3 +122,43 @@ def test_bad_streams_are_named(run):
             _replay(s, mag=torch.cat([s["mag"], s["mag"][..., :1]], -1))
         with pytest.raises(StreamError, match="baro: timestamps and samples go together"):
             _replay(s, baro_t=None)
+
+
+@pytest.mark.parametrize("heading", ["attitude", "mag", "none"])
+def test_a_fix_before_the_imu_waits_and_the_filter_starts_at_the_vehicles_heading(heading):
+    """A first GPS fix stamped before the first IMU and attitude samples (found on a real PX4 log)
+    started the filter at yaw 0 and built the magnetometer's reference on it. The fix now waits;
+    the filter starts at the vehicle's heading from the autopilot's attitude or, without one, the
+    magnetic heading; with neither, after a second of IMU at yaw 0 with its large std. The note
+    says how."""
+    import math
+    import re
+
+    from quadformer.estimator.online import FilterConfig, ResidueStream, rotation
+
+    yaw = math.radians(88.0)
+    q = np.array([0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
+    body = rotation(q).T
+    sensors = "gps+imu" if heading == "none" else "gps+imu+mag"
+    s = ResidueStream(FilterConfig(sensors=sensors), sensors)
+    s.gps(0.0, np.zeros(3), np.zeros(3))                                   # before everything else
+    for k in range(1, 400):                                                # 4 s, IMU at 100 Hz
+        t = 0.01 * k
+        if heading == "attitude" and k % 5 == 0:
+            s.attitude(t, q)
+        if heading != "none" and k % 2 == 0:
+            s.mag(t, body @ np.array([0.0, 0.2, -0.4]))                    # the field points north and down
+        if k % 20 == 0:
+            s.gps(t, np.zeros(3), np.zeros(3))
+        s.imu(t, np.r_[body @ np.array([0.0, 0.0, 9.81]), 0.0, 0.0, 0.0])
+    note = next(n for n in s.notes if n.startswith("filter: started"))
+    start = float(re.search(r"t = ([\d.]+) s", note).group(1))
+    got = float(re.search(r"yaw (-?\d+) deg ENU", note).group(1))
+    if heading == "none":
+        assert "yaw unknown" in note and got == 0.0 and start >= 1.0       # a whole second of IMU first
+        assert "6 earlier fix(es) waited" in note
+    else:
+        assert got == pytest.approx(88.0, abs=1.0) and start == pytest.approx(0.2)
+        assert ("autopilot's attitude" in note) == (heading == "attitude")
+        assert ("magnetic heading" in note) == (heading == "mag")
+        assert "1 earlier fix(es) waited" in note

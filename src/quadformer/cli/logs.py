@@ -51,10 +51,11 @@ def detect(
         bar = tqdm(total=len(paths), unit="log", desc="detect")
 
     def done(o) -> None:
+        reason = o.reason.removeprefix(f"{o.path}: ") if o.reason else o.reason   # the path once
         if o.status == "failed":
-            typer.secho(f"{o.path}: {o.reason}", fg=typer.colors.RED, err=True)
+            typer.secho(f"{o.path}: {reason}", fg=typer.colors.RED, err=True)
         elif o.status == "skipped":
-            typer.echo(f"{o.path}: nothing scored: {o.reason}")
+            typer.echo(f"{o.path}: nothing scored: {reason}")
         if bar is not None:
             bar.update(1)
         if o.status == "scored":

@@ -40,7 +40,9 @@ class FilterConfig:
     vio_att_noise_deg: float = 2.0  # deg, visual odometry attitude std
     init_vel_std: float = 0.5       # m/s, initial velocity uncertainty
     init_att_std_deg: float = 5.0   # deg, initial roll/pitch/yaw uncertainty (given an attitude)
-    init_yaw_std_deg: float = 60.0  # deg, initial yaw uncertainty without the autopilot's attitude
+    init_yaw_std_deg: float = 60.0  # deg, initial yaw uncertainty without an attitude or a magnetometer
+    init_mag_yaw_std_deg: float = 20.0  # deg, initial yaw uncertainty from the magnetic heading
+                                        # (the declination is not known to the filter)
     accel_bias_std: float = 0.2     # m/s^2, initial accelerometer bias uncertainty
     gyro_bias_std: float = 0.01     # rad/s, initial gyro bias uncertainty
     receiver_accuracy: bool = True  # use the receiver's eph/epv/speed accuracy when above the floors

@@ -71,6 +71,16 @@ def tilt(acc: np.ndarray) -> np.ndarray:
     return np.array([sr * cp, cr * sp, -sr * sp, cr * cp])
 
 
+def magnetic_yaw(q_tilt: np.ndarray, field: np.ndarray) -> np.ndarray:
+    """The attitude ``q_tilt`` (roll and pitch, yaw 0; xyzw) turned about the vertical so that the
+    horizontal part of the body ``field`` (FLU) points north (ENU +y): the magnetic heading."""
+    level = rotation(q_tilt) @ field
+    yaw = math.pi / 2 - math.atan2(level[1], level[0])
+    x, y, z, w = q_tilt
+    s, c = math.sin(yaw / 2), math.cos(yaw / 2)
+    return np.array([c * x - s * y, c * y + s * x, c * z + s * w, c * w - s * z])   # (0,0,s,c) * q_tilt
+
+
 class ResidueStream:
     """Raw samples of ``n`` flights that share timestamps in, residue rows out.
 
@@ -106,6 +116,8 @@ class ResidueStream:
         self._dt: float | None = None
         self.delay = float(config.gps_delay_s or 0.0)
         self._held: deque = deque()                             # IMU samples within D of the newest
+        self._first_imu: float | None = None
+        self._unready = 0                                       # fixes before the start could be made
         self.notes: list[str] = []
 
     # -- raw samples ----------------------------------------------------------------------
@@ -128,6 +140,8 @@ class ResidueStream:
     def _imu(self, t: float, x: np.ndarray) -> list[dict[str, Any]]:
         if self.filter is None:
             self._keep("imu", t, x[0])
+            if self._first_imu is None:
+                self._first_imu = t
         rate = self.config.imu_rate_hz
         bin_id = math.floor(t * rate + 1e-9)
         rows: list[dict[str, Any]] = []
@@ -170,7 +184,10 @@ class ResidueStream:
         fix = np.concatenate([pos, vel], axis=1)
         measured = t - self.delay
         if self.filter is None:
-            self._start(measured, fix, std)
+            if self._ready(t):
+                self._start(measured, fix, std)
+            else:
+                self._unready += 1
         else:
             self._fused[measured] = (fix, t)
             self.filter.push("gps", measured, torch.as_tensor(fix),
@@ -235,20 +252,38 @@ class ResidueStream:
             out.append({"t": t_fix, "gps_pos": fix[:, :3], "gps_vel": fix[:, 3:], **as_numpy(row)})
         return out
 
+    def _ready(self, t: float) -> bool:
+        """Whether a fix at t can start the filter: IMU samples (the tilt), and the autopilot's
+        attitude or a magnetometer (the heading), or else a whole ``INIT_WINDOW`` of IMU without
+        either (the heading is then unknown). A fix stamped before them waits for the next."""
+        if not self._recent["imu"]:
+            return False
+        if self._recent["att"] or ("mag" in self.aiding and self._recent["mag"]):
+            return True
+        return t - self._first_imu >= self.INIT_WINDOW
+
     def _start(self, t0: float, fix: np.ndarray, std: np.ndarray) -> None:
-        """The filter starts at the first fix: its position and velocity, the latest attitude of
-        the autopilot (or the accelerometer's tilt, yaw unknown)."""
+        """The filter starts at the first fix that can start it (``_ready``): its position and
+        velocity, the latest attitude of the autopilot, else the accelerometer's tilt with the
+        magnetic heading, else the tilt with yaw unknown. How is noted."""
         c = self.config
-        att = self._recent["att"]
+        att, imu, mag = self._recent["att"], self._recent["imu"], self._recent["mag"]
         yaw_std = c.init_att_std_deg
+        waited = f" ({self._unready} earlier fix(es) waited for the IMU and a heading)" if self._unready else ""
         if att:
             q0 = att[-1][1] / np.linalg.norm(att[-1][1])
+            how = "the autopilot's attitude"
         else:
-            imu = self._recent["imu"]
-            q0 = tilt(np.mean([v[:3] for _, v in imu], axis=0)) if imu else np.array([0.0, 0.0, 0.0, 1.0])
-            yaw_std = c.init_yaw_std_deg
-            self.notes.append(f"attitude: none logged before the first fix; initial roll and pitch from the "
-                              f"accelerometer, yaw 0 (std {yaw_std:g} deg)")
+            q0 = tilt(np.mean([v[:3] for _, v in imu], axis=0))
+            if "mag" in self.aiding and mag:
+                q0 = magnetic_yaw(q0, np.mean([v for _, v in mag], axis=0))
+                yaw_std = c.init_mag_yaw_std_deg
+                how = f"the accelerometer's tilt and the magnetic heading (yaw std {yaw_std:g} deg)"
+            else:
+                yaw_std = c.init_yaw_std_deg
+                how = f"the accelerometer's tilt, yaw unknown: 0 (std {yaw_std:g} deg)"
+        yaw = math.degrees(math.atan2(2 * (q0[3] * q0[2] + q0[0] * q0[1]), 1 - 2 * (q0[1] ** 2 + q0[2] ** 2)))
+        self.notes.append(f"filter: started at t = {t0:.3f} s from {how}, yaw {yaw:.0f} deg ENU{waited}")
         std0 = np.r_[std[:3], [c.init_vel_std] * 3, np.deg2rad([c.init_att_std_deg] * 2 + [yaw_std]),
                      [c.accel_bias_std] * 3, [c.gyro_bias_std] * 3]
         n = self.n

@@ -95,12 +95,17 @@ def detect_log(log: FlightLog | str | Path, detector, residues: str = "ekf",
     if lacking:
         have = sorted({c.rsplit("_", 1)[0] if not c.endswith("nis") else c for c in rows.columns
                        if c.startswith("res_")})
+        if residues == "autopilot" and log.imu is not None and log.gps is not None:
+            fix = "use --residues ekf (the project's filter replayed over this log's IMU and GPS gives them)"
+        elif residues == "autopilot":
+            fix = ("fit a detector on the GPS innovation columns alone (e.g. quadformer fit --method chi2), "
+                   "the only ones an autopilot logs")
+        else:
+            fix = ("fit a detector on data of this log's sensor configuration (quadformer simulate --sensors "
+                   f"{flights[0].sensors})")
         raise DetectorInputError(
             f"{log.path}: detector {detector.name} reads {', '.join(lacking)}, which the {residues!r} residues "
-            f"of this log do not provide (they hold {', '.join(have) or 'nothing'}); "
-            + ("use --residues ekf, or " if residues == "autopilot" else "")
-            + "fit a detector on data of the same sensor configuration (quadformer simulate --sensors "
-              f"{flights[0].sensors if residues == 'ekf' else 'gps+imu+mag+baro'})")
+            f"of this log do not provide (they hold {', '.join(have) or 'nothing'}); {fix}")
     scores = detector.decision_function(rows)
     alarms = scores > detector.threshold_
     alerts = step_alerts(rows, scores, detector, typing, config.gps_rate_hz)

@@ -144,11 +144,13 @@ def autopilot_rows(log: FlightLog, seg: int = 0) -> pd.DataFrame:
     """Rows at the autopilot's innovation samples of segment ``seg``."""
     part = log.segment(seg) if len(log.segments) > 1 else log
     inn = part.innovations
-    if inn is None or len(inn) == 0:
-        raise LogError(f"{log.path}: no GPS innovations logged (PX4 estimator_innovations, ArduPilot "
-                       "XKF3); use --residues ekf to replay the project's filter over the raw sensors")
     if part.gps is None or len(part.gps) == 0:
-        raise LogError(f"{log.path}: no GPS fixes in segment {seg}")
+        raise LogError(f"{log.path}: segment {seg} has no GPS fixes: there is no GPS to check (neither "
+                       "residue source can score it)")
+    if inn is None or len(inn) == 0:
+        raise LogError(f"{log.path}: no GPS innovations logged (PX4 estimator_innovations, ArduPilot XKF3, "
+                       "NKF3 or EKF3)" + ("; use --residues ekf to replay the project's filter over the raw sensors"
+                                         if part.imu is not None else "; the log has no IMU either: nothing to score"))
     # the autopilot reports innovations before it fuses any fix (PX4: against an unset fix, some
     # thousand km off): keep the samples from the first fix on, and from the first innovation
     # within 1 km (the autopilot has initialised its GPS fusion) on
@@ -207,9 +209,14 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
             delay_notes.append(f"gps: each fix fused {delay * 1e3:.0f} ms before its stamp (the autopilot's "
                                "GPS delay setting)")
     imu, gps = part.imu, part.gps
-    if imu is None or gps is None:
-        raise LogError(f"{log.path}: segment {seg} has no {'IMU' if imu is None else 'GPS'} samples; the ekf "
-                       "replay needs both (use --residues autopilot for the autopilot's innovations)")
+    if gps is None:
+        raise LogError(f"{log.path}: segment {seg} has no GPS fixes: there is no GPS to check (neither "
+                       "residue source can score it)")
+    if imu is None:
+        raise LogError(f"{log.path}: segment {seg} has no IMU samples, which the ekf replay needs"
+                       + ("; use --residues autopilot for the autopilot's logged innovations"
+                          if part.innovations is not None else "; the log has no GPS innovations either: "
+                          "nothing to score"))
     gps = gps[np.isfinite(gps[["x", "y", "z"]].to_numpy()).all(axis=1)].reset_index(drop=True)
     keep = _decimate(gps["t"].to_numpy(), config.gps_rate_hz)
     notes = delay_notes + ([f"gps: {len(gps)} fixes decimated to {len(keep)} (at most {config.gps_rate_hz:g} Hz)"]
