@@ -544,6 +544,25 @@ def test_dataflash_of_arducopter_before_3_3_timed_in_milliseconds(tmp_path):
     assert len(log.segments) == 1
 
 
+def test_an_imu_too_slow_for_the_filter_is_refused_for_the_ekf_replay_with_its_rate():
+    """A MAVLink telemetry log's IMU at 1 to 10 Hz cannot propagate the filter: refused, saying
+    the rate, the need and the one remedy (the autopilot's innovations where it logged them)."""
+    from quadformer.logs.detect import log_rows
+
+    t_imu, t_gps = np.arange(0, 30, 0.1), np.arange(0, 30, 0.2)               # 10 Hz IMU, 5 Hz GPS
+    streams = {"imu": make_stream("imu", t_imu, {"az": 9.81, "ax": 0.0, "ay": 0.0, "gx": 0.0, "gy": 0.0, "gz": 0.0}),
+               "gps": make_stream("gps", t_gps, {"x": 0.0, "y": 0.0, "z": 0.0, "vx": 0.0, "vy": 0.0, "vz": 0.0,
+                                                 "lat": 47.0, "lon": 8.0, "alt": 400.0})}
+    log = assemble("arrays", Path("slow-imu"), streams, [])
+    with pytest.raises(LogError, match=r"IMU is logged at 10\.0 Hz, under the 50 Hz the ekf replay needs"
+                                       r".*nothing can score it"):
+        log_rows(log)
+    inn = make_stream("innovations", t_gps, {"pos_x": 0.0, "pos_y": 0.0, "pos_z": 0.0, "vel_x": 0.0, "vel_y": 0.0,
+                                             "vel_z": 0.0})
+    with pytest.raises(LogError, match="use --residues autopilot"):
+        log_rows(assemble("arrays", Path("slow-imu"), {**streams, "innovations": inn}, []))
+
+
 # ============================================================================ ROS
 @pytest.fixture(scope="module")
 def sim():

@@ -15,6 +15,10 @@ from quadformer.estimator.eskf import NoiseModel
 
 
 MAX_GPS_DELAY = 0.5                  # s, the largest receiver latency the stream compensates
+#: the least rate (Hz) per stream the filter needs (a stream more than 10% slower is warned
+#: about live; a log whose IMU is that slow is refused for the ekf replay)
+MIN_RATES = {"imu": 50.0, "gps": 5.0, "baro": 10.0, "vio": 20.0}
+RATE_TOLERANCE = 0.9     # a stream counts as at its least rate down to 90% of it
 
 
 @dataclass(frozen=True)

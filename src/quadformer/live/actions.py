@@ -41,8 +41,6 @@ RATES = {
                   "GLOBAL_POSITION_INT": 5.0},
 }
 
-#: the least rate (Hz) per stream the monitor's filter needs; slower streams are warned about
-MIN_RATES = {"imu": 50.0, "gps": 5.0, "baro": 10.0, "vio": 20.0}
 
 
 def autopilot_name(code: int) -> str:

@@ -16,7 +16,7 @@ sensor, in order and on one time base, out; with the link's accounting. The pack
   silent for the larger of the two ages; longer than ``stale_s`` it is reported (a gap when
   it is back) and, for the IMU and GPS the filter needs, the monitor's state is stale.
 - **Rates**: per stream, measured over ``RATE_WINDOW_S`` of ``t`` without a silence longer than
-  ``stale_s``; a stream more than 10% under its need (``actions.MIN_RATES``) is warned about
+  ``stale_s``; a stream more than 10% under its need (``filter_config.MIN_RATES``) is warned about
   once, naming the stream, its rate and the need, and noted again when it is back.
 """
 
@@ -28,7 +28,7 @@ from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Callable
 
-from quadformer.live.actions import MIN_RATES
+from quadformer.estimator.filter_config import MIN_RATES, RATE_TOLERANCE
 from quadformer.live.mavlink import IMU_MESSAGES, Attitude, Baro, Gps, Imu, Mag, Odometry, SystemTime
 from quadformer.live.packets import Reader, Sequence
 
@@ -38,7 +38,6 @@ STREAMS = ("imu", "gps", "mag", "baro", "vio", "attitude")
 KINDS = {Imu: "imu", Gps: "gps", Mag: "mag", Baro: "baro", Odometry: "vio", Attitude: "attitude"}
 EPOCH_S = 1e9                 # s, a stamp larger than this is UNIX time, not time since boot
 RATE_WINDOW_S = 3.0           # s of a stream's samples its rate is measured over
-RATE_TOLERANCE = 0.9          # a stream under this fraction of its need is warned about
 MAX_EPOCHS = 100              # runs of the vehicle's clock whose time base is kept
 EPOCH_STEP_S = 1e-3           # s, the least step of t from a clock's last sample to a restarted one's first
 

@@ -32,7 +32,7 @@ import numpy as np
 import pandas as pd
 
 from quadformer.config import SENSOR_NAMES
-from quadformer.estimator.filter_config import MAX_GPS_DELAY, FilterConfig
+from quadformer.estimator.filter_config import MAX_GPS_DELAY, MIN_RATES, RATE_TOLERANCE, FilterConfig
 from quadformer.estimator.online import CALL_ORDER, ResidueStream, spaced
 from quadformer.estimator.online_filter import GapError
 from quadformer.estimator.schema import GROUPS, RESIDUES, as_columns
@@ -217,6 +217,14 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
                        + ("; use --residues autopilot for the autopilot's logged innovations"
                           if part.innovations is not None else "; the log has no GPS innovations either: "
                           "nothing to score"))
+    it = imu["t"].to_numpy()
+    imu_hz = 1.0 / float(np.median(np.diff(it))) if len(it) > 2 else 0.0
+    if imu_hz < RATE_TOLERANCE * MIN_RATES["imu"]:
+        raise LogError(f"{log.path}: segment {seg}: the IMU is logged at {imu_hz:.1f} Hz, under the "
+                       f"{MIN_RATES['imu']:g} Hz the ekf replay needs to propagate the filter"
+                       + ("; use --residues autopilot for the autopilot's logged innovations"
+                          if part.innovations is not None else " (the log holds no GPS innovations of the "
+                          "autopilot's either: nothing can score it)"))
     gps = gps[np.isfinite(gps[["x", "y", "z"]].to_numpy()).all(axis=1)].reset_index(drop=True)
     keep = _decimate(gps["t"].to_numpy(), config.gps_rate_hz)
     notes = delay_notes + ([f"gps: {len(gps)} fixes decimated to {len(keep)} (at most {config.gps_rate_hz:g} Hz)"]
