@@ -24,7 +24,8 @@ from quadformer.evaluation.protocol import tune
 from quadformer.estimator.online import FilterConfig
 from quadformer.estimator.schema import ATTACK_TYPES
 from quadformer.geometry.frames import euler_to_quat, geodetic_to_enu, quat_ned_frd_to_enu_flu, quat_to_matrix
-from quadformer.live import mavlink as M
+from quadformer.live.mavlink import local_address, open_link
+from quadformer.sensors import mavlink as M
 from quadformer.live.monitor import Monitor, MonitorConfig
 from quadformer.live.sender import SenderConfig, VehicleStreams, send
 from quadformer.logs import read_log
@@ -355,8 +356,8 @@ def test_d_console_names_the_readmission_rule(detector):
 # -- the CLI ---------------------------------------------------------------------------------------
 def test_e_cli_monitor_end_to_end(detector, sim_streams, tmp_path):
     model = detector.save(tmp_path / "bht.json")
-    conn = M.open_link(f"udpin:{LOCAL}:0", 1, 1)            # the vehicle side listens; the monitor connects out
-    port = M.local_address(conn)[1]
+    conn = open_link(f"udpin:{LOCAL}:0", 1, 1)            # the vehicle side listens; the monitor connects out
+    port = local_address(conn)[1]
     out = {}
     sender = threading.Thread(target=lambda: out.update(r=send(sim_streams, conn, SenderConfig(speed=20.0))),
                               daemon=True)

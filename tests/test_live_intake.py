@@ -21,7 +21,8 @@ from logs_support import time_limit
 
 from quadformer.detectors.classical import Chi2Gate
 from quadformer.estimator.online import FilterConfig
-from quadformer.live import mavlink as M
+from quadformer.live.mavlink import local_address, open_link
+from quadformer.sensors import mavlink as M
 from quadformer.live.monitor import Monitor, MonitorConfig
 
 LOCAL = "127.0.0.1"
@@ -53,7 +54,7 @@ class Vehicle:
     """A pymavlink peer sending to the monitor: a vehicle at rest with its own boot clock."""
 
     def __init__(self, port: int, boot: float = 100.0):
-        self.conn = M.open_link(f"udpout:{LOCAL}:{port}", 1, 1)
+        self.conn = open_link(f"udpout:{LOCAL}:{port}", 1, 1)
         self.t = boot                          # s since the vehicle's boot, the next IMU stamp
         self.syncs = 0
 

@@ -20,7 +20,7 @@ def detect(
     runtime: str = typer.Option("torch", help=RUNTIME_HELP),
     residues: str = typer.Option("ekf", help=RESIDUES_HELP),
     out: Path = typer.Option(Path("runs/detect"), "--out", help="Output directory (one folder per log)."),
-    format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot or ros (default: detected)."),
+    format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot, tlog or ros (default: detected)."),
     sensors: Optional[str] = typer.Option(None, help="Sensors the replayed filter fuses, e.g. gps+imu+mag+baro "
                                           "(default: every sensor the log has)."),
     filter: str = typer.Option("model", help=FILTER_HELP + " model: the simulation the detector was fit on "
@@ -83,7 +83,7 @@ def detect(
 
 def logs_info(
     log: Path = typer.Argument(..., help="A flight log."),
-    format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot or ros."),
+    format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot, tlog or ros."),
 ) -> None:
     """What a log holds: streams with their rates, segments, origin and the reader's notes."""
     import numpy as np
@@ -124,7 +124,7 @@ def logs_import(
     group: bool = typer.Option(True, help="Keep the replays of one recording together in the benchmark's split "
                                "(--no-group: split them like independent flights; optimistic, for a fleet of "
                                "too few logs to split by recording)."),
-    format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot or ros."),
+    format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot, tlog or ros."),
     sensors: Optional[str] = typer.Option(None, help="Sensors the replayed filter fuses (default: all the log has)."),
     filter: str = typer.Option("ekf2", help=FILTER_HELP),
     imu_rate: Optional[float] = typer.Option(None, help="IMU averaged down to at most this rate (Hz; default 100)."),

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any, Callable, TextIO
 
 from quadformer.io import json_default
-from quadformer.live.mavlink import mavlink2
+from quadformer.sensors.mavlink import mavlink2
 
 STATUSTEXT_MAX = 50            # characters of a STATUSTEXT (MAVLink's field)
 MAV_CMD_SET_EKF_SOURCE_SET = mavlink2.MAV_CMD_SET_EKF_SOURCE_SET          # 42007

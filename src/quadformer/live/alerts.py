@@ -14,8 +14,8 @@ from typing import Callable
 from quadformer.detectors.alarms import Alert
 from quadformer.live.actions import Records, VehicleLink
 from quadformer.live.config import MonitorConfig
-from quadformer.live.mavlink import mavlink2
 from quadformer.live.status import STATES
+from quadformer.sensors.mavlink import mavlink2
 from quadformer.resilience.admission import BLENDING, EXCLUDE_NIS, EXCLUDED, READMIT_STALE
 
 __all__ = ["MAX_ALERTS", "Alerting"]

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 from typing import Callable
 
 from quadformer.estimator.filter_config import MIN_RATES, RATE_TOLERANCE
-from quadformer.live.mavlink import IMU_MESSAGES, Attitude, Baro, Gps, Imu, Mag, Odometry, SystemTime
 from quadformer.live.packets import Reader, Sequence
+from quadformer.sensors.mavlink import IMU_MESSAGES, Attitude, Baro, Gps, Imu, Mag, Odometry, SystemTime
 
 __all__ = ["Accepted", "Intake", "TimeBase"]
 

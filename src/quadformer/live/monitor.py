@@ -58,11 +58,12 @@ from quadformer.live.actions import Records, VehicleLink, autopilot_name
 from quadformer.live.alerts import Alerting
 from quadformer.live.config import FixRecord, MonitorConfig, monitor_sensors
 from quadformer.live.intake import Intake
-from quadformer.live.mavlink import Estimate, Origin, decode, local_address, open_link
+from quadformer.live.mavlink import local_address, open_link
 from quadformer.live.segment import Segment
 from quadformer.live.status import STALE, STATES, Latency
 from quadformer.live.vehicle import Vehicle
 from quadformer.resilience.admission import EXCLUDED, FUSING
+from quadformer.sensors.mavlink import Estimate, Origin, decode
 
 __all__ = ["STALE", "STATES", "FixRecord", "Monitor", "MonitorConfig", "monitor_sensors"]
 

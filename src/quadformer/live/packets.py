@@ -30,7 +30,7 @@ from typing import Callable
 
 from pymavlink import mavutil
 
-from quadformer.live.mavlink import mavlink2
+from quadformer.sensors.mavlink import mavlink2
 
 __all__ = ["Reader", "Sequence", "read_datagram"]
 

@@ -35,10 +35,11 @@ import time
 
 import numpy as np
 
-from quadformer.live.mavlink import encode_origin, mavlink2, open_link
+from quadformer.live.mavlink import open_link
 from quadformer.live.sender_config import SenderConfig, SendReport
 from quadformer.live.sender_link import Peer, Recorder, pack
 from quadformer.live.vehicle_streams import VehicleStreams, events
+from quadformer.sensors.mavlink import encode_origin, mavlink2
 
 __all__ = ["SenderConfig", "SendReport", "VehicleStreams", "send"]
 

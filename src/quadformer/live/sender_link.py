@@ -8,8 +8,8 @@ from typing import Any
 
 import pandas as pd
 
-from quadformer.live.mavlink import Attitude, Baro, Gps, Imu, Mag, Odometry, Origin, decode, mavlink2
 from quadformer.live.sender_config import SendReport
+from quadformer.sensors.mavlink import Attitude, Baro, Gps, Imu, Mag, Odometry, Origin, decode, mavlink2
 
 __all__ = ["Peer", "Recorder", "pack"]
 

@@ -15,7 +15,7 @@ from typing import Callable
 import numpy as np
 
 from quadformer.geometry.frames import geodetic_to_enu
-from quadformer.live.mavlink import Estimate, Gps, Origin, mavlink2
+from quadformer.sensors.mavlink import Estimate, Gps, Origin, mavlink2
 
 __all__ = ["Vehicle"]
 

@@ -11,7 +11,8 @@ import numpy as np
 
 from quadformer.estimator.online import CALL_ORDER
 from quadformer.geometry.frames import enu_to_geodetic
-from quadformer.live.mavlink import (
+from quadformer.live.sender_config import SenderConfig
+from quadformer.sensors.mavlink import (
     encode_attitude,
     encode_gps_raw_int,
     encode_highres_imu,
@@ -20,7 +21,6 @@ from quadformer.live.mavlink import (
     msec,
     usec,
 )
-from quadformer.live.sender_config import SenderConfig
 
 __all__ = ["RANK", "SIM_ORIGIN", "VehicleStreams", "events"]
 

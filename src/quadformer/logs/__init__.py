@@ -1,4 +1,4 @@
-"""Flight-log readers: PX4 ULog, ArduPilot DataFlash and ROS bags -> ``FlightLog``.
+"""Flight-log readers: PX4 ULog, ArduPilot DataFlash, MAVLink telemetry logs and ROS bags -> ``FlightLog``.
 
 A reader is a file in and typed, timestamped streams out (``FlightLog``: imu, gps,
 odometry, baro, mag, innovations, estimate, truth as pandas DataFrames in SI units, ENU
@@ -8,6 +8,7 @@ directories):
 
 * PX4 ULog: the magic bytes ``ULog`` 0x01 0x12 0x35;
 * ArduPilot DataFlash: a message header 0xA3 0x95 at the start;
+* MAVLink telemetry log (.tlog): a receive time (UNIX microseconds) then a MAVLink start byte;
 * ROS 1 bag: the line ``#ROSBAG V2.0``;
 * ROS 2 bag: a directory holding ``metadata.yaml``, ``.db3`` or ``.mcap`` files, or a single
   ``.db3`` (SQLite) / ``.mcap`` file.
@@ -23,11 +24,12 @@ from quadformer.logs.ardupilot import read_dataflash
 from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, STREAMS, FlightLog, LogError
 from quadformer.logs.px4 import read_ulog
 from quadformer.logs.ros import RosTopics, read_rosbag
+from quadformer.logs.tlog import looks_like_tlog, read_tlog
 
 __all__ = ["FORMATS", "GPS_GAP", "IMU_GAP", "STREAMS", "FlightLog", "LogError", "RosTopics",
-           "detect_format", "find_logs", "read_dataflash", "read_log", "read_rosbag", "read_ulog"]
+           "detect_format", "find_logs", "read_dataflash", "read_log", "read_rosbag", "read_tlog", "read_ulog"]
 
-FORMATS = ("px4", "ardupilot", "ros")
+FORMATS = ("px4", "ardupilot", "tlog", "ros")
 _ULOG_MAGIC = b"ULog\x01\x12\x35"
 _DATAFLASH = b"\xa3\x95"
 _ROSBAG1 = b"#ROSBAG V2.0"
@@ -43,7 +45,7 @@ def _describe(head: bytes) -> str:
 
 
 def detect_format(path: str | Path) -> str | None:
-    """"px4", "ardupilot" or "ros" from the content of path; None when unknown."""
+    """"px4", "ardupilot", "tlog" or "ros" from the content of path; None when unknown."""
     path = Path(path)
     if path.is_dir():
         if (path / "metadata.yaml").exists() or any(path.glob("*.db3")) or any(path.glob("*.mcap")):
@@ -57,6 +59,8 @@ def detect_format(path: str | Path) -> str | None:
         return "px4"
     if head.startswith(_DATAFLASH):
         return "ardupilot"
+    if looks_like_tlog(head):
+        return "tlog"
     if head.startswith(_ROSBAG1) or head.startswith(_SQLITE) or head.startswith(_MCAP):
         return "ros"
     return None
@@ -74,7 +78,8 @@ def find_logs(paths: list[str | Path]) -> list[Path]:
             found = sorted(q for q in p.rglob("*") if (q.is_file() or q.is_dir()) and detect_format(q) is not None
                            and not any(detect_format(par) for par in q.parents if par != p and p in par.parents))
             if not found:
-                raise LogError(f"{p}: no flight log in this directory (PX4 .ulg, ArduPilot .bin, ROS bags)")
+                raise LogError(f"{p}: no flight log in this directory (PX4 .ulg, ArduPilot .bin, MAVLink .tlog, "
+                               "ROS bags)")
             out += found
         else:
             out.append(p)
@@ -84,7 +89,7 @@ def find_logs(paths: list[str | Path]) -> list[Path]:
 def read_log(path: str | Path, format: str | None = None, **options) -> FlightLog:
     """Read a flight log of any supported format.
 
-    format: None (detect from the content) or one of "px4", "ardupilot", "ros"; a forced
+    format: None (detect from the content) or one of "px4", "ardupilot", "tlog", "ros"; a forced
     format that contradicts the content raises LogError. options go to the reader
     (``imu_gap``, ``gps_gap``; ``topics`` for ROS bags)."""
     path = Path(path)
@@ -101,11 +106,11 @@ def read_log(path: str | Path, format: str | None = None, **options) -> FlightLo
         with open(path, "rb") as fh:
             head = fh.read(16)
         raise LogError(f"{path}: unknown log format: {_describe(head)}; expected a PX4 ULog "
-                       "(ULog magic), an ArduPilot DataFlash .bin (0xA3 0x95) or a ROS bag "
+                       "(ULog magic), an ArduPilot DataFlash .bin (0xA3 0x95), a MAVLink .tlog or a ROS bag "
                        "(#ROSBAG V2.0, or a ROS 2 bag directory); pass format= to force a reader")
     if format is not None and found is not None and found != format:
         raise LogError(f"{path}: format={format!r} was asked but the content is a {found!r} log; "
                        f"use format={found!r} or leave format=None")
     fmt = format or found
-    reader = {"px4": read_ulog, "ardupilot": read_dataflash, "ros": read_rosbag}[fmt]
+    reader = {"px4": read_ulog, "ardupilot": read_dataflash, "tlog": read_tlog, "ros": read_rosbag}[fmt]
     return reader(path, **options)

@@ -19,7 +19,8 @@ import pandas as pd
 from quadformer.logs import read_log
 from quadformer.logs.flightlog import FlightLog, LogError
 from quadformer.estimator.online import FilterConfig
-from quadformer.logs.replay import RESIDUE_SOURCES, LogFlight, autopilot_rows, ekf_flights, ekf_rows, missing_features
+from quadformer.logs.replay import (RESIDUE_SOURCES, LogFlight, autopilot_rows, ekf_flights, ekf_rows, imu_too_slow,
+                                    missing_features, no_innovations)
 
 MIN_DETECT_S = 1.0   # s, a segment shorter than this is not scored
 
@@ -58,6 +59,13 @@ def log_rows(log: FlightLog, residues: str = "ekf", config: FilterConfig = Filte
     if attacks and residues != "ekf":
         raise ValueError("injection needs --residues ekf: the autopilot's logged innovations cannot see a "
                          "spoof added afterwards")
+    if residues == "ekf" and log.gps is not None and imu_too_slow(log):    # the whole log, not its slivers
+        raise LogError(f"{log.path}: {imu_too_slow(log)}"
+                       + ("; use --residues autopilot for the autopilot's logged innovations"
+                          if log.innovations is not None else " (the log holds no GPS innovations of the "
+                          "autopilot's either: nothing can score it)"))
+    if residues == "autopilot" and log.gps is not None and (log.innovations is None or not len(log.innovations)):
+        raise LogError(no_innovations(log))
     flights, notes = [], []
     for seg in range(len(log.segments)):
         try:

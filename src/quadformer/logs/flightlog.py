@@ -41,7 +41,7 @@ GPS_GAP = 2.0   # s, a GPS interval longer than this ends a segment
 
 SENSOR_STREAMS = ("imu", "gps", "mag", "baro", "odometry", "attitude")   # t = 0: the first of these
 
-SOURCES = ("px4-ulog", "ardupilot-dataflash", "ros1-bag", "ros2-bag", "arrays")
+SOURCES = ("px4-ulog", "ardupilot-dataflash", "mavlink-tlog", "ros1-bag", "ros2-bag", "arrays")
 
 _XYZ = ("x", "y", "z")
 _VXYZ = ("vx", "vy", "vz")

@@ -139,6 +139,31 @@ def _base_rows(seg: int, t: np.ndarray, gps: pd.DataFrame, log: FlightLog) -> di
     return cols
 
 
+def imu_rate_hz(log: FlightLog) -> float:
+    """The IMU's logged rate (Hz, from the median interval); 0 without an IMU."""
+    if log.imu is None or len(log.imu) < 3:
+        return 0.0
+    return 1.0 / float(np.median(np.diff(log.imu["t"].to_numpy())))
+
+
+def imu_too_slow(log: FlightLog) -> str | None:
+    """Why the IMU of ``log`` cannot propagate the filter (under 90% of its least rate), else None."""
+    hz = imu_rate_hz(log)
+    if hz >= RATE_TOLERANCE * MIN_RATES["imu"]:
+        return None
+    return f"the IMU is logged at {hz:.1f} Hz, under the {MIN_RATES['imu']:g} Hz the ekf replay needs to propagate the filter"
+
+
+def no_innovations(log: FlightLog, part: FlightLog | None = None) -> str:
+    """The refusal of the autopilot residues for a log (or its segment ``part``) without GPS
+    innovations, with the one remedy where there is one."""
+    part = log if part is None else part
+    slow = imu_too_slow(part) if part.imu is not None else "it has no IMU"
+    return (f"{log.path}: no GPS innovations logged (PX4 estimator_innovations, ArduPilot XKF3, NKF3 or EKF3)"
+            + ("; use --residues ekf to replay the project's filter over the raw sensors" if not slow
+               else f"; nor can the ekf replay score it: {slow}"))
+
+
 # --------------------------------------------------------------------------- autopilot
 def autopilot_rows(log: FlightLog, seg: int = 0) -> pd.DataFrame:
     """Rows at the autopilot's innovation samples of segment ``seg``."""
@@ -148,9 +173,7 @@ def autopilot_rows(log: FlightLog, seg: int = 0) -> pd.DataFrame:
         raise LogError(f"{log.path}: segment {seg} has no GPS fixes: there is no GPS to check (neither "
                        "residue source can score it)")
     if inn is None or len(inn) == 0:
-        raise LogError(f"{log.path}: no GPS innovations logged (PX4 estimator_innovations, ArduPilot XKF3, "
-                       "NKF3 or EKF3)" + ("; use --residues ekf to replay the project's filter over the raw sensors"
-                                         if part.imu is not None else "; the log has no IMU either: nothing to score"))
+        raise LogError(no_innovations(log, part))
     # the autopilot reports innovations before it fuses any fix (PX4: against an unset fix, some
     # thousand km off): keep the samples from the first fix on, and from the first innovation
     # within 1 km (the autopilot has initialised its GPS fusion) on
@@ -217,11 +240,9 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
                        + ("; use --residues autopilot for the autopilot's logged innovations"
                           if part.innovations is not None else "; the log has no GPS innovations either: "
                           "nothing to score"))
-    it = imu["t"].to_numpy()
-    imu_hz = 1.0 / float(np.median(np.diff(it))) if len(it) > 2 else 0.0
-    if imu_hz < RATE_TOLERANCE * MIN_RATES["imu"]:
-        raise LogError(f"{log.path}: segment {seg}: the IMU is logged at {imu_hz:.1f} Hz, under the "
-                       f"{MIN_RATES['imu']:g} Hz the ekf replay needs to propagate the filter"
+    slow = imu_too_slow(part)
+    if slow:
+        raise LogError(f"{log.path}: segment {seg}: {slow}"
                        + ("; use --residues autopilot for the autopilot's logged innovations"
                           if part.innovations is not None else " (the log holds no GPS innovations of the "
                           "autopilot's either: nothing can score it)"))
