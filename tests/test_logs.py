@@ -544,6 +544,17 @@ def test_dataflash_of_arducopter_before_3_3_timed_in_milliseconds(tmp_path):
     assert len(log.segments) == 1
 
 
+def test_a_magnetometer_reading_zero_is_no_measurement():
+    """Old ArduCopter logs of vehicles without a compass log MAG as all zeros: dropped and noted
+    (a zero field made the replayed filter's heading update divide by zero)."""
+    notes: list[str] = []
+    t = np.arange(10) * 0.1
+    mag = make_stream("mag", t, {"mx": np.r_[np.zeros(6), np.full(4, 0.2)], "my": 0.0, "mz": 0.0})
+    out = clean_stream("mag", mag, notes)
+    assert len(out) == 4 and (out.mx == 0.2).all()
+    assert _has(notes, "mag: dropped 6 of 10 samples with a zero field")
+
+
 def test_an_imu_too_slow_for_the_filter_is_refused_for_the_ekf_replay_with_its_rate():
     """A MAVLink telemetry log's IMU at 1 to 10 Hz cannot propagate the filter: refused, saying
     the rate, the need and the one remedy (the autopilot's innovations where it logged them)."""
@@ -554,7 +565,7 @@ def test_an_imu_too_slow_for_the_filter_is_refused_for_the_ekf_replay_with_its_r
                "gps": make_stream("gps", t_gps, {"x": 0.0, "y": 0.0, "z": 0.0, "vx": 0.0, "vy": 0.0, "vz": 0.0,
                                                  "lat": 47.0, "lon": 8.0, "alt": 400.0})}
     log = assemble("arrays", Path("slow-imu"), streams, [])
-    with pytest.raises(LogError, match=r"IMU is logged at 10\.0 Hz, under the 50 Hz the ekf replay needs"
+    with pytest.raises(LogError, match=r"IMU is logged at 10\.0 Hz, under the 20 Hz the ekf replay needs"
                                        r".*nothing can score it"):
         log_rows(log)
     inn = make_stream("innovations", t_gps, {"pos_x": 0.0, "pos_y": 0.0, "pos_z": 0.0, "vel_x": 0.0, "vel_y": 0.0,

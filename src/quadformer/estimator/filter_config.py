@@ -15,10 +15,12 @@ from quadformer.estimator.eskf import NoiseModel
 
 
 MAX_GPS_DELAY = 0.5                  # s, the largest receiver latency the stream compensates
-#: the least rate (Hz) per stream the filter needs (a stream more than 10% slower is warned
-#: about live; a log whose IMU is that slow is refused for the ekf replay)
+#: the least rate (Hz) per stream the filter needs live (a stream more than 10% slower is warned about)
 MIN_RATES = {"imu": 50.0, "gps": 5.0, "baro": 10.0, "vio": 20.0}
 RATE_TOLERANCE = 0.9     # a stream counts as at its least rate down to 90% of it
+#: Hz, the slowest IMU a recorded log is replayed with (ArduPilot logs its IMU at 25 Hz by default;
+#: a telemetry link's 1 to 10 Hz cannot propagate the filter)
+MIN_REPLAY_IMU_HZ = 20.0
 
 
 @dataclass(frozen=True)

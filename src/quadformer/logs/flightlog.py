@@ -233,6 +233,12 @@ def clean_stream(name: str, df: pd.DataFrame | None, notes: list[str]) -> pd.Dat
     if (~ok).any():
         notes.append(f"{name}: dropped {int((~ok).sum())} of {n0} samples with {what}")
         df = df[ok]
+    if name == "mag":                                  # an all-zero field is no measurement
+        zero = (df[["mx", "my", "mz"]].to_numpy(dtype=np.float64) == 0.0).all(axis=1)
+        if zero.any():
+            notes.append(f"mag: dropped {int(zero.sum())} of {n0} samples with a zero field (no compass "
+                         "fitted or enabled)")
+            df = df[~zero]
     t = df["t"].to_numpy(dtype=np.float64)
     dt = np.diff(t)
     back = dt < 0

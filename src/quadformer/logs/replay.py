@@ -32,7 +32,7 @@ import numpy as np
 import pandas as pd
 
 from quadformer.config import SENSOR_NAMES
-from quadformer.estimator.filter_config import MAX_GPS_DELAY, MIN_RATES, RATE_TOLERANCE, FilterConfig
+from quadformer.estimator.filter_config import MAX_GPS_DELAY, MIN_REPLAY_IMU_HZ, FilterConfig
 from quadformer.estimator.online import CALL_ORDER, ResidueStream, spaced
 from quadformer.estimator.online_filter import GapError
 from quadformer.estimator.schema import GROUPS, RESIDUES, as_columns
@@ -147,11 +147,12 @@ def imu_rate_hz(log: FlightLog) -> float:
 
 
 def imu_too_slow(log: FlightLog) -> str | None:
-    """Why the IMU of ``log`` cannot propagate the filter (under 90% of its least rate), else None."""
+    """Why the IMU of ``log`` cannot propagate the filter (slower than ``MIN_REPLAY_IMU_HZ``), else None."""
     hz = imu_rate_hz(log)
-    if hz >= RATE_TOLERANCE * MIN_RATES["imu"]:
+    if hz >= MIN_REPLAY_IMU_HZ:
         return None
-    return f"the IMU is logged at {hz:.1f} Hz, under the {MIN_RATES['imu']:g} Hz the ekf replay needs to propagate the filter"
+    return (f"the IMU is logged at {hz:.1f} Hz, under the {MIN_REPLAY_IMU_HZ:g} Hz the ekf replay needs to "
+            "propagate the filter")
 
 
 def no_innovations(log: FlightLog, part: FlightLog | None = None) -> str:
