@@ -356,3 +356,32 @@ def test_a_log_without_gps_gets_a_report_saying_why(models, tmp_path):
     res = runner.invoke(app, ["detect", str(FIX / "sample.ulg"), "--model", str(models["chi2"]), "--residues",
                               "autopilot", "--out", str(tmp_path / "ap")])
     assert "no GPS fixes" in res.output and "--residues" not in res.output and res.output.count("sample.ulg") == 1
+
+
+def test_calibrate_sets_the_threshold_from_a_vehicles_clean_logs_at_a_false_alarm_budget(models, tmp_path):
+    """`quadformer calibrate`: the model's threshold from the vehicle's own clean logs at the budget,
+    what it was calibrated on recorded, and the leave-one-log-out false-alarm estimate printed."""
+    small = FIX / "sample_log_small.ulg"
+    out = tmp_path / "vehicle.json"
+    res = runner.invoke(app, ["calibrate", "--clean", str(EVENTS), "--clean", str(small), "--model",
+                              str(models["chi2"]), "--budget", "1/h", "--residues", "autopilot", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "leaving one log out:" in res.output and "per hour (95% interval" in res.output
+    before, after = load(models["chi2"]), load(out)
+    cal = after.calibration_
+    assert list(cal["vehicle_logs"]) == [str(EVENTS), str(small)] and cal["false_alarm_budget_per_hour"] == 1.0
+    assert cal["before_vehicle"]["threshold"] == before.threshold_ and after.threshold_ != before.threshold_
+    lo, hi = cal["held_out_interval"]
+    assert 0.0 <= lo <= cal["held_out_alarms_per_hour"] <= hi
+    # under a minute of flight allows no alarm run at 1 per hour: none on these logs at the new threshold
+    det = runner.invoke(app, ["detect", str(EVENTS), str(small), "--model", str(out), "--residues", "autopilot",
+                              "--out", str(tmp_path / "det"), "--quiet"])
+    assert det.exit_code == 0, det.output
+    assert len(pd.read_csv(tmp_path / "det" / "alerts.csv")) == 0
+    # bad input is named
+    bad = runner.invoke(app, ["calibrate", "--clean", str(EVENTS), "--model", str(models["chi2"]), "--budget", "often",
+                              "--out", str(tmp_path / "x.json")])
+    assert bad.exit_code == 2 and "--budget" in bad.output
+    one = runner.invoke(app, ["calibrate", "--clean", str(EVENTS), "--model", str(models["chi2"]), "--residues",
+                              "autopilot", "--out", str(tmp_path / "x.json")])
+    assert one.exit_code == 2 and "at least 2" in one.output and not (tmp_path / "x.json").exists()

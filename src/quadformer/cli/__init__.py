@@ -2,7 +2,7 @@
 ``quadformer --help``.
 
 Commands by module: ``simulate``; ``benchmark`` (benchmark, fit, evaluate, export,
-resilience); ``logs`` (detect, logs info, logs import); ``monitor``; ``demo``. ``common``
+resilience); ``logs`` (detect, calibrate, logs info, logs import); ``monitor``; ``demo``. ``common``
 holds the options' parsing and help texts, ``tables`` the console's tables. A command imports
 what it uses when it runs, so ``quadformer logs info`` loads the log readers and no more.
 """
@@ -25,6 +25,7 @@ app.command()(benchmark.evaluate)
 app.command()(benchmark.export)
 app.command()(benchmark.resilience)
 app.command()(logs.detect)
+app.command()(logs.calibrate)
 app.command()(monitor.monitor)
 
 logs_app = typer.Typer(no_args_is_help=True, help="Flight logs: what a log holds; datasets from logs.")

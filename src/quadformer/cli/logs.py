@@ -173,3 +173,47 @@ def logs_import(
             typer.echo(f"{log}: {n}")
     typer.echo(f"wrote {out}: {s['flights']} flights ({s['attacked_flights']} attacked) from {len(paths)} log(s), "
                f"{s['rows']} GPS steps, {residues} residues")
+
+
+def calibrate(
+    clean: list[Path] = typer.Option(..., "--clean", help="A clean flight log of the vehicle (PX4 .ulg, ArduPilot "
+                                     ".bin, .tlog, ROS bag) or a directory of them; repeat for several."),
+    model: Path = typer.Option(..., help=MODEL_HELP),
+    budget: str = typer.Option("1/h", help="False alarms (alarm runs) per clean flight-hour allowed, e.g. 1/h or 0.5."),
+    out: Path = typer.Option(..., "--out", help="The calibrated model (a JSON file like `quadformer fit`'s)."),
+    residues: str = typer.Option("ekf", help=RESIDUES_HELP),
+    format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot, tlog or ros."),
+    sensors: Optional[str] = typer.Option(None, help="Sensors the replayed filter fuses (default: every sensor "
+                                          "the log has)."),
+    filter: str = typer.Option("model", help=FILTER_HELP),
+) -> None:
+    """Set a model's alarm threshold from one vehicle's own clean flights at a false-alarm budget, with a
+    leave-one-log-out estimate of the false alarms it will raise."""
+    from quadformer.io import set_threads
+    from quadformer.logs import LogError
+    from quadformer.logs.calibration import calibrate_on_logs
+
+    det = calibrated_model(model, "torch")
+    check_residues(residues)
+    try:
+        per_hour = float(budget.strip().removesuffix("/h"))
+    except ValueError:
+        fail(f"--budget: {budget!r} is not a number of false alarms per hour (e.g. 1/h or 0.5)")
+    config = replay_config(sensors, None, None, 3.0, filter, det)
+    paths = log_paths(clean, format)
+    set_threads(1)
+    before = det.threshold_
+    try:
+        cal = calibrate_on_logs(det, paths, per_hour, residues, config, format=format,
+                                progress=lambda p: typer.echo(f"scored {p}"))
+    except (LogError, ValueError) as e:
+        fail(str(e))
+    for reason in cal.skipped:
+        typer.secho(f"skipped: {reason}", fg=typer.colors.YELLOW, err=True)
+    cal.detector.save(out)
+    lo, hi = cal.held_out_interval
+    typer.echo(f"{det.name}: threshold {before:.4g} -> {cal.threshold:.4g} at {per_hour:g} false alarm(s) per "
+               f"flight-hour on {len(cal.logs)} clean log(s), {cal.hours * 60:.1f} min of flight")
+    typer.echo(f"leaving one log out: {cal.held_out_alarms} false alarm(s) in {cal.hours:.2f} h = "
+               f"{cal.held_out_rate:.2f} per hour (95% interval {lo:.2f} to {hi:.2f})")
+    typer.echo(f"wrote {out}")
