@@ -213,12 +213,12 @@ EXPECTED_PX4 = {
     "sample.ulg": ({"imu", "mag", "estimate", "attitude"}, 250, None, "none"),
     "sample_appended_multiple.ulg": ({"imu", "baro", "mag", "innovations", "estimate", "attitude"}, 250,
                                      None, "none"),
-    "sample_log_small.ulg": ({"imu", "gps", "baro", "mag", "innovations", "estimate", "attitude"}, 205, 5,
+    "sample_log_small.ulg": ({"imu", "gps", "baro", "mag", "innovations", "estimate", "attitude", "receiver"}, 205, 5,
                              "first GPS fix"),
     "sample_logging_tagged_and_default_params.ulg": (
-        {"imu", "gps", "baro", "mag", "innovations", "estimate", "attitude", "truth"}, 250, 19,
+        {"imu", "gps", "baro", "mag", "innovations", "estimate", "attitude", "truth", "receiver"}, 250, 19,
         "autopilot local origin"),
-    "sample_px4_events.ulg": ({"imu", "gps", "baro", "mag", "innovations", "estimate", "attitude"}, 250, 19,
+    "sample_px4_events.ulg": ({"imu", "gps", "baro", "mag", "innovations", "estimate", "attitude", "receiver"}, 250, 19,
                               "autopilot local origin"),
 }
 
@@ -419,7 +419,7 @@ def test_px4_sitl_truth(logs):
 def test_dataflash_streams_rates_and_vehicle(logs):
     log = logs("copter-sitl-4.3.bin")
     assert log.source == "ardupilot-dataflash"
-    assert set(log.streams) == {"imu", "gps", "baro", "mag", "innovations", "estimate", "attitude", "truth"}
+    assert set(log.streams) == {"imu", "gps", "baro", "mag", "innovations", "estimate", "attitude", "truth", "receiver"}
     assert log.vehicle["firmware"].startswith("ArduCopter V4.3.0") and log.vehicle["frame"] == "QUAD/PLUS"
     assert log.origin_source == "autopilot local origin"
     assert log.origin == pytest.approx((-35.3632621, 149.1652374, 584.09))

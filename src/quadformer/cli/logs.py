@@ -81,11 +81,15 @@ def detect(
         raise typer.Exit(2 if len(failed) == len(paths) else 1)
 
 
+EVENTS_SHOWN = 12   # events listed by `logs info`, the first by time
+
+
 def logs_info(
     log: Path = typer.Argument(..., help="A flight log."),
     format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot, tlog or ros."),
 ) -> None:
-    """What a log holds: streams with their rates, segments, origin and the reader's notes."""
+    """What a log holds: streams with their rates, the autopilot's events, segments, origin and the reader's
+    notes."""
     import numpy as np
 
     from quadformer.logs import LogError, read_log
@@ -102,6 +106,16 @@ def logs_info(
         t = df["t"].to_numpy()
         rate = 1.0 / np.median(np.diff(t)) if len(t) > 1 else float("nan")
         typer.echo(f"  {name:12s} {len(df):7d} samples, {rate:7.1f} Hz, {t[0]:.2f} to {t[-1]:.2f} s")
+    ev = fl.events
+    if ev is None:
+        typer.echo("  events: none logged")
+    else:
+        counts = ev["event"].value_counts(sort=False)
+        typer.echo(f"  events: {len(ev)} ({', '.join(f'{k} {n}' for k, n in counts.items())})")
+        for t, event, detail in ev.head(EVENTS_SHOWN).itertuples(index=False):
+            typer.echo(f"    {t:9.2f} s  {event:20s} {detail}")
+        if len(ev) > EVENTS_SHOWN:
+            typer.echo(f"    ... {len(ev) - EVENTS_SHOWN} more")
     for n in fl.notes:
         typer.echo(f"  note: {n}")
 

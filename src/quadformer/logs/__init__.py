@@ -1,8 +1,9 @@
 """Flight-log readers: PX4 ULog, ArduPilot DataFlash, MAVLink telemetry logs and ROS bags -> ``FlightLog``.
 
 A reader is a file in and typed, timestamped streams out (``FlightLog``: imu, gps,
-odometry, baro, mag, innovations, estimate, truth as pandas DataFrames in SI units, ENU
-world and FLU body frames), nothing else; it knows nothing of filters or detectors.
+odometry, baro, mag, innovations, estimate, truth, receiver as pandas DataFrames in SI units, ENU
+world and FLU body frames, and the autopilot's events), nothing else; it knows nothing of filters
+or detectors.
 ``read_log`` picks the reader from the file's content (``find_logs``: the logs under
 directories):
 

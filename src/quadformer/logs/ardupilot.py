@@ -10,6 +10,8 @@ file; NED/FRD converted by ``frames``; DFReader applies the logged unit multipli
   ``Status`` (fix_type: the same codes as PX4, 3 = 3D fix; samples below 2 are dropped),
   ``NSats``; joined with ``GPA`` of the same ``TimeUS``: ``HAcc`` (eph), ``VAcc`` (epv),
   ``SAcc`` (speed_acc), ``VV`` (vz is NaN where 0). jamming/spoofing are not logged (NaN).
+* receiver: every ``GPS`` message of the same instance, fix or not: ``Status`` (fix_type),
+  ``NSats``, and the ``GPA`` accuracies as in gps; noise, jamming and spoofing are not logged.
 * baro: ``BARO`` instance 0 ``Alt`` (relative to the ground calibration, as logged).
 * mag: ``MAG`` instance 0 ``MagX..Z`` (milligauss, FRD) -> gauss FLU.
 * innovations: ``XKF3`` ``IPN/IPE/IPD``, ``IVN/IVE/IVD`` (NED -> ENU) of the primary core;
@@ -25,6 +27,7 @@ file; NED/FRD converted by ``frames``; DFReader applies the logged unit multipli
   NED) matched by nearest time, if present. ``VISO`` holds deltas and is only noted.
 * truth (SITL): ``SIM`` (``Lat/Lng/Alt``, attitude ``Q1..Q4`` = w, x, y, z body FRD -> NED)
   with velocity ``VN/VE/VD`` from ``SIM2`` interpolated to the ``SIM`` times.
+* events: ``ARM``, ``EV``, ``ERR`` and ``MODE`` (see ``ardupilot_events``).
 
 Pitfalls handled (each noted in ``FlightLog.notes``): several IMU, GPS, baro, mag instances
 and EKF cores (one kept; the primary core follows ``XKF4.PI`` through lane switches); logs
@@ -45,6 +48,7 @@ import numpy as np
 from quadformer.geometry import frames
 from quadformer.logs._series import first_fix, interp_linear, median_period, nearest_index, take
 from quadformer.logs.ardupilot_estimator import DataflashEstimator
+from quadformer.logs.ardupilot_events import dataflash_events
 from quadformer.logs.ardupilot_messages import WANTED, col, collect_messages
 from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, assemble, gps_stream, make_stream
 
@@ -63,7 +67,9 @@ class _DataflashReader(DataflashEstimator):
     def read(self, imu_gap: float, gps_gap: float) -> FlightLog:
         vehicle = self.vehicle()
         self.arming()
-        gps_raw = self.gps()
+        gps_rows = self.instance("GPS", "gps")
+        accuracy = self.accuracy(gps_rows)
+        gps_raw = self.gps(gps_rows, accuracy)
         origin, origin_source = self.origin(gps_raw)
         cores = self.cores()
         streams = {
@@ -76,9 +82,11 @@ class _DataflashReader(DataflashEstimator):
             "attitude": self.simple("ATT", "attitude", ("Roll", "Pitch", "Yaw"), self._attitude),
             "odometry": self.odometry(),
             "truth": self.truth(origin),
+            "receiver": self.receiver(gps_rows, accuracy),
         }
+        events = dataflash_events(self.rows, self.t, vehicle.get("firmware"))
         return assemble("ardupilot-dataflash", self.path, streams, self.notes, vehicle, origin,
-                        origin_source, imu_gap, gps_gap, boot_start=self.first_us * 1e-6)
+                        origin_source, imu_gap, gps_gap, boot_start=self.first_us * 1e-6, events=events)
 
     def vehicle(self) -> dict:
         out: dict = {"autopilot": "ArduPilot"}
@@ -131,8 +139,26 @@ class _DataflashReader(DataflashEstimator):
             "ax": acc[:, 0], "ay": acc[:, 1], "az": acc[:, 2],
             "gx": gyr[:, 0], "gy": gyr[:, 1], "gz": gyr[:, 2]})
 
-    def gps(self) -> dict | None:
-        rows = self.instance("GPS", "gps")
+    def accuracy(self, rows: list[dict]) -> dict[str, np.ndarray]:
+        """GPA's eph, epv, speed_acc and VV (its vertical velocity flag) for each GPS row, joined
+        by the same TimeUS; NaN where no GPA matches."""
+        nan = np.full(len(rows), np.nan)
+        gpa = self.instance("GPA", "gps") if rows else []
+        if not gpa:
+            if rows:
+                self.notes.append("gps: no GPA messages; eph/epv/speed_acc NaN")
+            return {"eph": nan, "epv": nan, "speed_acc": nan, "vv": nan}
+        tg, tr = self.us(gpa), self.us(rows)
+        order = np.argsort(tg, kind="stable")
+        j = nearest_index(tr, tg[order], 0.0)
+        j = np.where(j >= 0, order[np.clip(j, 0, None)], -1)
+        if (j < 0).any():
+            self.notes.append(f"gps: {int((j < 0).sum())} GPS samples without a GPA of the "
+                              "same TimeUS; accuracies NaN there")
+        return {"eph": take(col(gpa, "HAcc"), j), "epv": take(col(gpa, "VAcc"), j),
+                "speed_acc": take(col(gpa, "SAcc"), j), "vv": take(col(gpa, "VV"), j)}
+
+    def gps(self, rows: list[dict], accuracy: dict[str, np.ndarray]) -> dict | None:
         if not rows:
             self.notes.append("gps: no GPS messages")
             return None
@@ -143,7 +169,7 @@ class _DataflashReader(DataflashEstimator):
         keep = fix >= 2
         if (~keep).any():
             self.notes.append(f"gps: dropped {int((~keep).sum())} samples without a position fix "
-                              "(Status < 2)")
+                              "(Status < 2; the receiver stream keeps them)")
         bad = keep & ((np.abs(lat) > 90) | (np.abs(lon) > 180) | ((lat == 0) & (lon == 0)))
         if bad.any():
             self.notes.append(f"gps: dropped {int(bad.sum())} samples with an invalid "
@@ -154,26 +180,22 @@ class _DataflashReader(DataflashEstimator):
             return None
         spd, crs = col(rows, "Spd"), np.deg2rad(col(rows, "GCrs"))
         vel = np.column_stack([spd * np.sin(crs), spd * np.cos(crs), -col(rows, "VZ")])
+        vv = accuracy["vv"]
+        if (vv[keep] == 0).any():
+            vel[vv == 0, 2] = np.nan
+            self.notes.append(f"gps: vz NaN in {int((vv[keep] == 0).sum())} samples (GPA.VV = 0)")
         out = {"t": t, "lat": lat, "lon": lon, "alt": alt, "fix_type": fix,
-               "satellites": col(rows, "NSats"), "vel": vel}
-        gpa = self.instance("GPA", "gps")
-        if gpa:
-            tg, tr = self.us(gpa), self.us(rows)
-            order = np.argsort(tg, kind="stable")
-            j = nearest_index(tr, tg[order], 0.0)
-            j = np.where(j >= 0, order[np.clip(j, 0, None)], -1)
-            for src, dst in (("HAcc", "eph"), ("VAcc", "epv"), ("SAcc", "speed_acc")):
-                out[dst] = take(col(gpa, src), j)
-            vv = take(col(gpa, "VV"), j)
-            if (vv == 0).any():
-                vel[vv == 0, 2] = np.nan
-                self.notes.append(f"gps: vz NaN in {int((vv == 0).sum())} samples (GPA.VV = 0)")
-            if (j < 0).any():
-                self.notes.append(f"gps: {int((j < 0).sum())} GPS samples without a GPA of the "
-                                  "same TimeUS; accuracies NaN there")
-        else:
-            self.notes.append("gps: no GPA messages; eph/epv/speed_acc NaN")
+               "satellites": col(rows, "NSats"), "vel": vel,
+               **{k: accuracy[k] for k in ("eph", "epv", "speed_acc")}}
         return {k: v[keep] for k, v in out.items()}
+
+    def receiver(self, rows: list[dict], accuracy: dict[str, np.ndarray]):
+        """Every GPS message of the kept instance, fix or not (the gps stream keeps the fixes)."""
+        if not rows or "Status" not in rows[0]:
+            return None
+        return make_stream("receiver", self.t(rows), {
+            "fix_type": col(rows, "Status"), "satellites": col(rows, "NSats"),
+            **{k: accuracy[k] for k in ("eph", "epv", "speed_acc")}}, self.notes)
 
     def origin(self, gps_raw: dict | None):
         orgn = [r for r in self.rows["ORGN"] if r.get("Type") == 0 and "Lat" in r]

@@ -88,6 +88,7 @@ def collect_messages(path: Path) -> tuple[dict[str, list[dict]], int, int]:
     rows: dict[str, list[dict]] = {k: [] for k in WANTED}
     first_us = None
     last_us = None          # the last timed message's stamp: the time of untimed ones (EV, ERR)
+    early: list[dict] = []  # untimed rows before the first timed message: they take its stamp
     clocks = {"TimeUS": 0, "TimeMS": 0}
     out, err = io.StringIO(), io.StringIO()
     try:
@@ -112,12 +113,16 @@ def collect_messages(path: Path) -> tuple[dict[str, list[dict]], int, int]:
                         last_us = stamp
                         if first_us is None:
                             first_us = stamp
-                    if name in rows and last_us is not None:
+                            for row in early:
+                                row["TimeUS"] = stamp
+                    if name in rows:
                         row = {"TimeUS": last_us}
                         for f in WANTED[name]:
                             if f in fmt.colhash:
                                 row[f] = getattr(m, f)
                         rows[name].append(row)
+                        if last_us is None:
+                            early.append(row)
                 else:
                     raise _CorruptFormat(f"more than {budget} messages in {size} bytes")
             finally:
@@ -171,8 +176,8 @@ class DataflashMessages:
         if clock:
             self.notes.append("time: messages timed in TimeMS (milliseconds since boot; ArduPilot before 3.3"
                               + (", beside TimeUS in this log" if clock[0]["clock"] == "mixed" else "")
-                              + "); GPS at its T (ms since boot); untimed messages (EV, ERR) at the last "
-                              "timed message before them")
+                              + "); GPS at its T (ms since boot); untimed messages (EV, ERR, MODE) at the last "
+                              "timed message before them, or the first for those before any")
         self.older_ekf()
 
     def older_ekf(self) -> None:

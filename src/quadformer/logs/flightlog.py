@@ -15,6 +15,13 @@ and exactly the columns of ``STREAMS``, in SI units, world frame ENU and body fr
 * gaps longer than ``imu_gap`` in the IMU (default 0.5 s) or ``gps_gap`` in the GPS
   (default 2 s) split the log into ``segments`` (dropouts, logs recorded only while armed).
 
+Beside the streams, ``events`` is what the autopilot said happened (arming, takeoff and
+landing, GPS glitches and failsafes, EKF variance, mode changes; ``EVENTS``), as a frame of
+``t``, ``event`` and ``detail`` on the streams' clock, built by ``make_events``. The ``gps``
+stream holds the fixes (fix_type >= 2) only; the ``receiver`` stream holds every status
+report of the same receiver, fix or not, so that a lost fix shows as fix_type < 3 rather than
+as a gap. Neither sets the log's t = 0 nor its segments.
+
 Every such repair is written to ``notes`` as "stream: what was done", so that nothing is
 changed silently. Any problem with a log file raises ``LogError`` (a ``ValueError``) whose
 message names the file, what is wrong or missing, and what would help.
@@ -33,13 +40,26 @@ import pandas as pd
 
 from quadformer.geometry import frames
 
-__all__ = ["GPS_GAP", "IMU_GAP", "REQUIRED", "SENSOR_STREAMS", "SOURCES", "STREAMS", "FlightLog", "LogError",
-           "assemble", "clean_stream", "find_segments", "gps_stream", "make_stream"]
+__all__ = ["EVENTS", "EVENT_COLUMNS", "EVENT_REPEAT", "GPS_GAP", "IMU_GAP", "REQUIRED", "SENSOR_STREAMS", "SOURCES",
+           "STREAMS", "FlightLog", "LogError", "assemble", "clean_stream", "find_segments", "gps_stream",
+           "make_events", "make_stream"]
 
 IMU_GAP = 0.5   # s, an IMU interval longer than this ends a segment
 GPS_GAP = 2.0   # s, a GPS interval longer than this ends a segment
 
 SENSOR_STREAMS = ("imu", "gps", "mag", "baro", "odometry", "attitude")   # t = 0: the first of these
+
+#: What ``FlightLog.events`` may say, in the autopilot's own words mapped to one vocabulary:
+#: armed / disarmed (the motors may spin), takeoff / landed (the land detector's verdict),
+#: gps_glitch / gps_glitch_cleared (the autopilot rejects the fixes as inconsistent with its
+#: estimate), gps_failsafe / gps_failsafe_cleared (the GPS failsafe is triggered / resolved),
+#: gps_lost (the autopilot reports the GPS as lost), ekf_variance / ekf_variance_cleared (the
+#: EKF check finds the estimator's variances over their thresholds / back under), mode (a
+#: flight mode change; the detail names the mode).
+EVENTS = ("armed", "disarmed", "takeoff", "landed", "gps_glitch", "gps_glitch_cleared", "gps_failsafe",
+          "gps_failsafe_cleared", "gps_lost", "ekf_variance", "ekf_variance_cleared", "mode")
+EVENT_COLUMNS = ("t", "event", "detail")
+EVENT_REPEAT = 0.5   # s, the same event again within this time is one event told twice (kept once)
 
 SOURCES = ("px4-ulog", "ardupilot-dataflash", "mavlink-tlog", "ros1-bag", "ros2-bag", "arrays")
 
@@ -69,6 +89,10 @@ STREAMS: dict[str, tuple[str, ...]] = {
     "attitude": ("t", *_Q),
     # simulator ground truth
     "truth": ("t", *_XYZ, *_VXYZ, *_Q),
+    # every status report of the gps stream's receiver, with or without a fix: fix_type (0/1 no
+    # fix, 2 2D, 3 3D, 4+ augmented), satellites, accuracies (m, m/s), jamming/spoofing as in gps,
+    # noise: the receiver's noise level where logged (PX4 noise_per_ms)
+    "receiver": ("t", "fix_type", "satellites", "eph", "epv", "speed_acc", "jamming", "noise", "spoofing"),
 }
 
 # Columns that must be finite for a row to be kept; for the other streams a row is kept
@@ -81,6 +105,7 @@ REQUIRED: dict[str, tuple[str, ...]] = {
     "estimate": ("x", "y"),
     "attitude": _Q,
     "truth": ("x", "y"),
+    "receiver": ("fix_type",),
 }
 
 
@@ -105,6 +130,27 @@ def _frame_errors(name: str, df: pd.DataFrame) -> list[str]:
     return errors
 
 
+def _event_errors(df: pd.DataFrame) -> list[str]:
+    if tuple(df.columns) != EVENT_COLUMNS:
+        return [f"events: columns {list(df.columns)} != {list(EVENT_COLUMNS)}"]
+    errors = []
+    if df["t"].dtype != np.float64:
+        errors.append(f"events.t: dtype {df['t'].dtype}, expected float64")
+    else:
+        t = df["t"].to_numpy()
+        if len(t) == 0:
+            errors.append("events: empty (use None for a log without events)")
+        elif not np.all(np.isfinite(t)) or np.any(np.diff(t) < 0):
+            errors.append("events: t is not finite and non-decreasing")
+    for col in ("event", "detail"):
+        if not all(isinstance(v, str) for v in df[col]):
+            errors.append(f"events.{col}: not all strings")
+    unknown = sorted({str(v) for v in df["event"]} - set(EVENTS))
+    if unknown:
+        errors.append(f"events: unknown event(s) {unknown}; known: {list(EVENTS)}")
+    return errors
+
+
 @dataclass(frozen=True, eq=False)
 class FlightLog:
     """Timestamped streams of one flight log; ``None`` marks a stream the log lacks.
@@ -114,7 +160,10 @@ class FlightLog:
     fix", or "none" with a NaN origin when the log has neither). notes lists every repair or
     choice the reader made; segments are the spans (s) without long gaps. Times count from the
     first sensor sample (``SENSOR_STREAMS``); boot_t0 is the vehicle's time since boot (s) at
-    t = 0, NaN where the log's clock is not the vehicle's (ROS bags, arrays).
+    t = 0, NaN where the log's clock is not the vehicle's (ROS bags, arrays). events: what the
+    autopilot said happened (``EVENTS``; columns ``EVENT_COLUMNS``, sorted by t, on the streams'
+    clock; an event before the first sensor sample has a negative t), None where the log says
+    nothing of it (ROS bags, arrays).
     """
 
     source: str
@@ -132,8 +181,10 @@ class FlightLog:
     estimate: pd.DataFrame | None = None
     attitude: pd.DataFrame | None = None
     truth: pd.DataFrame | None = None
+    receiver: pd.DataFrame | None = None
     segments: list[tuple[float, float]] = field(default_factory=list)
     boot_t0: float = math.nan
+    events: pd.DataFrame | None = None
 
     def __post_init__(self) -> None:
         errors = [] if self.source in SOURCES else [f"source {self.source!r} not in {SOURCES}"]
@@ -143,6 +194,8 @@ class FlightLog:
             df = getattr(self, name)
             if df is not None:
                 errors += _frame_errors(name, df)
+        if self.events is not None:
+            errors += _event_errors(self.events)
         for a, b in self.segments:
             if not (math.isfinite(a) and math.isfinite(b) and a <= b):
                 errors.append(f"segment ({a}, {b}) is not a finite span")
@@ -167,6 +220,10 @@ class FlightLog:
             t = df["t"].to_numpy()
             part = df[(t >= a) & (t <= b)].reset_index(drop=True)
             cut[name] = part if len(part) else None
+        if self.events is not None:
+            t = self.events["t"].to_numpy()
+            part = self.events[(t >= a) & (t <= b)].reset_index(drop=True)
+            cut["events"] = part if len(part) else None
         return dataclasses.replace(self, segments=[(a, b)],
                                    notes=[*self.notes, f"segment {i}: {a:.3f} s to {b:.3f} s"],
                                    **cut)
@@ -196,6 +253,34 @@ def make_stream(name: str, t: np.ndarray, values: Mapping[str, np.ndarray | floa
     if missing and notes is not None:
         notes.append(f"{name}: not logged, NaN: {', '.join(missing)}")
     return pd.DataFrame(cols)
+
+
+def make_events(rows: list[tuple[float, str, str]], notes: list[str] | None = None) -> pd.DataFrame | None:
+    """The ``events`` frame of (t, event, detail) rows: sorted by t (stably: rows of one time
+    keep their order), an event told again within ``EVENT_REPEAT`` s of the same one kept once
+    (an arming said by two messages; for ``mode``, the same mode), rows with a non-finite t
+    dropped; None without rows. Every drop is noted when ``notes`` is given."""
+    unknown = sorted({e for _, e, _ in rows} - set(EVENTS))
+    if unknown:
+        raise KeyError(f"events: unknown event(s) {unknown}; known: {list(EVENTS)}")
+    finite = [r for r in rows if math.isfinite(r[0])]
+    if len(finite) < len(rows) and notes is not None:
+        notes.append(f"events: dropped {len(rows) - len(finite)} of {len(rows)} events with a non-finite time")
+    kept: list[tuple[float, str, str]] = []
+    last: dict[tuple[str, str], float] = {}
+    for t, event, detail in sorted(finite, key=lambda r: r[0]):
+        key = (event, detail if event == "mode" else "")
+        if key in last and t - last[key] <= EVENT_REPEAT:
+            continue
+        last[key] = t
+        kept.append((float(t), event, detail))
+    if len(kept) < len(finite) and notes is not None:
+        notes.append(f"events: {len(finite) - len(kept)} repeated event(s) (the same event again within "
+                     f"{EVENT_REPEAT} s, e.g. an arming in two messages) kept once")
+    if not kept:
+        return None
+    return pd.DataFrame({"t": np.array([r[0] for r in kept], dtype=np.float64),
+                         "event": [r[1] for r in kept], "detail": [r[2] for r in kept]})
 
 
 def gps_stream(raw: Mapping[str, np.ndarray] | None, origin: tuple[float, float, float],
@@ -296,10 +381,12 @@ def assemble(source: str, path: Path, streams: Mapping[str, pd.DataFrame | None]
              notes: list[str], vehicle: dict | None = None,
              origin: tuple[float, float, float] = (math.nan, math.nan, math.nan),
              origin_source: str = "none", imu_gap: float = IMU_GAP,
-             gps_gap: float = GPS_GAP, boot_start: float = math.nan) -> FlightLog:
+             gps_gap: float = GPS_GAP, boot_start: float = math.nan,
+             events: list[tuple[float, str, str]] | None = None) -> FlightLog:
     """Validate raw streams (``clean_stream``), count time from the first sensor sample, find
     segments and build the FlightLog. ``boot_start``: the vehicle's time since boot (s) at the
-    raw streams' t = 0 (NaN when the log's clock is not the vehicle's)."""
+    raw streams' t = 0 (NaN when the log's clock is not the vehicle's). ``events``: (t, event,
+    detail) rows on the raw streams' clock (``make_events``), None where the format has none."""
     for name, gap in (("imu_gap", imu_gap), ("gps_gap", gps_gap)):
         if not (isinstance(gap, (int, float)) and math.isfinite(gap) and gap > 0):
             raise ValueError(f"{name} must be a positive number of seconds, got {gap!r}")
@@ -315,6 +402,12 @@ def assemble(source: str, path: Path, streams: Mapping[str, pd.DataFrame | None]
     if zero != 0.0:
         clean = {n: None if df is None else df.assign(t=df["t"].to_numpy() - zero) for n, df in clean.items()}
         notes.append(f"time: t counts from the first sensor sample, {zero:.6f} s after the log's start")
+    frame = make_events(list(events or []), notes)
+    if frame is not None:
+        frame["t"] = frame["t"].to_numpy() - zero
+        early = int((frame["t"] < 0).sum())
+        if early:
+            notes.append(f"events: {early} before the first sensor sample, kept with a negative t")
     imu_t = clean["imu"]["t"].to_numpy() if clean["imu"] is not None else None
     gps_t = clean["gps"]["t"].to_numpy() if clean["gps"] is not None else None
     segments, gaps = find_segments(imu_t, gps_t, imu_gap, gps_gap)
@@ -327,4 +420,4 @@ def assemble(source: str, path: Path, streams: Mapping[str, pd.DataFrame | None]
         notes.append("segments: no IMU or GPS span; one segment over all samples")
     return FlightLog(source=source, path=Path(path), vehicle=dict(vehicle or {}), notes=notes,
                      origin=tuple(float(v) for v in origin), origin_source=origin_source,
-                     segments=segments, boot_t0=float(boot_start) + zero, **clean)
+                     segments=segments, boot_t0=float(boot_start) + zero, events=frame, **clean)

@@ -12,6 +12,8 @@ Topics and fields read (instance 0 unless said otherwise; NED/FRD converted by `
   where ``vel_ned_valid`` is 0); ``fix_type``, ``satellites_used``, ``eph``, ``epv``,
   ``s_variance_m_s`` (speed accuracy), ``jamming_state`` (else ``jamming_indicator``),
   ``spoofing_state``. Samples without a position fix (fix_type < 2) are dropped.
+* receiver: every sample of the same topic instance and device, fix or not: ``fix_type``,
+  ``satellites_used``, the accuracies, jamming and spoofing as in gps, ``noise_per_ms`` (noise).
 * baro: ``vehicle_air_data.baro_alt_meter``, else the baro fields of old ``sensor_combined``.
 * mag: ``vehicle_magnetometer.magnetometer_ga``, else old ``sensor_combined.magnetometer_ga``,
   else ``sensor_mag`` (raw, sensor frame; noted).
@@ -30,6 +32,12 @@ Topics and fields read (instance 0 unless said otherwise; NED/FRD converted by `
   and ``velocity_frame`` in newer versions, ``x``/``vx``/``q`` with ``local_frame`` in older).
 * truth (SITL): ``vehicle_local_position_groundtruth`` (or the global one) with
   ``vehicle_attitude_groundtruth.q`` interpolated to its times.
+* events: ``vehicle_status.arming_state`` (2 = armed, in every PX4 version: older ones count
+  INIT 0, STANDBY 1, ARMED 2, newer DISARMED 1, ARMED 2) and ``vehicle_land_detected.landed``
+  changes -> armed / disarmed and takeoff (landed 1 -> 0) / landed (0 -> 1); a log that starts
+  armed (in the air) begins with armed (takeoff) at its first sample, the detail saying so;
+  ``vehicle_status.nav_state`` changes -> mode (the detail gives the number: its names changed
+  between versions).
 
 Times are seconds from the ULog header's start timestamp. ``timestamp_sample`` is used when
 every sample has one (it is when the data was measured), else ``timestamp``.
@@ -62,6 +70,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from quadformer.geometry import frames
 from quadformer.logs._series import first_fix, interp_linear, quat_interp
@@ -94,7 +103,7 @@ class _UlogReader(UlogEstimator):
             self.notes.append(f"file: {len(u.dropouts)} logger dropouts ({total} ms lost)")
         vehicle = self.vehicle()
         imu = self.imu()
-        gps_raw = self.gps()
+        gps_raw, receiver = self.gps()
         est_raw, ref_origin = self.local_position()
         if ref_origin is not None:
             origin, origin_source = ref_origin, "autopilot local origin"
@@ -113,9 +122,11 @@ class _UlogReader(UlogEstimator):
             "attitude": self.attitude(),
             "odometry": self.odometry(),
             "truth": self.truth(origin),
+            "receiver": receiver,
         }
         return assemble("px4-ulog", self.path, streams, self.notes, vehicle, origin,
-                        origin_source, imu_gap, gps_gap, boot_start=self.start * 1e-6)
+                        origin_source, imu_gap, gps_gap, boot_start=self.start * 1e-6,
+                        events=self.events())
 
     def vehicle(self) -> dict:
         info = self.ulog.msg_info_dict
@@ -160,11 +171,12 @@ class _UlogReader(UlogEstimator):
         return make_stream("imu", t, {"ax": a[:, 0], "ay": a[:, 1], "az": a[:, 2],
                                       "gx": g[:, 0], "gy": g[:, 1], "gz": g[:, 2]})
 
-    def gps(self) -> dict | None:
+    def gps(self) -> tuple[dict | None, pd.DataFrame | None]:
+        """The raw fixes of the GPS topic (fix_type >= 2) and its receiver stream (every sample)."""
         cands = [d for name in ("vehicle_gps_position", "sensor_gps") for d in self.instances(name)]
         if not cands:
             self.notes.append("gps: no vehicle_gps_position or sensor_gps topic")
-            return None
+            return None, None
         d = cands[0]
         others = [f"{o.name}[{o.multi_id}] ({len(o.data['timestamp'])} samples)" for o in cands[1:]]
         self.notes.append(f"gps: read {d.name}[{d.multi_id}] ({len(d.data['timestamp'])} samples)"
@@ -193,34 +205,65 @@ class _UlogReader(UlogEstimator):
         nofix = keep & (fix < 2)
         if nofix.any():
             self.notes.append(f"gps: dropped {int(nofix.sum())} samples without a position fix "
-                              "(fix_type < 2)")
+                              "(fix_type < 2; the receiver stream keeps them)")
         bad = keep & ~nofix & ((np.abs(lat) > 90) | (np.abs(lon) > 180) | ((lat == 0) & (lon == 0)))
         if bad.any():
             self.notes.append(f"gps: dropped {int(bad.sum())} samples with an invalid latitude/"
                               "longitude")
+        device = keep.copy()
         keep &= ~nofix & ~bad & np.isfinite(t) & np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt)
+        status = {k: np.asarray(v, dtype=float) for k, v in self.indicators(d, fix).items() if v is not None}
+        noise = self.field(d, "noise_per_ms", required=False)
+        receiver = make_stream("receiver", t[device], {
+            **{k: v[device] for k, v in status.items()},
+            **({} if noise is None else {"noise": np.asarray(noise, dtype=float)[device]})}, self.notes)
         if not keep.any():
             self.notes.append("gps: no sample with a valid fix")
-            return None
+            return None, receiver
         vel = np.stack([self.field(d, f"vel_{a}_m_s").astype(float) for a in "ned"], axis=-1)
         valid = self.field(d, "vel_ned_valid", required=False)
         if valid is not None and (valid[keep] == 0).any():
             vel[valid == 0] = np.nan
             self.notes.append(f"gps: velocity NaN in {int((valid[keep] == 0).sum())} samples "
                               "flagged vel_ned_valid = 0")
+        out = {"t": t, "lat": lat, "lon": lon, "alt": alt, "vel": frames.ned_to_enu(vel), **status}
+        return {k: np.asarray(v, dtype=float)[keep] for k, v in out.items()}, receiver
+
+    def indicators(self, d, fix: np.ndarray) -> dict[str, np.ndarray | None]:
+        """The receiver's own indicators in a GPS topic (None where a version lacks one)."""
         jam = self.field(d, "jamming_state", required=False)
         if jam is None:
             jam = self.field(d, "jamming_indicator", required=False)
             if jam is not None:
                 self.notes.append("gps: jamming is jamming_indicator (0-255; no jamming_state)")
-        spoof = self.field(d, "spoofing_state", required=False)
-        out = {"t": t, "lat": lat, "lon": lon, "alt": alt, "vel": frames.ned_to_enu(vel),
-               "fix_type": fix, "satellites": self.field(d, "satellites_used", required=False),
-               "eph": self.field(d, "eph", required=False),
-               "epv": self.field(d, "epv", required=False),
-               "speed_acc": self.field(d, "s_variance_m_s", required=False),
-               "jamming": jam, "spoofing": spoof}
-        return {k: np.asarray(v, dtype=float)[keep] for k, v in out.items() if v is not None}
+        return {"fix_type": fix, "satellites": self.field(d, "satellites_used", required=False),
+                "eph": self.field(d, "eph", required=False), "epv": self.field(d, "epv", required=False),
+                "speed_acc": self.field(d, "s_variance_m_s", required=False), "jamming": jam,
+                "spoofing": self.field(d, "spoofing_state", required=False)}
+
+    def events(self) -> list[tuple[float, str, str]]:
+        """Arming, takeoff and landing, and mode changes from the vehicle's status topics."""
+        out: list[tuple[float, str, str]] = []
+        for topic, field, on, off, is_on in (
+                ("vehicle_status", "arming_state", "armed", "disarmed", lambda v: v == 2),
+                ("vehicle_land_detected", "landed", "takeoff", "landed", lambda v: v == 0)):
+            d = self.dataset(topic)
+            values = None if d is None else self.field(d, field, required=False)
+            if values is None:
+                continue
+            t = self.times(d, "events")
+            state = is_on(np.asarray(values))
+            if state[0]:
+                out.append((float(t[0]), on, f"{topic}.{field} {values[0]} at the log's start"))
+            for i in np.flatnonzero(state[1:] != state[:-1]) + 1:
+                out.append((float(t[i]), on if state[i] else off, f"{topic}.{field} {values[i]}"))
+        d = self.dataset("vehicle_status")
+        nav = None if d is None else self.field(d, "nav_state", required=False)
+        if nav is not None:
+            t = self.times(d, "events")
+            for i in np.r_[0, np.flatnonzero(nav[1:] != nav[:-1]) + 1]:
+                out.append((float(t[i]), "mode", f"vehicle_status.nav_state {nav[i]}"))
+        return out
 
 
     def baro(self):

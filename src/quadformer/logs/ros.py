@@ -12,6 +12,9 @@ ENU/FLU), so no frame conversion is applied except where noted:
   fix_type 3 and 1/2 (SBAS/GBAS augmented) become 4; eph = sqrt(max(cov_EE, cov_NN)) and
   epv = sqrt(cov_UU) from ``position_covariance`` when its type is not UNKNOWN.
   Satellites, speed accuracy, jamming and spoofing are not in the message (NaN).
+* receiver: every NavSatFix, fix or not: ``status.status`` -1 -> fix_type 0, the others and
+  eph/epv as in gps.
+* events: a bag carries none of the autopilot's (``FlightLog.events`` is None).
 * gps_vel (``geometry_msgs/msg/TwistStamped``, optional; mavros
   ``/mavros/global_position/raw/gps_vel``): ``twist.linear`` ENU, joined to the fixes by
   nearest time (within half a fix period, at most 0.1 s).
@@ -261,6 +264,9 @@ def _assemble(path: Path, version: int, topics: RosTopics, raw: dict, info: dict
                              f"{tol:.3f} s; velocity NaN there")
         elif gps_raw is not None:
             notes.append("gps: no velocity topic; vx/vy/vz NaN")
+    if "fix" in arrays:
+        status = _status(arrays["fix"][2])
+        streams["receiver"] = make_stream("receiver", times["fix"], status, notes)
     if gps_raw is not None:
         origin, origin_source = first_fix(gps_raw), "first GPS fix"
         enu = frames.geodetic_to_enu(gps_raw["lat"], gps_raw["lon"], gps_raw["alt"], origin)
@@ -293,11 +299,24 @@ def _assemble(path: Path, version: int, topics: RosTopics, raw: dict, info: dict
                     origin, origin_source, imu_gap, gps_gap)
 
 
+def _status(v: np.ndarray) -> dict[str, np.ndarray]:
+    """fix_type, eph and epv of NavSatFix rows (status, lat, lon, alt, cov EE, NN, UU, cov type):
+    status -1 (no fix) -> 0, 0 (fix) -> 3, 1/2 (SBAS/GBAS augmented) -> 4; the accuracies from the
+    position covariance where its type is not UNKNOWN."""
+    status = v[:, 0]
+    known = v[:, 7] > 0
+    with np.errstate(invalid="ignore"):
+        eph = np.where(known, np.sqrt(np.maximum(v[:, 4], v[:, 5])), np.nan)
+        epv = np.where(known, np.sqrt(v[:, 6]), np.nan)
+    fix_type = np.select([status < 0, status == 0, status > 0], [0.0, 3.0, 4.0], np.nan)
+    return {"fix_type": fix_type, "eph": eph, "epv": epv}
+
+
 def _fix(v: np.ndarray, t: np.ndarray, notes: list[str]) -> dict | None:
     status, lat, lon, alt = v[:, 0], v[:, 1], v[:, 2], v[:, 3]
     keep = status >= 0
     if (~keep).any():
-        notes.append(f"gps: dropped {int((~keep).sum())} fixes with status NO_FIX")
+        notes.append(f"gps: dropped {int((~keep).sum())} fixes with status NO_FIX (the receiver stream keeps them)")
     bad = keep & ((np.abs(lat) > 90) | (np.abs(lon) > 180) | ~np.isfinite(lat) | ~np.isfinite(lon)
                   | ~np.isfinite(alt))
     if bad.any():
@@ -307,12 +326,7 @@ def _fix(v: np.ndarray, t: np.ndarray, notes: list[str]) -> dict | None:
     if not keep.any():
         notes.append("gps: no valid fix")
         return None
-    known = v[:, 7] > 0
-    with np.errstate(invalid="ignore"):
-        eph = np.where(known, np.sqrt(np.maximum(v[:, 4], v[:, 5])), np.nan)
-        epv = np.where(known, np.sqrt(v[:, 6]), np.nan)
-    fix_type = np.where(status == 0, 3.0, 4.0)
     order = np.flatnonzero(keep)
-    out = {"t": t, "lat": lat, "lon": lon, "alt": alt, "fix_type": fix_type, "eph": eph, "epv": epv}
+    out = {"t": t, "lat": lat, "lon": lon, "alt": alt, **_status(v)}
     return {k: a[order] for k, a in out.items()}
 

@@ -98,7 +98,14 @@ def _log_info(log) -> dict[str, Any]:
     return {"log": str(log.path), "format": log.source,
             "vehicle": ", ".join(f"{k} {v}" for k, v in log.vehicle.items()),
             "duration (s)": f"{log.duration:.1f}", "segments": len(log.segments),
-            "streams": ", ".join(log.streams), "origin": f"{log.origin} ({log.origin_source})"}
+            "streams": ", ".join(log.streams), "events": _event_counts(log.events),
+            "origin": f"{log.origin} ({log.origin_source})"}
+
+
+def _event_counts(events) -> str:
+    if events is None:
+        return "none logged"
+    return ", ".join(f"{k} {n}" for k, n in events["event"].value_counts(sort=False).items())
 
 
 def _info_table(info: dict[str, Any]) -> str:

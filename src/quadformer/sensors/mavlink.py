@@ -25,6 +25,10 @@ Decoding (``decode(msg) -> list of samples``; one message may carry several):
 - ``GPS_GLOBAL_ORIGIN``, ``HOME_POSITION`` -> ``Origin``: lat/lon 1e-7 deg, alt mm.
 - ``SYSTEM_TIME`` -> ``SystemTime``: maps UNIX-epoch stamps to time since boot.
 
+``gps_status(msg)`` (not part of ``decode``) gives the receiver's own report in ``GPS_RAW_INT`` /
+``GPS2_RAW`` as ``GpsStatus`` whether or not it holds a position: a receiver without a fix still
+says so (fix_type 0/1), which ``Gps`` samples, needing a position, cannot.
+
 Times are the vehicle's own stamps in seconds: ``time_usec * 1e-6`` or ``time_boot_ms * 1e-3``.
 Sentinels (UINT16_MAX ground speed or course, INT32_MAX latitude, NaN quaternion, ...) give no
 value rather than a wrong one; a message without any usable value gives no sample.
@@ -52,8 +56,8 @@ from quadformer.geometry.frames import (
     xyzw_to_wxyz,
 )
 
-__all__ = ["Attitude", "Baro", "Estimate", "Gps", "Imu", "Mag", "Odometry", "Origin", "SystemTime", "decode",
-           "pressure_altitude", "altitude_pressure", "mavlink2"]
+__all__ = ["Attitude", "Baro", "Estimate", "Gps", "GpsStatus", "Imu", "Mag", "Odometry", "Origin", "SystemTime",
+           "decode", "gps_status", "pressure_altitude", "altitude_pressure", "mavlink2"]
 
 G = 9.80665                      # m/s^2 per g (MAVLink's mG)
 P0_HPA = 1013.25                 # hPa, standard sea-level pressure
@@ -112,6 +116,17 @@ class Gps:
     epv: float               # m, vertical accuracy (NaN: none)
     speed_acc: float         # m/s (NaN: none)
     satellites: float        # NaN when unknown
+
+
+@dataclass(frozen=True, slots=True)
+class GpsStatus:
+    t: float
+    instance: int            # receiver: 0 GPS_RAW_INT, 1 GPS2_RAW
+    fix_type: int            # GPS_FIX_TYPE: 0/1 no fix, 2 2D, 3 3D, 4+ augmented
+    satellites: float        # NaN when unknown
+    eph: float               # m, horizontal accuracy (NaN: none)
+    epv: float               # m, vertical accuracy (NaN: none)
+    speed_acc: float         # m/s (NaN: none)
 
 
 @dataclass(frozen=True, slots=True)
@@ -217,6 +232,18 @@ def _gps(m, instance: int) -> list:
                 _acc(getattr(m, "h_acc", 0), 1e-3), _acc(getattr(m, "v_acc", 0), 1e-3),
                 _acc(getattr(m, "vel_acc", 0), 1e-3),
                 math.nan if m.satellites_visible == 255 else float(m.satellites_visible))]
+
+
+def gps_status(m) -> GpsStatus | None:
+    """The receiver's status in a ``GPS_RAW_INT`` (instance 0) or ``GPS2_RAW`` (1), fix or not;
+    None for other messages."""
+    instance = GPS_MESSAGES.get(m.get_type())
+    if instance is None:
+        return None
+    return GpsStatus(m.time_usec * 1e-6, instance, int(m.fix_type),
+                     math.nan if m.satellites_visible == 255 else float(m.satellites_visible),
+                     _acc(getattr(m, "h_acc", 0), 1e-3), _acc(getattr(m, "v_acc", 0), 1e-3),
+                     _acc(getattr(m, "vel_acc", 0), 1e-3))
 
 
 def _odometry(m) -> list:
