@@ -36,6 +36,7 @@ def detect(
     quiet: bool = typer.Option(False, help="No progress bar."),
 ) -> None:
     """Detect GPS spoofing in flight logs: per-step scores, alerts (printed and CSV) and a report per log."""
+    from quadformer.detectors.alarms import alert_counts
     from quadformer.io import set_threads
     from quadformer.report.detection_outputs import detect_logs
 
@@ -61,9 +62,13 @@ def detect(
         if o.status == "scored":
             res = o.detection
             hours = len(res.rows) / config.gps_rate_hz / 3600
+            n = alert_counts(res.alerts)
+            rate = f" ({n['alerts'] / hours:.1f} per flight-hour)" if hours else ""
             typer.echo(f"{o.path}: {res.log.source}, {res.log.duration:.1f} s, {len(res.rows)} GPS steps scored "
-                       f"({residues} residues, {res.sensors}): {len(res.alerts)} alert(s) "
-                       f"({len(res.alerts) / hours:.1f} per flight-hour)" if hours else "")
+                       f"({residues} residues, {res.sensors}): {n['alerts']} spoofing alert(s) in the air{rate}"
+                       + (f"; beside them {n['alerts_ground']} on the ground, {n['alerts_transition']} in the "
+                          f"take-off transition, {n['alerts_degraded']} of a degraded receiver"
+                          if n["alerts_total"] > n["alerts"] else ""))
             print_alerts(res.alerts)
 
     run = detect_logs(paths, det, out, residues, config, format=format, typing=typing, model=str(model),

@@ -1,16 +1,20 @@
 """Attack detectors under one contract, registered by name: classical statistics, learned
-window classifiers and QUADFormer; their online streams and alert events; the network
-detectors exported as ONNX graphs and scored with onnxruntime."""
+window classifiers and QUADFormer; their online streams and alert events, labelled by flight
+phase and receiver health; the network detectors exported as ONNX graphs and scored with
+onnxruntime."""
 
 from quadformer.detectors import classical, pca, svm  # noqa: F401  (registration)
 from quadformer.detectors import neural  # noqa: F401  (registration)
-from quadformer.detectors.alarms import Alert, alerts_frame, alerts_from_scores, runs, write_alerts
+from quadformer.detectors.alarms import Alert, alert_counts, alerts_frame, alerts_from_scores, runs, write_alerts
 from quadformer.detectors.attack_types import ShapeTyper
 from quadformer.detectors.base import Detector, NotFittedError, flight_slices
 from quadformer.detectors.export import OnnxDetector, export_onnx, load_model
+from quadformer.detectors.flight_phase import FlightPhase, PhaseRule
+from quadformer.detectors.receiver_health import HealthRule, ReceiverHealth
 from quadformer.detectors.registry import available, defaults, get, load, make, register
 from quadformer.detectors.streams import DetectorStream, StreamGroup, StreamStep
 
-__all__ = ["Alert", "Detector", "DetectorStream", "NotFittedError", "OnnxDetector", "StreamGroup", "StreamStep", "alerts_frame",
-           "alerts_from_scores", "available", "defaults", "export_onnx", "flight_slices", "get", "load", "load_model",
-           "make", "register", "runs", "write_alerts"]
+__all__ = ["Alert", "Detector", "DetectorStream", "FlightPhase", "HealthRule", "NotFittedError", "OnnxDetector", "PhaseRule",
+           "ReceiverHealth", "StreamGroup", "StreamStep", "alert_counts", "alerts_frame", "alerts_from_scores",
+           "available", "defaults", "export_onnx", "flight_slices", "get", "load", "load_model", "make", "register",
+           "runs", "write_alerts"]

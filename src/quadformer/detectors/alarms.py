@@ -5,6 +5,10 @@ estimated onset of the attack (from the detector's onset criterion where it has 
 the alarm time), its attack type (from a typer such as ``attack_types.ShapeTyper`` where
 one is given, else from the detector where it classifies, else ``attack``), the peak score
 during the run and when the run ended (``None`` while still alarmed at the end of the data).
+An alert also carries its kind (``spoofing``, or ``degraded`` when raised while the receiver
+was degraded: ``detectors.receiver_health``), the flight phase at its raise (``ground``,
+``transition`` or ``air``: ``detectors.flight_phase``) and the reason for a kind that is not
+the detector's own say; ``alert_counts`` counts them apart (the headline: spoofing in the air).
 
 ``AlertTracker`` is that lifecycle (raise, estimated onset, confirm the type, close) fed one
 step at a time; the live monitor, the closed loop and offline scoring (``alerts_from_scores``)
@@ -24,8 +28,11 @@ import pandas as pd
 from quadformer.detectors.base import flight_slices
 from quadformer.io import atomic_path
 
-ALERT_COLUMNS = ["flight_id", "start_s", "onset_s", "attack_type", "score", "end_s", "confirmed_type"]
+ALERT_COLUMNS = ["flight_id", "start_s", "onset_s", "attack_type", "score", "end_s", "confirmed_type",
+                 "kind", "phase", "reason"]
 ALERT_EVENTS = ("alert_start", "alert_end", "alert_type")
+ALERT_KINDS = ("spoofing", "degraded")
+_WHERE = {"ground": "on the ground", "transition": "in the take-off transition", "air": "in the air"}
 
 
 def runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -54,12 +61,21 @@ class Alert:
     score: float             # peak score during the alarm run
     end_s: float | None      # time of the first step after the run (None: still alarmed)
     confirmed_type: str | None = None   # the shape typer's type confirm_s after the start (None: not typed by shape)
+    kind: str = "spoofing"   # "spoofing", or "degraded": raised while the receiver was degraded, or its episode
+    phase: str = "air"       # the flight phase at the raise (detectors.flight_phase.PHASES)
+    reason: str | None = None   # why it is of its kind where something other than the detector said so
 
     def __str__(self) -> str:
         end = f"{self.end_s:.1f} s" if self.end_s is not None else "open"
+        what = f"{self.attack_type} alert" if self.kind == "spoofing" else f"{self.kind} alert"
+        if self.kind != "spoofing" and self.attack_type != "none":
+            what += f" ({self.attack_type})"
+        peak = f", peak score {self.score:.3g}" if np.isfinite(self.score) else ""
         confirmed = f", confirmed {self.confirmed_type}" if self.confirmed_type is not None else ""
-        return (f"flight {self.flight_id}: {self.attack_type} alert at {self.start_s:.1f} s "
-                f"(onset ~{self.onset_s:.1f} s, until {end}, peak score {self.score:.3g}{confirmed})")
+        reason = f"; {self.reason}" if self.reason is not None else ""
+        where = _WHERE.get(self.phase, self.phase)
+        return (f"flight {self.flight_id}: {what} at {self.start_s:.1f} s {where} "
+                f"(onset ~{self.onset_s:.1f} s, until {end}{peak}{confirmed}{reason})")
 
 
 @dataclass(frozen=True)
@@ -79,8 +95,8 @@ class AlertEvent:
 class AlertTracker:
     """The alert lifecycle of ``n`` flights stepped together (see the module text).
 
-    ``update`` takes one step: each flight's time, score, alarm (the detector's rule), the type
-    to raise an alert with, and where the detector has an onset criterion, whether its raw score
+    ``update`` takes one step: each flight's time, score, alarm (the detector's rule), the type,
+    kind, flight phase and reason to raise an alert with, and where the detector has an onset criterion, whether its raw score
     is above the onset level (``StreamStep.above``); the onset of a new alert is the first step
     of the run of such steps that ends just before the alarm (the alarm's own time otherwise), as
     ``onset_times`` back-tracks offline. ``confirm`` sets an alert's confirmed type; ``finish``
@@ -107,10 +123,13 @@ class AlertTracker:
         self.steps = np.zeros(self.n, dtype=np.int64)
         self.n_alerts = 0
 
-    def update(self, t, score, alarm, attack_type=None, above=None, active=None) -> list[AlertEvent]:
+    def update(self, t, score, alarm, attack_type=None, above=None, active=None, kind=None, phase=None,
+               reason=None) -> list[AlertEvent]:
         """One step; returns its events (starts and ends). ``t``: the step's time, one value or
         one per flight; ``attack_type``: one name or one per flight (None: ``attack``); ``active``:
-        the flights that have this step (all by default; offline flights of unequal length)."""
+        the flights that have this step (all by default; offline flights of unequal length);
+        ``kind``, ``phase``, ``reason``: what a new alert is raised with, one value or one per
+        flight (None: ``spoofing``, ``air``, no reason)."""
         n = self.n
         t = np.broadcast_to(np.asarray(t, dtype=float), (n,))
         score = np.broadcast_to(np.asarray(score, dtype=float), (n,))
@@ -124,10 +143,11 @@ class AlertTracker:
         for i in ends:
             events.append(self._close(int(i), float(t[i]), int(self.steps[i])))
         for i in starts:
-            kind = attack_type if attack_type is None or isinstance(attack_type, str) else attack_type[i]
+            typed, k, ph, why = (_of(v, i) for v in (attack_type, kind, phase, reason))
             onset = self._rise[i] if np.isfinite(self._rise[i]) else t[i]
-            a = Alert(self.flight_ids[i], float(t[i]), float(onset), "attack" if kind is None else str(kind),
-                      float(score[i]), None)
+            a = Alert(self.flight_ids[i], float(t[i]), float(onset), "attack" if typed is None else str(typed),
+                      float(score[i]), None, kind="spoofing" if k is None else str(k),
+                      phase="air" if ph is None else str(ph), reason=None if why is None else str(why))
             self.open[i] = a
             self._is_open[i] = True
             self._peak[i] = score[i]
@@ -180,6 +200,23 @@ class AlertTracker:
     def closed(self) -> list[tuple[int, int, Alert]]:
         """(flight, step raised at, alert) of the closed alerts kept, by flight (batch order) then time."""
         return sorted(((i, j, a) for (i, j), a in zip(self._order, self.alerts)), key=lambda x: x[:2])
+
+
+def _of(value, i: int):
+    """Flight i's value of one value or one per flight (a string is one value)."""
+    return value if value is None or isinstance(value, str) else value[i]
+
+
+def alert_counts(alerts: Sequence[Alert]) -> dict[str, int]:
+    """Alerts counted apart: ``alerts`` the spoofing alerts raised in the air (the headline),
+    ``alerts_ground`` and ``alerts_transition`` the spoofing alerts raised on the ground and in
+    the take-off transition, ``alerts_degraded`` those of a degraded receiver (any phase), and
+    ``alerts_total`` all of them."""
+    spoof = [a for a in alerts if a.kind != "degraded"]
+    return {"alerts": sum(a.phase == "air" for a in spoof),
+            "alerts_ground": sum(a.phase == "ground" for a in spoof),
+            "alerts_transition": sum(a.phase == "transition" for a in spoof),
+            "alerts_degraded": len(alerts) - len(spoof), "alerts_total": len(alerts)}
 
 
 def onset_flags(X: pd.DataFrame, detector) -> np.ndarray | None:

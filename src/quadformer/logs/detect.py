@@ -9,6 +9,7 @@ dataset in the project's format, which ``benchmark --data``, ``fit`` and ``evalu
 from __future__ import annotations
 
 import dataclasses
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -121,19 +122,33 @@ def detect_log(log: FlightLog | str | Path, detector, residues: str = "ekf",
 
 
 def step_alerts(rows: pd.DataFrame, scores: np.ndarray, detector, typing: str = "shape",
-                gps_rate_hz: float = FilterConfig.gps_rate_hz) -> list:
+                gps_rate_hz: float = FilterConfig.gps_rate_hz, events: pd.DataFrame | None = None,
+                receiver: pd.DataFrame | None = None, height: pd.DataFrame | None = None) -> list:
     """The alerts of ``rows`` (flights by ``flight_id``) scored in one batch (``scores``): each
     flight's rows driven through the online step (``resilience.step.OnlineStep``) that the live
     monitor and the closed loop drive, so its alert lifecycle, onsets and shape typing are the
-    live ones. The replayed filter fused every fix, so the step decides no GPS admission here."""
+    live ones. The replayed filter fused every fix, so the step decides no GPS admission here.
+
+    With the vehicle's ``events`` (columns t, event, detail), the receiver's status reports
+    (``receiver``: columns t, fix_type and any of satellites, eph, epv, speed_acc, jamming, noise,
+    spoofing) or ``height`` (columns t, h), each flight's step gets a ``FlightPhase`` and a
+    ``ReceiverHealth`` that label its alerts, and they are fed, in time order (at equal times:
+    events, reports, heights), everything up to each row's time before that row; what remains
+    after a flight's last row (up to the next flight's first row, or the end) before its
+    ``finish``. A flight's phase is fed the log from its start; its health from its first row
+    (the first flight's from the log's start), so a degraded episode is raised by one flight only."""
     from quadformer.detectors import flight_slices
     from quadformer.detectors.alarms import onset_flags
     from quadformer.detectors.attack_types import TYPING_COLUMNS, OnlineTyper, alert_typer
+    from quadformer.detectors.flight_phase import FlightPhase, timeline
+    from quadformer.detectors.receiver_health import REPORT_FIELDS, ReceiverHealth
     from quadformer.detectors.streams import ScoredStream
     from quadformer.resilience.step import OnlineStep
 
+    labelled = any(f is not None for f in (events, receiver, height))
+    _check_columns(events, receiver, height)
     alarms = np.asarray(scores) > detector.threshold_
-    if not alarms.any():
+    if not alarms.any() and receiver is None and events is None:    # nothing can raise an alert
         return []
     shape = alert_typer(rows, typing)
     types = None
@@ -142,17 +157,54 @@ def step_alerts(rows: pd.DataFrame, scores: np.ndarray, detector, typing: str = 
     above = onset_flags(rows, detector)
     typed = [c for c in TYPING_COLUMNS[1:] if c in rows.columns] if shape is not None else []
     t = rows["t"].to_numpy(dtype=float)
+    items = list(timeline(("events", events), ("receiver", receiver), ("height", height))) if labelled else []
+    fields = [c for c in REPORT_FIELDS if receiver is not None and c in receiver.columns]
+    slices = flight_slices(rows)
+    starts = sorted(t[idx[0]] for _, idx in slices)
     alerts = []
-    for fid, idx in flight_slices(rows):
+    for fid, idx in slices:
         stream = ScoredStream(scores[idx], alarms[idx], None if types is None else types[idx],
                               None if above is None else above[idx])
-        step = OnlineStep(stream, flight_ids=[fid], typer=None if shape is None else OnlineTyper(shape, gps_rate_hz))
+        step = OnlineStep(stream, flight_ids=[fid], typer=None if shape is None else OnlineTyper(shape, gps_rate_hz),
+                          phase=FlightPhase() if labelled else None,
+                          health=ReceiverHealth(flight_id=fid) if labelled else None)
+        before = t[idx[0]] if starts[0] < t[idx[0]] else -np.inf      # earlier: the flight before's
+        after = min((s for s in starts if s > t[idx[0]]), default=np.inf)
+        pending = deque(items)
         values = rows[typed].to_numpy(dtype=float)[idx]
-        for k in range(len(idx)):
-            step.update_columns(t[idx[k]], dict(zip(typed, values[k, :, None])))
+        for k_row in range(len(idx)):
+            _feed(step, pending, t[idx[k_row]], before, fields)
+            step.update_columns(t[idx[k_row]], dict(zip(typed, values[k_row, :, None])))
+        _feed(step, pending, after, before, fields, inclusive=False)
         step.finish()
         alerts += step.alerts
     return alerts
+
+
+def _feed(step, pending: deque, until: float, before: float, fields: list[str], inclusive: bool = True) -> None:
+    """Feed ``step`` the pending (t, source, row) items up to ``until`` (inclusive or not), in
+    order: an item before ``before`` (the flight before's) to its flight phase only."""
+    while pending and (pending[0][0] <= until if inclusive else pending[0][0] < until):
+        ti, name, row = pending.popleft()
+        if ti < before:
+            if name == "events":
+                step.phase.event(ti, str(row["event"]))
+            elif name == "height":
+                step.phase.update(ti, float(row["h"]))
+        elif name == "events":
+            step.event(ti, str(row["event"]))
+        elif name == "receiver":
+            step.receiver(ti, **{c: row[c] for c in fields})
+        else:
+            step.height(ti, float(row["h"]))
+
+
+def _check_columns(events: pd.DataFrame | None, receiver: pd.DataFrame | None, height: pd.DataFrame | None) -> None:
+    for name, frame, need in (("events", events, ("t", "event")), ("receiver", receiver, ("t", "fix_type")),
+                              ("height", height, ("t", "h"))):
+        if frame is not None and not set(need) <= set(frame.columns):
+            raise ValueError(f"{name}: columns {', '.join(c for c in need if c not in frame.columns)} missing "
+                             f"(has {', '.join(map(str, frame.columns)) or 'none'})")
 
 
 def logs_dataset(paths: list[Path], residues: str = "ekf", config: FilterConfig = FilterConfig(),

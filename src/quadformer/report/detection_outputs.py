@@ -3,7 +3,10 @@
 Per log, a folder (named after the log; replaced whole, never left half written):
 ``scores.csv`` (the flight table's rows with ``score`` and ``alarm``; ``t`` in seconds since
 the log's first sensor sample, as the live monitor counts, ``boot_t`` the vehicle's time since
-boot beside it), ``alerts.csv``, ``report.html`` and ``summary.json``; a readable log with
+boot beside it), ``alerts.csv`` (each alert with its kind, flight phase and reason),
+``report.html`` and ``summary.json`` (the alerts counted apart, ``detectors.alert_counts``:
+``alerts`` the spoofing alerts in the air, those on the ground, in the take-off transition and
+of a degraded receiver beside it, and all of them); a readable log with
 nothing to score gets ``report.html`` and ``summary.json`` saying why. Over the logs scored: ``summary.csv`` (a
 row per log) and ``alerts.csv`` (every alert, with its ``log``).
 """
@@ -18,7 +21,7 @@ from typing import Any, Callable
 import numpy as np
 import pandas as pd
 
-from quadformer.detectors import alerts_frame
+from quadformer.detectors import alert_counts, alerts_frame
 from quadformer.estimator.online import FilterConfig
 from quadformer.io import atomic_dir, atomic_path, write_json
 from quadformer.logs import LogError
@@ -26,7 +29,8 @@ from quadformer.logs.detect import DetectorInputError, LogDetection, NothingToSc
 from quadformer.report.logs import write_log_report, write_unscored_report
 
 #: the columns of summary.csv, taken from each scored log's summary.json
-SUMMARY_COLUMNS = ("log", "format", "duration_s", "segments", "steps", "alarmed_steps", "alerts")
+SUMMARY_COLUMNS = ("log", "format", "duration_s", "segments", "steps", "alarmed_steps", "alerts", "alerts_ground",
+                   "alerts_transition", "alerts_degraded", "alerts_total")
 
 
 def write_detection(res: LogDetection, folder: str | Path, log: str | Path, model: str = "") -> dict[str, Any]:
@@ -46,7 +50,7 @@ def write_detection(res: LogDetection, folder: str | Path, log: str | Path, mode
                 "detector": det.name, "model": model, "threshold": det.threshold_,
                 "boot_t0_s": None if math.isnan(res.log.boot_t0) else res.log.boot_t0,
                 "duration_s": res.log.duration, "segments": len(res.log.segments),
-                "steps": int(len(res.rows)), "alarmed_steps": int(res.alarms.sum()), "alerts": len(res.alerts),
+                "steps": int(len(res.rows)), "alarmed_steps": int(res.alarms.sum()), **alert_counts(res.alerts),
                 "notes": [*res.log.notes, *res.notes]}
         write_json(tmp / "summary.json", info)
     return info

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from quadformer.detectors import alerts_frame
+from quadformer.detectors import alert_counts, alerts_frame
 from quadformer.io import atomic_write_text
 from quadformer.report.html import img, page, png, table
 
@@ -125,6 +125,14 @@ def write_unscored_report(log, reason: str, out: Path) -> Path:
     return Path(out) / "report.html"
 
 
+def _alert_lines(alerts) -> dict[str, Any]:
+    """The alerts counted apart: spoofing alerts in the air first, the others beside."""
+    n = alert_counts(alerts)
+    return {"spoofing alerts in the air": n["alerts"],
+            "beside them": f"{n['alerts_ground']} on the ground, {n['alerts_transition']} in the take-off "
+                           f"transition, {n['alerts_degraded']} of a degraded receiver ({n['alerts_total']} in all)"}
+
+
 def write_log_report(det, out: Path, model: str) -> Path:
     """report.html of one log's detection (``logs.detect.LogDetection``) into ``out``."""
     out = Path(out)
@@ -132,7 +140,7 @@ def write_log_report(det, out: Path, model: str) -> Path:
     info: dict[str, Any] = {
         **_log_info(log), "residues": det.residues, "sensors fused": det.sensors, "detector": f"{det.detector.name} ({model})",
         "threshold": f"{det.detector.threshold_:.4g}", "GPS steps scored": len(det.rows),
-        "steps under alarm": int(np.sum(det.alarms)), "alerts": len(det.alerts),
+        "steps under alarm": int(np.sum(det.alarms)), **_alert_lines(det.alerts),
     }
     parts = [f"<h1>quadformer detect: {html.escape(log.path.name)}</h1>", _info_table(info)]
     parts.append("<h2>Alerts</h2>" + (table(alerts_frame(det.alerts), ".3g", index=False) if det.alerts

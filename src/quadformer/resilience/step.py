@@ -12,7 +12,13 @@ driver owns only its clock and its I/O. Per step, for ``n`` flights stepped toge
 4. the alert lifecycle (``detectors.alarms.AlertTracker``) raises, dates (estimated onset),
    types and closes alerts; with an ``OnlineTyper`` (one flight) an alert is raised with the
    shape typer's type at its first row and confirmed ``confirm_s`` later (an ``alert_type``
-   event), as ``alerts_from_scores`` types alerts offline.
+   event), as ``alerts_from_scores`` types alerts offline;
+5. with a ``FlightPhase`` and a ``ReceiverHealth`` (one flight), fed the vehicle's events, the
+   receiver's reports and heights between steps (``event``, ``receiver``, ``height``), an alert
+   is labelled at its raise with the phase then and its kind: ``degraded`` (the health's reason)
+   while the receiver is degraded, else ``spoofing``. The receiver's own spoofing flag raises a
+   spoofing alert (reason ``receiver reports spoofing``) without a detector alarm, and its
+   degraded episodes are alerts of their own (``OnlineStep.alerts`` holds both, by time).
 
 Offline scoring of a whole log (``logs.detect``) computes the same scores in one batch (every
 detector's stream equals its ``decision_function``) and runs the same ``AlertTracker`` over
@@ -31,6 +37,8 @@ import torch
 
 from quadformer.detectors.alarms import AlertEvent, AlertTracker
 from quadformer.detectors.attack_types import OnlineTyper
+from quadformer.detectors.flight_phase import FlightPhase
+from quadformer.detectors.receiver_health import SPOOFED, ReceiverHealth
 from quadformer.estimator.schema import GROUPS, NIS, as_columns
 from quadformer.resilience.admission import Decision
 
@@ -57,11 +65,14 @@ class OnlineStep:
     ``stream``: a detector stream (``detector.stream(n)``, a ``StreamGroup``) or None (scores 0,
     no alarm: policies that need no detector); ``admission``: an ``Admission`` (or group) of the
     same n flights, or None; ``typer``: an ``OnlineTyper`` (one flight only) for shape-typed
-    alerts; ``flight_ids``: the names alerts carry; ``keep``: closed alerts kept in memory."""
+    alerts; ``flight_ids``: the names alerts carry; ``keep``: closed alerts kept in memory;
+    ``phase``, ``health``: the flight phase and receiver health alerts are labelled by (one
+    flight only; the health's ``flight_id`` is the flight's name)."""
 
     def __init__(self, stream=None, admission=None, *, n: int | None = None,
                  flight_ids: Sequence[Any] | None = None, typer: OnlineTyper | None = None,
-                 keep: int | None = None):
+                 keep: int | None = None, phase: FlightPhase | None = None,
+                 health: ReceiverHealth | None = None):
         sizes = {m for m in (n, getattr(stream, "n", None),
                              len(admission.policies) if admission is not None else None) if m is not None}
         if len(sizes) != 1:
@@ -70,7 +81,16 @@ class OnlineStep:
         self.n = sizes.pop()
         if typer is not None and self.n != 1:
             raise ValueError(f"OnlineStep: an OnlineTyper types one flight, not {self.n}")
+        if (phase is not None or health is not None) and self.n != 1:
+            raise ValueError(f"OnlineStep: a flight phase and a receiver health label one flight, not {self.n}")
+        if health is not None:
+            if flight_ids is None:
+                flight_ids = [health.flight_id]
+            elif list(flight_ids) != [health.flight_id]:
+                raise ValueError(f"OnlineStep: the receiver health's flight_id {health.flight_id!r} is not "
+                                 f"the flight's {list(flight_ids)[0]!r}")
         self.stream, self.admission, self.typer = stream, admission, typer
+        self.phase, self.health = phase, health
         self.tracker = AlertTracker(self.n, flight_ids, keep=keep)
         self.pending: deque[tuple[float, str]] = deque(maxlen=MAX_PENDING)
         self._zeros = np.zeros(self.n)
@@ -102,20 +122,59 @@ class OnlineStep:
             dec = self.admission.decide(nis, w, torch.from_numpy(alarm), hit)
             after = self.admission.state.numpy().copy()
         events: list[AlertEvent] = []
+        raised, label = alarm, {}
+        if self.phase is not None or self.health is not None:
+            t0 = float(np.asarray(t).reshape(-1)[0])
+            raised, label, events = self._label(t0, alarm)
         kinds = types
         if self.typer is not None:
             t0 = float(np.asarray(t).reshape(-1)[0])
             row = {c: float(np.asarray(v).reshape(-1)[0]) for c, v in cols.items()}
             if self.typer.push(t0, row):
                 events += self._confirm(t0)
-                if alarm[0] and self.tracker.open[0] is None:
+                if raised[0] and self.tracker.open[0] is None:
                     kinds = np.array([self.typer.type_now()], dtype=object)
                     self.pending.append((t0, str(kinds[0])))
-        events += self.tracker.update(t, score, alarm, kinds, above)
+        events += self.tracker.update(t, score, raised, kinds, above, **label)
         if self.typer is not None:          # the open alert's type (raised with the typer's)
             a = self.tracker.open[0]
             kinds = np.array([None if a is None else a.attack_type], dtype=object)
         return StepResult(np.asarray(score, dtype=float), alarm, kinds, cols, dec, before, after, events)
+
+    def _label(self, t: float, alarm: np.ndarray) -> tuple[np.ndarray, dict[str, Any], list[AlertEvent]]:
+        """The alarm the tracker raises on (the detector's, or the receiver's spoofing flag), what
+        a new alert is labelled with, and the receiver's episodes the step's time closes."""
+        label: dict[str, Any] = {"phase": self._phase_at(t)}
+        events = []
+        if self.health is not None:
+            events = self.health.tick(t)
+            why = self.health.degraded(t)
+            if self.health.spoof_flag(t):
+                alarm = np.ones(1, dtype=bool)
+                label.update(kind="spoofing", reason=SPOOFED)
+            elif why is not None:
+                label.update(kind="degraded", reason=why)
+        return alarm, label, events
+
+    def _phase_at(self, t: float) -> str:
+        return "air" if self.phase is None else self.phase.update(t)
+
+    def event(self, t: float, kind: str) -> list[AlertEvent]:
+        """One of the vehicle's events at t (``flight_phase.VEHICLE_EVENTS``,
+        ``receiver_health.GPS_EVENTS``; others are ignored) fed to the phase and the health;
+        returns the events of the degraded episodes it opens or closes."""
+        if self.phase is not None:
+            self.phase.event(t, kind)
+        return [] if self.health is None else self.health.event(t, kind, phase=self._phase_at(t))
+
+    def receiver(self, t: float, **report) -> list[AlertEvent]:
+        """One status report of the receiver at t (``ReceiverHealth.report``'s fields) fed to the
+        health; returns the events of the degraded episodes it opens or closes."""
+        return [] if self.health is None else self.health.report(t, **report, phase=self._phase_at(t))
+
+    def height(self, t: float, h: float) -> str:
+        """A height sample at t (m, any datum) fed to the flight phase; the phase at t."""
+        return self._phase_at(t) if self.phase is None else self.phase.update(t, h)
 
     def _confirm(self, t: float | None) -> list[AlertEvent]:
         """Confirm the types of alerts raised ``confirm_s`` or more before t (all at the end, t None)."""
@@ -139,9 +198,14 @@ class OnlineStep:
         events = self.tracker.finish()
         if self.typer is not None and self.typer.history:
             events += self._confirm(None)
+        if self.health is not None:
+            events += self.health.finish()
         return events
 
     @property
     def alerts(self):
-        """The closed alerts kept, by flight and time."""
-        return [a for _, _, a in self.tracker.closed()]
+        """The closed alerts kept, by flight and time (the receiver's degraded episodes among them)."""
+        alerts = [a for _, _, a in self.tracker.closed()]
+        if self.health is not None:
+            alerts = sorted(alerts + self.health.alerts, key=lambda a: a.start_s)
+        return alerts

@@ -1,0 +1,183 @@
+"""Receiver health: GPS degradation is not spoofing.
+
+A receiver that loses its fix, or whose stated accuracy jumps, gives fixes the detectors find
+inconsistent, and an alarm then is a degraded receiver, not a spoof. ``ReceiverHealth`` reads
+the receiver's own status reports and the autopilot's GPS events, online, and says when the
+receiver is degraded and why; an alert raised while it is (``Alert.kind`` ``degraded``) is
+counted apart from the spoofing alerts, never dropped.
+
+Signs of degradation, and only these:
+
+- no fix: a report whose fix type is below ``min_fix`` (3, a 3D fix; PX4 and MAVLink number
+  0-1 no fix, 2 2D, 3 3D, 4 and up DGPS and RTK), from that report until the next one with a fix;
+- an accuracy jump: a report with a fix whose horizontal accuracy ``eph`` is above
+  ``eph_floor_m`` and more than ``eph_ratio`` times the median eph of the reports with a fix
+  over the ``window_s`` before it, until the next report. The median takes in every report, so a
+  lasting rise becomes the new normal after about half the window;
+- the autopilot's ``gps_glitch`` and ``gps_failsafe``, each until its ``_cleared`` event, and
+  ``gps_lost`` at its time.
+
+NOT signs of degradation: fewer satellites, a higher noise floor, jamming indicators. A
+spoofer's stronger signal raises the noise floor and captures or drowns satellites while the
+receiver still reports a good 3D fix and a steady accuracy: that is what a spoof looks like, so a
+detector alarm there stays ``spoofing``. Only a receiver that says its fix is lost or worse is
+degraded.
+
+A degraded episode runs from its first sign to ``hold_s`` after its last, and is one ``Alert``
+of kind ``degraded`` (attack type ``none``, score NaN, reason the first sign's), given as an
+``alert_start`` event by the call that sees the sign, and an ``alert_end`` (its ``end_s`` the
+episode's end) by the first call at or after that end. Separately, the receiver's own spoofing
+verdict (``spoof_flag``: PX4's ``spoofing_state`` at or above ``spoof_level``, 2: spoofing
+indicated) stands from the report that sets it to the next report.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from quadformer.detectors.alarms import Alert, AlertEvent
+
+GPS_EVENTS = ("gps_glitch", "gps_glitch_cleared", "gps_failsafe", "gps_failsafe_cleared", "gps_lost")
+REPORT_FIELDS = ("fix_type", "satellites", "eph", "epv", "speed_acc", "jamming", "noise", "spoofing")
+SPOOFED = "receiver reports spoofing"       # the reason of an alert the receiver's own flag raised
+_STANDING = {"gps_glitch": ("glitch", "autopilot GPS glitch"),
+             "gps_failsafe": ("failsafe", "autopilot GPS failsafe")}
+_CLEARS = {"gps_glitch_cleared": "glitch", "gps_failsafe_cleared": "failsafe"}
+
+
+@dataclass(frozen=True)
+class HealthRule:
+    min_fix: int = 3             # the least fix type that is a fix (3: a 3D fix)
+    eph_ratio: float = 2.5       # an eph above this many times its running median is a jump
+    window_s: float = 10.0       # s, the running median's window
+    eph_floor_m: float = 1.0     # m, an eph at or below this is never a jump
+    hold_s: float = 3.0          # s a degraded episode lasts after its last sign
+    spoof_level: int = 2         # the least spoofing state that is the receiver reporting spoofing
+
+    def __post_init__(self):
+        for name in ("eph_ratio", "window_s", "eph_floor_m", "hold_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"HealthRule.{name} must be a finite number >= 0, got {v!r}")
+        if self.eph_ratio <= 1 or self.window_s <= 0:
+            raise ValueError(f"HealthRule: eph_ratio must be > 1 and window_s > 0, got "
+                             f"{self.eph_ratio!r} and {self.window_s!r}")
+        for name in ("min_fix", "spoof_level"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, np.integer)) and v >= 1):
+                raise ValueError(f"HealthRule.{name} must be an integer >= 1, got {v!r}")
+
+
+class ReceiverHealth:
+    """The receiver health of one vehicle, online (see the module text). ``report`` takes every
+    status report of the receiver (those without a fix too), ``event`` the autopilot's GPS
+    events, ``tick`` the passing of time (a GPS step); each returns the alert events of the
+    degraded episodes it opens or closes. ``flight_id``: the name its alerts carry; ``keep``:
+    the closed alerts kept in ``alerts`` (all by default). Times in seconds, fed in order."""
+
+    def __init__(self, rule: HealthRule = HealthRule(), flight_id: Any = 0, keep: int | None = None):
+        self.rule, self.flight_id, self.keep = rule, flight_id, keep
+        self.open: Alert | None = None
+        self.alerts: list[Alert] = []
+        self._eph: deque[tuple[float, float]] = deque()    # (t, eph) of the reports with a fix in the window
+        self._report: str | None = None                    # the last report's sign, standing until the next
+        self._autopilot: dict[str, str] = {}               # standing autopilot signs: glitch, failsafe
+        self._spoof = False
+        self._last = -math.inf                             # s, when a sign was last present
+        self._reason: str | None = None                    # the last sign's reason
+
+    # -- inputs ---------------------------------------------------------------------------
+    def report(self, t: float, fix_type: float, satellites: float = math.nan, eph: float = math.nan,
+               epv: float = math.nan, speed_acc: float = math.nan, jamming: float = math.nan,
+               noise: float = math.nan, spoofing: float = math.nan, *, phase: str = "air") -> list[AlertEvent]:
+        """One status report at t (NaN: not reported). Fix type and eph are read for signs,
+        ``spoofing`` for the receiver's verdict; satellites, epv, speed accuracy, jamming and
+        noise are taken and are no sign (see the module text). ``phase``: the flight phase an
+        episode opened here is labelled with."""
+        t, events = self._advance(t)
+        fix, e, r = float(fix_type), float(eph), self.rule
+        sign = None
+        if math.isfinite(fix) and fix < r.min_fix:
+            sign = f"fix lost (fix type {int(fix)})"
+        elif math.isfinite(e):
+            while self._eph and self._eph[0][0] < t - r.window_s:
+                self._eph.popleft()
+            if self._eph:
+                median = float(np.median([v for _, v in self._eph]))
+                if e > r.eph_floor_m and e > r.eph_ratio * median:
+                    sign = f"accuracy jump (eph {e:.1f} m, median {median:.1f} m)"
+            self._eph.append((t, e))
+        self._report = sign
+        s = float(spoofing)
+        self._spoof = math.isfinite(s) and s >= r.spoof_level
+        if sign is not None:
+            events += self._sign(t, sign, phase)
+        return events
+
+    def event(self, t: float, kind: str, *, phase: str = "air") -> list[AlertEvent]:
+        """One of the autopilot's events at t (``GPS_EVENTS``; others only advance the clock)."""
+        t, events = self._advance(t)
+        if kind in _STANDING:
+            key, reason = _STANDING[kind]
+            self._autopilot[key] = reason
+            events += self._sign(t, reason, phase)
+        elif kind in _CLEARS:
+            self._autopilot.pop(_CLEARS[kind], None)
+        elif kind == "gps_lost":
+            events += self._sign(t, "autopilot reports GPS lost", phase)
+        return events
+
+    def tick(self, t: float) -> list[AlertEvent]:
+        """Time at t with nothing new: closes the episode whose hold has run out."""
+        return self._advance(t)[1]
+
+    def finish(self) -> list[AlertEvent]:
+        """The end of the data: the open episode closed (``end_s`` None)."""
+        return [] if self.open is None else [self._close(None, None)]
+
+    # -- state ----------------------------------------------------------------------------
+    def degraded(self, t: float) -> str | None:
+        """Why the receiver is degraded at t (the standing sign, else the last sign within
+        ``hold_s``), None when it is healthy."""
+        standing = self._standing()
+        if standing is not None:
+            return standing
+        return self._reason if float(t) < self._last + self.rule.hold_s else None
+
+    def spoof_flag(self, t: float) -> bool:
+        """Whether the receiver itself reports spoofing at t (its last report's spoofing state)."""
+        return self._spoof
+
+    def _standing(self) -> str | None:
+        return self._report or next(iter(self._autopilot.values()), None)
+
+    def _advance(self, t) -> tuple[float, list[AlertEvent]]:
+        t = float(t)
+        if not math.isfinite(t):
+            raise ValueError(f"ReceiverHealth: a time must be finite, got {t!r}")
+        if self._standing() is not None:
+            self._last = max(self._last, t)          # the standing sign lasted until now
+        elif self.open is not None and t >= self._last + self.rule.hold_s:
+            return t, [self._close(self._last + self.rule.hold_s, t)]
+        return t, []
+
+    def _sign(self, t: float, reason: str, phase: str) -> list[AlertEvent]:
+        self._last, self._reason = max(self._last, t), reason
+        if self.open is not None:
+            return []
+        self.open = Alert(self.flight_id, t, t, "none", math.nan, None, kind="degraded", phase=phase, reason=reason)
+        return [AlertEvent("alert_start", 0, t, self.open)]
+
+    def _close(self, end_s: float | None, t: float | None) -> AlertEvent:
+        a = dataclasses.replace(self.open, end_s=end_s)
+        self.open = None
+        self.alerts.append(a)
+        if self.keep is not None and len(self.alerts) > self.keep:
+            del self.alerts[0]
+        return AlertEvent("alert_end", 0, t, a)
