@@ -127,6 +127,19 @@ def test_fix_loss_raises_a_degraded_alert_at_the_first_report_without_a_fix():
     assert h.degraded(8.9) is not None and h.degraded(9.0) is None    # hold_s = 3 s after the fix returns
 
 
+def test_acquiring_the_first_fix_is_not_a_fix_loss():
+    """A receiver without a fix from power-up is acquiring, not degraded; a loss after its first
+    fix is (a real log's receiver reports fix type 0 for its first second on the ground)."""
+    h = ReceiverHealth()
+    t = times(0, 10)
+    fix = np.where(t < 2.0, 0, np.where((t >= 6.0) & (t < 7.0), 0, 3))
+    for k, tk in enumerate(t):
+        h.report(tk, fix[k], eph=np.nan if fix[k] == 0 else 1.0)
+        assert (h.degraded(tk) is not None) == (tk >= 6.0)
+    h.finish()
+    assert [a.start_s for a in h.alerts] == [6.0]
+
+
 def test_accuracy_jump_and_autopilot_glitch_are_degradation():
     rng = np.random.default_rng(4)
     t = times(0, 30)

@@ -9,7 +9,9 @@ counted apart from the spoofing alerts, never dropped.
 Signs of degradation, and only these:
 
 - no fix: a report whose fix type is below ``min_fix`` (3, a 3D fix; PX4 and MAVLink number
-  0-1 no fix, 2 2D, 3 3D, 4 and up DGPS and RTK), from that report until the next one with a fix;
+  0-1 no fix, 2 2D, 3 3D, 4 and up DGPS and RTK), from that report until the next one with a fix,
+  once the receiver has had a fix: a receiver still acquiring its first fix after power-up has
+  lost nothing (the autopilot does not arm on it either);
 - an accuracy jump: a report with a fix whose horizontal accuracy ``eph`` is above
   ``eph_floor_m`` and more than ``eph_ratio`` times the median eph of the reports with a fix
   over the ``window_s`` before it, until the next report. The median takes in every report, so a
@@ -89,6 +91,7 @@ class ReceiverHealth:
         self._report: str | None = None                    # the last report's sign, standing until the next
         self._autopilot: dict[str, str] = {}               # standing autopilot signs: glitch, failsafe
         self._spoof = False
+        self._had_fix = False                              # a report with a fix seen (acquisition over)
         self._last = -math.inf                             # s, when a sign was last present
         self._reason: str | None = None                    # the last sign's reason
 
@@ -104,8 +107,11 @@ class ReceiverHealth:
         fix, e, r = float(fix_type), float(eph), self.rule
         sign = None
         if math.isfinite(fix) and fix < r.min_fix:
-            sign = f"fix lost (fix type {int(fix)})"
-        elif math.isfinite(e):
+            if self._had_fix:
+                sign = f"fix lost (fix type {int(fix)})"
+        elif math.isfinite(fix):
+            self._had_fix = True
+        if math.isfinite(e) and not (math.isfinite(fix) and fix < r.min_fix):
             while self._eph and self._eph[0][0] < t - r.window_s:
                 self._eph.popleft()
             if self._eph:

@@ -117,8 +117,18 @@ def detect_log(log: FlightLog | str | Path, detector, residues: str = "ekf",
             f"of this log do not provide (they hold {', '.join(have) or 'nothing'}); {fix}")
     scores = detector.decision_function(rows)
     alarms = scores > detector.threshold_
-    alerts = step_alerts(rows, scores, detector, typing, config.gps_rate_hz)
+    alerts = step_alerts(rows, scores, detector, typing, config.gps_rate_hz, events=log.events,
+                         receiver=log.receiver, height=log_height(log))
     return LogDetection(log, residues, rows, scores, alarms, alerts, flights[0].sensors, detector, notes)
+
+
+def log_height(log: FlightLog) -> pd.DataFrame | None:
+    """The vehicle's height (columns t, h; m) for its flight phase where its events do not say:
+    the barometer's altitude, else the GPS altitude, else None."""
+    for stream, col in ((log.baro, "alt"), (log.gps, "alt")):
+        if stream is not None and len(stream):
+            return pd.DataFrame({"t": stream["t"].to_numpy(), "h": stream[col].to_numpy()})
+    return None
 
 
 def step_alerts(rows: pd.DataFrame, scores: np.ndarray, detector, typing: str = "shape",
