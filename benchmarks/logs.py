@@ -1,12 +1,12 @@
 """Log processing speed: parse + filter replay + score, in flight-seconds per wall-second.
 
-On one thread: read a fixture log (the longest one with GPS by default), replay the
+On one thread: read a fixture log (the simulated ArduCopter log, 60 s, by default), replay the
 project's filter over it (``--residues ekf``) and score the rows with a detector fitted on a
 small simulated dataset of the log's sensor configuration; then the same log's streams
 repeated end to end to ``--hours`` of flight, which shows how the cost grows with length.
 Prints where the time goes (reading, replay, scoring); the last line is one JSON object.
 
-    python benchmarks/logs.py [--log tests/fixtures/logs/copter-sitl-4.3.bin] [--hours 0.1] [--method chi2]
+    python benchmarks/logs.py [--log tests/fixtures/logs/sim_copter.bin] [--hours 0.1] [--method chi2]
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ def repeated(log, hours: float):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--log", type=Path, default=ROOT / "tests" / "fixtures" / "logs" / "copter-sitl-4.3.bin")
+    ap.add_argument("--log", type=Path, default=ROOT / "tests" / "fixtures" / "logs" / "sim_copter.bin")
     ap.add_argument("--hours", type=float, default=0.1, help="length of the repeated log (h)")
     ap.add_argument("--method", default="chi2")
     args = ap.parse_args()

@@ -28,8 +28,11 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-LOGS = [ROOT / "tests" / "fixtures" / "logs" / n for n in
-        ("copter-sitl-4.3.bin", "sample_px4_events.ulg", "sample_log_small.ulg")]
+FIX = ROOT / "tests" / "fixtures" / "logs"
+#: the project's shared data beside the repository (read here, never copied into it): an ArduCopter
+#: SITL log, then the PX4 SITL and real logs of the test fixtures
+SHARED_ARDUPILOT = ROOT.parent / "shared" / "data" / "ardupilot"
+LOGS = [SHARED_ARDUPILOT / "copter-sitl-4.3.bin", FIX / "sample_px4_events.ulg", FIX / "sample_log_small.ulg"]
 ATTACKS = {"bias": {"magnitude": (1.5, 6.0), "duration": (5.0, 20.0)},
            "ramp": {"rate": (0.2, 1.0), "duration": (10.0, 30.0)}}
 
@@ -54,6 +57,10 @@ def main() -> None:
     from quadformer.estimator.online import FilterConfig
     from quadformer.simulation import simulate
 
+    missing = [str(p) for p in args.logs if not p.exists()]
+    if missing:
+        ap.error(f"no such log: {', '.join(missing)} (the ArduPilot log is in the shared data beside the "
+                 "repository, ../shared/data/ardupilot/; give others with --logs)")
     set_threads()
     methods = args.methods.split(",")
     logs = [read_log(p) for p in args.logs]

@@ -22,7 +22,7 @@ from quadformer.logs.replay import autopilot_rows
 
 runner = CliRunner()
 EVENTS = FIX / "sample_px4_events.ulg"
-COPTER = FIX / "copter-sitl-4.3.bin"
+COPTER = FIX / "sim_copter.bin"
 
 
 @pytest.fixture(scope="module")

@@ -116,7 +116,7 @@ def test_detect_logs_writes_each_log_and_the_summary_and_goes_past_a_bad_log(chi
 
 def test_find_logs_takes_files_and_bags_as_given_and_searches_directories_by_content(tmp_path):
     found = find_logs([FIX])
-    assert EVENTS in found and FIX / "copter-sitl-4.3.bin" in found and FIX / "sim_flight_ros2" in found
+    assert EVENTS in found and FIX / "sim_copter.bin" in found and FIX / "sim_flight_ros2" in found
     assert not any(p.parent.name == "sim_flight_ros2" for p in found)      # a bag's files are the bag
     assert FIX / "README.md" not in found and found == sorted(found)
     assert find_logs([FIX / "README.md", FIX / "sim_flight_ros2"]) == [FIX / "README.md", FIX / "sim_flight_ros2"]

@@ -14,7 +14,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 import pandas as pd
@@ -78,13 +78,18 @@ def _finite(fn, x: np.ndarray) -> float | None:
     return float(fn(x)) if len(x) and np.isfinite(x).all() else None
 
 
-def write_dataset(ds: Dataset, out: str | os.PathLike, overwrite: bool = False) -> Path:
-    """Write a dataset directory atomically: into a temporary sibling, then renamed."""
+def write_dataset(ds: Dataset, out: str | os.PathLike, overwrite: bool = False,
+                  extra: Mapping[str, str | os.PathLike] | None = None) -> Path:
+    """Write a dataset directory atomically: into a temporary sibling, then renamed.
+    extra: {name: path} files or directories moved into it under those names before the
+    rename (e.g. the flight logs of ``simulate --export``), on the same file system."""
     out = Path(out)
     with atomic_dir(out, overwrite=overwrite) as tmp:
         ds.flights.to_parquet(tmp / "flights.parquet", index=False)
         ds.scenarios.to_parquet(tmp / "scenarios.parquet", index=False)
         (tmp / "meta.json").write_text(to_json(ds.meta))
+        for name, src in (extra or {}).items():
+            os.replace(src, tmp / name)
     return out
 
 

@@ -36,14 +36,25 @@ def simulate(
                                           "barometer and magnetometer noise the simulated sensors take "
                                           "(repeatable; over --config, under the named options and --set)."),
     set_: list[str] = typer.Option([], "--set", help="Override any field: --set gps.gm_std=0 (repeatable)."),
+    export: list[str] = typer.Option([], "--export", help="Also write each flight as an autopilot log: ulog "
+                                     "(PX4, DIR/logs/flight_NNNN.ulg), dataflash (ArduPilot, .bin), or both "
+                                     "(repeatable or 'ulog,dataflash'); an attacked flight's attack goes to "
+                                     "flight_NNNN.attack.json beside its logs. See docs/logs.md."),
     overwrite: bool = typer.Option(False, help="Replace DIR if it exists."),
     quiet: bool = typer.Option(False, help="No progress bar."),
 ) -> None:
-    """Simulate flights and write DIR/flights.parquet, scenarios.parquet and meta.json."""
+    """Simulate flights and write DIR/flights.parquet, scenarios.parquet and meta.json (with --export,
+    each flight's PX4 / ArduPilot log under DIR/logs)."""
     from quadformer.dataset import write_dataset
     from quadformer.io import set_threads
     from quadformer.simulation import simulate as run
 
+    from quadformer.experiments.flight_logs import export_formats
+
+    try:
+        formats = export_formats(export)
+    except ValueError as e:
+        fail(str(e))
     atk = {"kind": attack, "fraction": attack_fraction, "onset": pair("--onset", onset),
            "duration": pair("--attack-duration", attack_duration), "magnitude": pair("--magnitude", magnitude),
            "rate": pair("--rate", rate), "axes": axes, "mix": mix.split(",") if mix is not None else None}
@@ -67,7 +78,16 @@ def simulate(
     if out.exists() and not overwrite:
         fail(f"{out} already exists (use --overwrite to replace it)")
     set_threads()
-    ds = run(cfg, progress=not quiet)
-    write_dataset(ds, out, overwrite=overwrite)
+    if formats:
+        from quadformer.experiments.flight_logs import SUFFIX, simulate_with_logs
+
+        ds, logs, files = simulate_with_logs(cfg, out, formats, overwrite=overwrite, progress=not quiet)
+    else:
+        ds = run(cfg, progress=not quiet)
+        write_dataset(ds, out, overwrite=overwrite)
     s = ds.meta["summary"]
     typer.echo(f"wrote {out}: {s['flights']} flights ({s['attacked_flights']} attacked), {s['rows']} GPS steps")
+    if formats:
+        counts = ", ".join(f"{sum(p.suffix == SUFFIX[f] for p in files)} {SUFFIX[f]}" for f in formats)
+        notes = sum(p.name.endswith(".attack.json") for p in files)
+        typer.echo(f"flight logs in {logs}: {counts}" + (f", {notes} attack notes (.attack.json)" if notes else ""))

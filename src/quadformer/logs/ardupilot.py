@@ -198,7 +198,7 @@ class _DataflashReader(DataflashEstimator):
             **{k: accuracy[k] for k in ("eph", "epv", "speed_acc")}}, self.notes)
 
     def origin(self, gps_raw: dict | None):
-        orgn = [r for r in self.rows["ORGN"] if r.get("Type") == 0 and "Lat" in r]
+        orgn = [r for r in self.rows["ORGN"] if r.get("Type") == 0 and all(k in r for k in ("Lat", "Lng", "Alt"))]
         if orgn:
             first = orgn[0]
             origin = (float(first["Lat"]), float(first["Lng"]), float(first["Alt"]))

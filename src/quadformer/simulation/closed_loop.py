@@ -65,7 +65,10 @@ def simulate_batch(cfg: SimConfig, flights: np.ndarray, attacked: np.ndarray,
 
     record_nees: also the filter's NEES per GPS step (consistency checks); record_sensors:
     also the raw IMU, (attacked) GPS and configured VIO, magnetometer and barometer streams
-    and the initial filter state, which ``estimator.replay.run_ekf`` can process on their own.
+    and the initial filter state, which ``estimator.replay.run_ekf`` can process on their own,
+    and at each GPS step the true attitude and the filter's (``true_q``, ``est_q``: xyzw,
+    body FLU -> world ENU; with ``true_pos``/``est_pos`` and the velocities, a flight log's
+    truth and estimate).
 
     admission: a ``resilience.Admission`` over the batch's flights (GPS fused per policy);
     stream: a detector's online stream over the batch (``detector.stream(len(flights))``)
@@ -212,7 +215,8 @@ def _simulate_loop(groups, progress, record_nees, record_sensors, admission, str
     vio_pos = torch.zeros(B, 3, dtype=torch.float64)
     residues = ResidueTracker(B, cfg.gps.rate_hz, aiding=aiding)
     reference = GpsFreeReference(ekf, nm, cfg.gps.rate_hz, aiding)
-    sensors = {"ekf0": ekf, "imu": [], "gps": [], **{a: [] for a in aiding}} if record_sensors else None
+    sensors = {"ekf0": ekf, "imu": [], "gps": [], "true_q": [], "est_q": [], **{a: [] for a in aiding}} \
+        if record_sensors else None
     block = 100
     ref_block = None
     adm_rec = {k: np.zeros((B, n_gps, *shape), dtype=dt_) for k, dt_, shape in
@@ -283,6 +287,9 @@ def _simulate_loop(groups, progress, record_nees, record_sensors, admission, str
                 ekf = _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, np.asarray(active), step, t,
                              residues, adm_rec, j)
             reference.anchor(ekf)
+            if sensors is not None:
+                sensors["true_q"].append(state["q"])
+                sensors["est_q"].append(ekf.q)
             label[:, j] = active
             for name, val in (
                 ("true_pos", state["x"]), ("true_vel", state["v"]), ("est_pos", ekf.p), ("est_vel", ekf.v),
@@ -306,6 +313,7 @@ def _simulate_loop(groups, progress, record_nees, record_sensors, admission, str
             "ekf0": sensors["ekf0"], "noise": nm, "dt": dt,
             "imu_t": (np.arange(n_steps) + 1) * dt, "imu": torch.stack(sensors["imu"], 1),
             "gps_t": t_gps, "gps": torch.stack(sensors["gps"], 1),
+            "true_q": torch.stack(sensors["true_q"], 1), "est_q": torch.stack(sensors["est_q"], 1),
         }
         for a, steps in (("vio", spv), ("mag", spm), ("baro", spb)):
             if a in aiding:

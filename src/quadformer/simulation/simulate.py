@@ -65,10 +65,14 @@ def _dataset(cfg: SimConfig, frames: list[pd.DataFrame], scens: list[pd.DataFram
     return Dataset(flights, scenarios, meta)
 
 
-def simulate(cfg: SimConfig, progress: bool | Callable[[float], None] = False) -> Dataset:
+def simulate(cfg: SimConfig, progress: bool | Callable[[float], None] = False,
+             on_batch: Callable[[BatchResult], None] | None = None) -> Dataset:
     """Simulate ``cfg.flights`` flights in batches of ``cfg.batch_size``.
 
     Flight i's data depends only on (config, seed, i): the batch size changes speed, not data.
+    on_batch: called with each batch's ``BatchResult``, its raw sensor streams recorded
+    (``record_sensors``), before the next batch flies (e.g. to write each flight as a log);
+    the dataset is the same with or without it.
     """
     attacked = _attacked(cfg)
     bar = None
@@ -82,7 +86,9 @@ def simulate(cfg: SimConfig, progress: bool | Callable[[float], None] = False) -
     try:
         for start in range(0, cfg.flights, cfg.batch_size):
             ids = np.arange(start, min(start + cfg.batch_size, cfg.flights))
-            r = simulate_batch(cfg, ids, attacked[ids], progress=callback)
+            r = simulate_batch(cfg, ids, attacked[ids], progress=callback, record_sensors=on_batch is not None)
+            if on_batch is not None:
+                on_batch(r)
             f, s = _batch_frames(cfg, r)
             frames.append(f)
             scens.append(s)

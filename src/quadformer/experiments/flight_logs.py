@@ -1,0 +1,215 @@
+"""Simulated flights as autopilot flight logs (``simulate --export ulog,dataflash``).
+
+One flight of a batch (``simulate_batch(..., record_sensors=True)``) becomes a ``FlightLog``
+(``flight_log``) that the log writers turn into a PX4 ULog or an ArduPilot DataFlash file,
+which PX4 Flight Review, MAVExplorer, PlotJuggler and this project's readers open:
+
+* sensors at their simulated rates: IMU (100 Hz: specific force and body rate), GPS (the fix
+  the vehicle received: spoofed during an attack), and the configured magnetometer,
+  barometer (height above the origin) and VIO (velocity, attitude, and its odometry-frame
+  position, which the simulator records at the GPS steps, linearly interpolated to the VIO
+  times and held before the first);
+* at each GPS step, the in-loop filter's attitude and position/velocity estimate after the
+  update, its GPS innovations as the autopilots log them (predicted minus measured), their
+  variances (the predicted innovation variance) and test ratios (innovation^2 / (5^2
+  variance), the largest over the horizontal axes for position and over the three axes for
+  velocity), and the simulator's truth (position, velocity, attitude);
+* positions geodetic about ``ORIGIN``; the receiver states the configured GPS error as its
+  accuracy (eph, epv: the white and the slow error together; speed accuracy: the velocity
+  noise).
+
+The flights start airborne (the simulator starts each flight in the air at its mission's
+first point): each log starts armed and flying. The vehicle's clock reads ``BOOT_T0`` at the
+flight's t = 0 and the GPS time ``UTC0`` + t. An attacked flight's attack (kind, onset, end,
+magnitude, axes) goes to a JSON note beside its logs.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+
+from quadformer.config import SimConfig
+from quadformer.dataset import Dataset, write_dataset
+from quadformer.geometry import frames
+from quadformer.io import write_json
+from quadformer.logs import FlightLog
+from quadformer.logs.dataflash_writer import write_dataflash
+from quadformer.logs.flightlog import make_stream
+from quadformer.logs.ulog_writer import write_ulog
+from quadformer.logs.writing import GATE, LogHeader
+
+__all__ = ["BOOT_T0", "EXPORT_FORMATS", "ORIGIN", "SUFFIX", "UTC0", "LogExport", "attack_note", "export_formats",
+           "flight_log", "simulate_with_logs"]
+
+ORIGIN = (47.397742, 8.545594, 488.0)   # lat deg, lon deg, alt m (AMSL) of the simulator's ENU origin
+BOOT_T0 = 10.0                          # s, the vehicle's clock (time since boot) at the flight's t = 0
+UTC0 = 1_704_067_200.0                  # s, UNIX time at t = 0 (2024-01-01 00:00 UTC), for GPS times
+EXPORT_FORMATS = ("ulog", "dataflash")
+SUFFIX = {"ulog": ".ulg", "dataflash": ".bin"}
+WRITERS = {"ulog": write_ulog, "dataflash": write_dataflash}
+
+
+def export_formats(values: Iterable[str]) -> tuple[str, ...]:
+    """The log formats named by ``values`` (each one name or a comma list), in
+    ``EXPORT_FORMATS`` order; ValueError naming the choices for an unknown one."""
+    names = [v.strip().lower() for text in values for v in str(text).split(",") if v.strip()]
+    unknown = [v for v in names if v not in EXPORT_FORMATS]
+    if unknown:
+        raise ValueError(f"--export: unknown log format {unknown[0]!r}; choose from {', '.join(EXPORT_FORMATS)} "
+                         "(repeat the option or join them with commas)")
+    return tuple(f for f in EXPORT_FORMATS if f in names)
+
+
+def _np(x) -> np.ndarray:
+    return x.numpy() if hasattr(x, "numpy") else np.asarray(x)
+
+
+def _quat(q: np.ndarray) -> dict[str, np.ndarray]:
+    q = frames.quat_normalize(q)
+    return {"qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2], "qw": q[:, 3]}
+
+
+def _xyz(prefix: str, v: np.ndarray) -> dict[str, np.ndarray]:
+    return {f"{prefix}{a}": v[:, k] for k, a in enumerate("xyz")}
+
+
+def flight_log(cfg: SimConfig, r, i: int, origin: tuple[float, float, float] = ORIGIN,
+               path: str | Path = "simulated") -> FlightLog:
+    """Flight ``i`` (its index in the batch) of ``r``, a ``simulate_batch`` result with the raw
+    sensor streams recorded, as a FlightLog (see the module docstring). Times are the
+    simulator's (s from the flight's start); the vehicle's clock is ``BOOT_T0`` + t."""
+    s = r.get("sensors")
+    if s is None or "true_q" not in s:
+        raise ValueError("flight_log needs a batch simulated with record_sensors=True")
+    streams = {**_sensors(cfg, r, i, origin), **_filter_and_truth(r, i)}
+    end = float(max(df["t"].iloc[-1] for df in streams.values()))
+    return FlightLog(source="arrays", path=Path(path), vehicle={"autopilot": "quadformer simulator"},
+                     notes=["simulated: the flight starts airborne, armed and flying"], origin=tuple(origin),
+                     origin_source="autopilot local origin", segments=[(0.0, end)], boot_t0=BOOT_T0, **streams)
+
+
+def _sensors(cfg: SimConfig, r, i: int, origin: tuple[float, float, float]) -> dict:
+    """The raw sensor streams of flight i: IMU, GPS as received, and the configured aiding sensors."""
+    s, g = r["sensors"], cfg.gps
+    t_gps = np.asarray(s["gps_t"], dtype=float)
+    gps = _np(s["gps"][i]).astype(float)
+    lla = frames.enu_to_geodetic(gps[:, :3], origin)
+    imu = _np(s["imu"][i]).astype(float)
+    out = {
+        "imu": make_stream("imu", s["imu_t"], dict(zip(("ax", "ay", "az", "gx", "gy", "gz"), imu.T))),
+        "gps": make_stream("gps", t_gps, {
+            **_xyz("", gps[:, :3]), **_xyz("v", gps[:, 3:]), "lat": lla[:, 0], "lon": lla[:, 1], "alt": lla[:, 2],
+            "fix_type": 3.0, "eph": math.hypot(g.pos_std_h, g.gm_std), "epv": math.hypot(g.pos_std_v, g.gm_std),
+            "speed_acc": g.vel_std}),
+    }
+    if "mag" in s:
+        out["mag"] = make_stream("mag", s["mag_t"], dict(zip(("mx", "my", "mz"), _np(s["mag"][i]).astype(float).T)))
+    if "baro" in s:
+        out["baro"] = make_stream("baro", s["baro_t"], {"alt": _np(s["baro"][i])[:, 0].astype(float)})
+    if "vio" in s:                       # its odometry-frame position is recorded at the GPS steps
+        vt = np.asarray(s["vio_t"], dtype=float)
+        vio = _np(s["vio"][i]).astype(float)
+        pos = np.column_stack([np.interp(vt, t_gps, r["vio_pos"][i][:, k]) for k in range(3)])
+        out["odometry"] = make_stream("odometry", vt, {**_xyz("", pos), **_xyz("v", vio[:, :3]), **_quat(vio[:, 3:7])})
+    return out
+
+
+def _filter_and_truth(r, i: int) -> dict:
+    """At each GPS step: the in-loop filter's attitude, estimate and innovations, and the truth."""
+    s = r["sensors"]
+    t_gps = np.asarray(s["gps_t"], dtype=float)
+    return {
+        "estimate": make_stream("estimate", t_gps, {**_xyz("", r["est_pos"][i]), **_xyz("v", r["est_vel"][i])}),
+        "attitude": make_stream("attitude", t_gps, _quat(_np(s["est_q"][i]).astype(float))),
+        "innovations": _innovations(r, i, t_gps),
+        "truth": make_stream("truth", t_gps, {**_xyz("", r["true_pos"][i]), **_xyz("v", r["true_vel"][i]),
+                                              **_quat(_np(s["true_q"][i]).astype(float))}),
+    }
+
+
+def _innovations(r, i: int, t_gps: np.ndarray):
+    """The in-loop filter's GPS innovations as the autopilots log them: predicted minus measured."""
+    inn = -np.asarray(r["res_gps_r"][i], dtype=float)
+    var = np.asarray(r["res_gps_s"][i], dtype=float) ** 2
+    ratio = inn ** 2 / (GATE ** 2 * var)
+    values = {"ratio_pos": ratio[:, :2].max(axis=1), "ratio_vel": ratio[:, 3:].max(axis=1), "ratio_hgt": ratio[:, 2]}
+    for k, a in enumerate("xyz"):
+        values.update({f"pos_{a}": inn[:, k], f"vel_{a}": inn[:, 3 + k], f"var_pos_{a}": var[:, k],
+                       f"var_vel_{a}": var[:, 3 + k]})
+    return make_stream("innovations", t_gps, values)
+
+
+#: the parameter of its own each attack kind has, beside onset, end, magnitude and axes
+KIND_PARAMETER = {"ramp": ("rate", "rate_m_s"), "sinusoid": ("frequency", "frequency_hz"),
+                  "intermittent": ("period", "period_s"), "replay": ("delay", "delay_s")}
+
+
+def attack_note(r, i: int) -> dict | None:
+    """The attack on flight ``i`` of batch ``r`` (None when it is not attacked): kind, onset, end
+    (s from the flight's start, and on the logs' clock), magnitude, axes, direction and the
+    kind's own parameter (a ramp's rate, a sinusoid's frequency, ...)."""
+    a = r["attacks"]
+    if not bool(a.attacked[i]):
+        return None
+    kind = str(a.kind[i])
+    note = {"flight_id": int(r["flights"][i]), "attack_type": kind, "onset_s": float(a.onset[i]),
+            "end_s": float(a.end[i]), "onset_boot_s": BOOT_T0 + float(a.onset[i]),
+            "end_boot_s": BOOT_T0 + float(a.end[i]), "magnitude_m": float(a.magnitude[i]), "axes": str(a.axes[i]),
+            "direction": [float(v) for v in a.direction[i]]}
+    if kind in KIND_PARAMETER:
+        field, key = KIND_PARAMETER[kind]
+        note[key] = float(getattr(a, field)[i])
+    note["gps"] = "the GPS in the logs is the spoofed fix the vehicle received"
+    note["time"] = "onset_s/end_s count from the flight's start; *_boot_s are the logs' clock (time since boot)"
+    return note
+
+
+class LogExport:
+    """Writes each flight of the batches it is given as logs under ``directory``:
+    ``flight_NNNN.ulg`` / ``.bin`` (NNNN: the flight id) and, for an attacked flight,
+    ``flight_NNNN.attack.json``. Call it with each ``BatchResult`` (``simulate(on_batch=...)``)."""
+
+    def __init__(self, cfg: SimConfig, directory: str | Path, formats: Iterable[str] = EXPORT_FORMATS,
+                 header: LogHeader | None = None) -> None:
+        self.cfg = cfg
+        self.directory = Path(directory)
+        self.formats = export_formats(formats)
+        self.header = header or LogHeader(utc0=UTC0)
+        self.written: list[Path] = []
+
+    def __call__(self, r) -> None:
+        self.directory.mkdir(parents=True, exist_ok=True)
+        for i, fid in enumerate(np.asarray(r["flights"])):
+            stem = f"flight_{int(fid):04d}"
+            log = flight_log(self.cfg, r, i, path=self.directory / stem)
+            for fmt in self.formats:
+                self.written.append(WRITERS[fmt](log, self.directory / (stem + SUFFIX[fmt]), self.header))
+            note = attack_note(r, i)
+            if note is not None:
+                self.written.append(write_json(self.directory / f"{stem}.attack.json", note))
+
+
+def simulate_with_logs(cfg: SimConfig, out: str | Path, formats: Iterable[str], overwrite: bool = False,
+                       progress: bool | Callable[[float], None] = False) -> tuple[Dataset, Path, list[Path]]:
+    """Simulate ``cfg`` and write the dataset to ``out`` with every flight's logs under
+    ``out/logs`` (``LogExport``); the dataset is the one ``simulate`` gives. The logs are
+    written beside ``out`` first and moved in with the dataset, which appears at once.
+    Returns (dataset, logs directory, files written)."""
+    from quadformer.simulation import simulate
+
+    out = Path(out)
+    fmts = export_formats(formats)
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out} already exists (use --overwrite to replace it)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.logs.") as staging:
+        export = LogExport(cfg, Path(staging) / "logs", fmts)
+        ds = simulate(cfg, progress=progress, on_batch=export)
+        write_dataset(ds, out, overwrite=overwrite, extra={"logs": export.directory})
+    logs = out / "logs"
+    return ds, logs, [logs / p.name for p in export.written]

@@ -1,0 +1,224 @@
+"""Simulated flights exported as PX4 ULog and ArduPilot DataFlash logs, read back.
+
+Two 5 s flights (one spoofed from 2-3 s on), every sensor configured, exported through
+``simulate(on_batch=LogExport(...))`` as ``simulate --export`` does. Read back with the
+project's readers, every stream equals the simulator's arrays within the formats'
+quantisation (DataFlash: 1e-7 deg latitude/longitude, cm altitudes, innovations and
+accuracies, centidegree angles, milligauss, square roots of test ratios to 0.01; float32
+elsewhere); pyulog and pymavlink open the files and count the messages written; ``detect``
+scores the files from both residue sources.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from pymavlink import DFReader
+from pyulog import ULog
+from typer.testing import CliRunner
+
+from quadformer.cli import app
+from quadformer.config import AttackConfig, SimConfig
+from quadformer.dataset import load_dataset
+from quadformer.detectors import make
+from quadformer.experiments.flight_logs import BOOT_T0, ORIGIN, LogExport, export_formats
+from quadformer.geometry import frames
+from quadformer.logs import read_log
+from quadformer.logs.detect import log_rows
+from quadformer.simulation import simulate
+
+runner = CliRunner()
+SUFFIX = {"ulog": ".ulg", "dataflash": ".bin"}
+CFG = SimConfig(flights=2, duration=5.0, seed=5, sensors="gps+imu+vio+mag+baro",
+                attack=AttackConfig(kind="bias", fraction=0.5, onset=(2.0, 3.0), magnitude=(4.0, 6.0)))
+
+# (atol) per format: the formats' quantisation, and float32 elsewhere
+TOL = {
+    "dataflash": {"imu": 1e-5, "gps_pos": 0.006, "gps_vel": 1e-5, "baro": 1e-4, "mag": 5.1e-4, "att_deg": 0.01,
+                  "estimate": 1e-4, "innovation": 0.0051, "ratio_root": 0.0051, "truth_pos": 0.006,
+                  "vel": 1e-5, "odometry": 1e-4},
+    "ulog": {"imu": 1e-5, "gps_pos": 1e-6, "gps_vel": 1e-5, "baro": 1e-4, "mag": 1e-6, "att_deg": 1e-4,
+             "estimate": 1e-4, "innovation": 1e-5, "ratio_root": 1e-5, "truth_pos": 1e-4, "vel": 1e-5,
+             "odometry": 1e-4},
+}
+
+
+@pytest.fixture(scope="module")
+def export(tmp_path_factory):
+    """(batch result, dataset, logs directory) of CFG, its flights exported both ways."""
+    logs = tmp_path_factory.mktemp("export") / "logs"
+    batches = []
+    writer = LogExport(CFG, logs, ("ulog", "dataflash"))
+
+    def on_batch(r):
+        batches.append(r)
+        writer(r)
+    ds = simulate(CFG, on_batch=on_batch)
+    assert len(batches) == 1
+    return batches[0], ds, logs
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotation angle (deg) between (x, y, z, w) quaternions."""
+    dot = np.abs((frames.quat_normalize(a) * frames.quat_normalize(b)).sum(-1))
+    return np.degrees(2 * np.arccos(np.clip(dot, 0.0, 1.0)))
+
+
+def _np(x) -> np.ndarray:
+    return x.numpy() if hasattr(x, "numpy") else np.asarray(x)
+
+
+@pytest.mark.parametrize("fmt", ["dataflash", "ulog"])
+@pytest.mark.parametrize("i", [0, 1])
+def test_exported_streams_read_back_as_simulated(fmt, i, export):
+    r, _, logs = export
+    s, tol = r["sensors"], TOL[fmt]
+    log = read_log(logs / f"flight_{i:04d}{SUFFIX[fmt]}")
+    assert set(log.streams) == {"imu", "gps", "odometry", "baro", "mag", "innovations", "estimate", "attitude",
+                                "truth"}
+    assert log.origin == pytest.approx(ORIGIN, abs=1e-9) and log.origin_source == "autopilot local origin"
+
+    def sim_t(stream: str, t_sim) -> None:        # the vehicle's clock: BOOT_T0 + simulated time
+        df = getattr(log, stream)
+        np.testing.assert_allclose(df.t + log.boot_t0, BOOT_T0 + np.asarray(t_sim), atol=1e-6, rtol=0)
+
+    def close(stream: str, cols: list[str], want, atol: float) -> None:
+        np.testing.assert_allclose(getattr(log, stream)[cols].to_numpy(), np.asarray(want, dtype=float),
+                                   atol=atol, rtol=0, err_msg=f"{fmt} {stream} {cols}")
+
+    for stream, key in (("imu", "imu_t"), ("gps", "gps_t"), ("baro", "baro_t"), ("mag", "mag_t"),
+                        ("odometry", "vio_t"), ("attitude", "gps_t"), ("estimate", "gps_t"),
+                        ("innovations", "gps_t"), ("truth", "gps_t")):
+        sim_t(stream, s[key])
+    close("imu", ["ax", "ay", "az", "gx", "gy", "gz"], _np(s["imu"][i]), tol["imu"])
+    gps = _np(s["gps"][i])                          # the fixes as received (spoofed on flight 0)
+    close("gps", ["x", "y", "z"], gps[:, :3], tol["gps_pos"])
+    close("gps", ["vx", "vy", "vz"], gps[:, 3:], tol["gps_vel"])
+    # PX4 logs barometric altitude above sea level, ArduPilot above its ground calibration (the origin)
+    close("baro", ["alt"], _np(s["baro"][i]) + (ORIGIN[2] if fmt == "ulog" else 0.0), tol["baro"])
+    close("mag", ["mx", "my", "mz"], _np(s["mag"][i]), tol["mag"])
+    vio = _np(s["vio"][i])
+    close("odometry", ["vx", "vy", "vz"], vio[:, :3], tol["odometry"])
+    assert _angle_deg(log.odometry[["qx", "qy", "qz", "qw"]].to_numpy(), vio[:, 3:]).max() < tol["att_deg"]
+    assert _angle_deg(log.attitude[["qx", "qy", "qz", "qw"]].to_numpy(), _np(s["est_q"][i])).max() < tol["att_deg"]
+    close("estimate", ["x", "y", "z"], r["est_pos"][i], tol["estimate"])
+    close("estimate", ["vx", "vy", "vz"], r["est_vel"][i], tol["vel"])
+    close("truth", ["x", "y"], r["true_pos"][i][:, :2], tol["truth_pos"])
+    close("truth", ["z"], r["true_pos"][i][:, 2:], 1e-4)                     # float32 altitude above sea level
+    close("truth", ["vx", "vy", "vz"], r["true_vel"][i], tol["vel"])
+    assert _angle_deg(log.truth[["qx", "qy", "qz", "qw"]].to_numpy(), _np(s["true_q"][i])).max() < tol["att_deg"]
+    # the autopilots log predicted minus measured; the simulator records measured minus predicted
+    close("innovations", ["pos_x", "pos_y", "pos_z", "vel_x", "vel_y", "vel_z"], -r["res_gps_r"][i],
+          tol["innovation"])
+    var = r["res_gps_s"][i] ** 2
+    ratio = r["res_gps_r"][i] ** 2 / (25.0 * var)                            # EKF2/EKF3's 5-sigma gates
+    root = np.sqrt(log.innovations[["ratio_pos", "ratio_vel", "ratio_hgt"]].to_numpy())
+    want = np.sqrt(np.column_stack([ratio[:, :2].max(1), ratio[:, 3:].max(1), ratio[:, 2]]))
+    np.testing.assert_allclose(root, want, atol=tol["ratio_root"], rtol=0)
+    if fmt == "ulog":                                # EKF3's messages hold no innovation variances
+        close("innovations", [f"var_{g}_{a}" for g in ("pos", "vel") for a in "xyz"], var, 1e-6)
+    else:
+        assert log.innovations.filter(like="var_").isna().all().all()
+    assert not log.estimate["reset"].any() and len(log.segments) == 1
+
+
+def test_the_libraries_open_the_files_and_count_what_was_written(export):
+    r, _, logs = export
+    s = r["sensors"]
+    n = {k: len(s[f"{k}_t"]) for k in ("imu", "gps", "mag", "baro", "vio")}
+    reader = DFReader.DFReader_binary(str(logs / "flight_0001.bin"))
+    counts = collections.Counter()
+    while (m := reader.recv_msg()) is not None:
+        counts[m.get_type()] += 1
+        if m.get_type() == "EV":
+            assert m.Id in (10, 28)                   # armed, not landed: the flight is under way
+    assert counts["IMU"] == n["imu"] and counts["MAG"] == n["mag"] and counts["BARO"] == n["baro"]
+    assert counts["GPS"] == counts["GPA"] == counts["ATT"] == counts["XKF1"] == counts["XKF3"] == counts["SIM"] == n["gps"]
+    assert counts["VISP"] == counts["VISV"] == n["vio"] and counts["ARM"] == 1 and counts["EV"] == 2
+    assert reader.clock.timebase > 1.7e9            # GPS week and time: pymavlink puts the flight in 2024
+    u = ULog(str(logs / "flight_0001.ulg"))
+    topics = {d.name: len(d.data["timestamp"]) for d in u.data_list}
+    assert topics["sensor_combined"] == n["imu"] and topics["vehicle_magnetometer"] == n["mag"]
+    assert topics["vehicle_air_data"] == n["baro"] and topics["vehicle_visual_odometry"] == n["vio"]
+    for name in ("vehicle_gps_position", "vehicle_attitude", "vehicle_local_position", "estimator_innovations",
+                 "estimator_innovation_variances", "estimator_innovation_test_ratios",
+                 "vehicle_local_position_groundtruth", "vehicle_attitude_groundtruth"):
+        assert topics[name] == n["gps"], name
+    assert (u.get_dataset("vehicle_status").data["arming_state"] == 2).all()
+    assert not u.get_dataset("vehicle_land_detected").data["landed"].any()
+    assert "quadformer" in u.msg_info_dict["sys_name"] and "simulat" in u.logged_messages[0].message
+    log = read_log(logs / "flight_0001.bin")
+    assert "firmware" not in log.vehicle and any("quadformer simulator" in m for m in log.vehicle["messages"])
+    assert any("ARM events: armed 0.00 s" in n for n in log.notes)
+
+
+def test_an_attacked_flight_has_its_attack_beside_its_logs(export):
+    r, ds, logs = export
+    a = r["attacks"]
+    assert a.attacked.tolist() == [True, False]
+    assert sorted(p.name for p in logs.iterdir()) == ["flight_0000.attack.json", "flight_0000.bin", "flight_0000.ulg",
+                                                      "flight_0001.bin", "flight_0001.ulg"]
+    note = json.loads((logs / "flight_0000.attack.json").read_text())
+    assert note["attack_type"] == "bias" and note["onset_s"] == a.onset[0] and note["end_s"] == a.end[0]
+    assert note["magnitude_m"] == a.magnitude[0] and note["onset_boot_s"] == BOOT_T0 + a.onset[0]
+    # the log's GPS is the spoofed fix: the dataset's received GPS, offset from the honest one in the window
+    f = ds.flights[ds.flights.flight_id == 0]
+    log = read_log(logs / "flight_0000.ulg")
+    np.testing.assert_allclose(log.gps[["x", "y", "z"]].to_numpy(), f[["gps_pos_x", "gps_pos_y", "gps_pos_z"]],
+                               atol=1e-6)
+    lab = f.label.to_numpy() == 1
+    t_log = log.gps.t.to_numpy() + log.boot_t0 - BOOT_T0
+    assert lab.any() and t_log[lab][0] == pytest.approx(note["onset_s"], abs=0.1)
+    d = np.linalg.norm(f[["atk_d_x", "atk_d_y", "atk_d_z"]].to_numpy()[lab], axis=1)
+    np.testing.assert_allclose(d, note["magnitude_m"])
+
+
+@pytest.mark.parametrize("fmt", ["dataflash", "ulog"])
+def test_detect_scores_the_exported_logs_from_both_residue_sources(fmt, export, tmp_path):
+    """A chi2 gate fit on the clean flight's replayed residues (NIS); for the DataFlash log's
+    autopilot residues, which have no NIS (EKF3 logs no innovation variances), a PCA on its
+    raw innovations. Both sources score the spoofed flight's log."""
+    _, _, logs = export
+    clean, spoofed = logs / f"flight_0001{SUFFIX[fmt]}", logs / f"flight_0000{SUFFIX[fmt]}"
+    for residues in ("ekf", "autopilot"):
+        flights, _ = log_rows(read_log(clean), residues)
+        rows = pd.concat([f.rows for f in flights], ignore_index=True)
+        det = make("pca", window=8, n_components=2) if (fmt, residues) == ("dataflash", "autopilot") else make("chi2")
+        det.fit(rows)
+        scores = det.decision_function(rows)
+        det.calibrate(float(np.quantile(scores, 0.99)), float(np.max(scores)))
+        model = det.save(tmp_path / f"{residues}.json")
+        out = tmp_path / f"det-{residues}"
+        res = runner.invoke(app, ["detect", str(spoofed), "--model", str(model), "--residues", residues,
+                                  "--out", str(out), "--quiet"])
+        assert res.exit_code == 0, res.output
+        summary = json.loads((out / spoofed.name / "summary.json").read_text())
+        assert summary["residues"] == residues
+        scored = pd.read_csv(out / spoofed.name / "scores.csv")
+        assert len(scored) > 30 and np.isfinite(scored.score).all()
+        assert scored.score.max() > det.threshold_           # the 4-6 m spoof from 2-3 s on is seen
+
+
+def test_simulate_export_writes_the_logs_beside_the_same_dataset(tmp_path):
+    base = ["simulate", "--flights", "2", "--duration", "1", "--attack", "bias", "--onset", "0.3,0.5",
+            "--sensors", "gps+imu+mag+baro", "--quiet"]
+    res = runner.invoke(app, [*base, "--out", str(tmp_path / "with"), "--export", "ulog", "--export", "dataflash"])
+    assert res.exit_code == 0, res.output
+    logs = tmp_path / "with" / "logs"
+    assert f"flight logs in {logs}: 2 .ulg, 2 .bin, 1 attack notes" in res.output
+    assert {p.name for p in logs.iterdir()} == {"flight_0000.ulg", "flight_0000.bin", "flight_0001.ulg",
+                                                "flight_0001.bin", "flight_0000.attack.json"}
+    assert not list(tmp_path.glob(".*"))                                   # no staging leftovers
+    res = runner.invoke(app, [*base, "--out", str(tmp_path / "without")])
+    assert res.exit_code == 0, res.output
+    a, b = load_dataset(tmp_path / "with"), load_dataset(tmp_path / "without")
+    pd.testing.assert_frame_equal(a.flights, b.flights)                     # recording the logs changes nothing
+    assert read_log(logs / "flight_0001.bin").mag is not None and read_log(logs / "flight_0001.ulg").odometry is None
+    res = runner.invoke(app, [*base, "--out", str(tmp_path / "bad"), "--export", "ulog,csv"])
+    assert res.exit_code == 2 and "unknown log format 'csv'" in res.output and "ulog, dataflash" in res.output
+    assert not (tmp_path / "bad").exists()
+    assert export_formats(["dataflash", "ulog,dataflash"]) == ("ulog", "dataflash")
