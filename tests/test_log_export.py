@@ -79,7 +79,11 @@ def test_exported_streams_read_back_as_simulated(fmt, i, export):
     s, tol = r["sensors"], TOL[fmt]
     log = read_log(logs / f"flight_{i:04d}{SUFFIX[fmt]}")
     assert set(log.streams) == {"imu", "gps", "odometry", "baro", "mag", "innovations", "estimate", "attitude",
-                                "truth"}
+                                "truth", "receiver"}
+    # the flight starts airborne: armed and taken off at the log's first sample, as its events say
+    ev = log.events
+    assert {"armed", "takeoff"} <= set(ev["event"]) and ev["t"].min() < 1.0
+    assert (log.receiver["fix_type"] >= 3).all() and len(log.receiver) >= len(log.gps)
     assert log.origin == pytest.approx(ORIGIN, abs=1e-9) and log.origin_source == "autopilot local origin"
 
     def sim_t(stream: str, t_sim) -> None:        # the vehicle's clock: BOOT_T0 + simulated time
