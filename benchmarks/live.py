@@ -124,7 +124,7 @@ def main() -> None:
     out = {
         "vehicle_s": vehicle, "stream_wall_s": stream_wall, "realtime_factor": vehicle / stream_wall,
         "messages": summary["n_messages"], "messages_per_s": summary["n_messages"] / stream_wall,
-        "fixes": summary["fixes_scored"], "alerts": summary["alerts"], "segments": summary["segments"],
+        "fixes": summary["fixes_scored"], "alerts": summary["alerts_total"], "segments": summary["segments"],
         "errors": summary["errors"], "lost_packets": summary["link"]["lost_packets"],
         "latency_ms_p50": summary["latency_ms"]["p50"], "latency_ms_p99": summary["latency_ms"]["p99"],
         "latency_ms_max": summary["latency_ms"]["max"],

@@ -20,10 +20,13 @@ from typer.testing import CliRunner
 
 from quadformer.cli import app
 from quadformer.config import AttackConfig, SimConfig
+from quadformer.detectors import alert_counts
+from quadformer.detectors.alarms import Alert
 from quadformer.evaluation.protocol import tune
 from quadformer.estimator.online import FilterConfig
 from quadformer.estimator.schema import ATTACK_TYPES
 from quadformer.geometry.frames import euler_to_quat, geodetic_to_enu, quat_ned_frd_to_enu_flu, quat_to_matrix
+from quadformer.live.alerts import describe, statustext
 from quadformer.live.mavlink import local_address, open_link
 from quadformer.sensors import mavlink as M
 from quadformer.live.monitor import Monitor, MonitorConfig
@@ -71,9 +74,10 @@ def run_monitor(detector, streams, sender=SenderConfig(), seconds=60.0, **config
 
 def reference_log(record, path="live-record"):
     """The sender's data as encoded, as a FlightLog (what the monitor received), for the
-    offline pipeline: fixes without a 3D fix are not fixes; ENU about the origin the vehicle
-    sent, else the first fix (the monitor's rules). ``assemble`` counts time from the first
-    sensor sample, as the monitor does."""
+    offline pipeline: fixes without a 3D fix are not fixes but receiver reports, as every GPS
+    message is; the vehicle's events as the sender recorded them; ENU about the origin the
+    vehicle sent, else the first fix (the monitor's rules). ``assemble`` counts time from the
+    first sensor sample, as the monitor does."""
     gps = record["gps"]
     gps = gps[gps.fix_type >= 3].reset_index(drop=True)
     origin = record["origin"] or tuple(gps[["lat", "lon", "alt"]].iloc[0])
@@ -86,8 +90,11 @@ def reference_log(record, path="live-record"):
         "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
         **{c: gps[c].to_numpy() for c in ("vx", "vy", "vz", "lat", "lon", "alt", "eph", "epv", "speed_acc",
                                           "fix_type", "satellites")}})
+    rec = record["receiver"]
+    streams["receiver"] = make_stream("receiver", rec.t.to_numpy(), {c: rec[c].to_numpy() for c in rec.columns[1:]})
     notes: list[str] = []
-    log = assemble("arrays", Path(path), streams, notes, origin=origin, origin_source="live")
+    log = assemble("arrays", Path(path), streams, notes, origin=origin, origin_source="live",
+                   events=record["events"])
     assert len(log.segments) == 1, notes
     return log
 
@@ -238,6 +245,31 @@ def test_pressure_origin_estimate_and_time():
     assert M.decode(roundtrip(M.mavlink2.MAVLink_heartbeat_message(2, 12, 0, 0, 4, 3))) == []
 
 
+def test_statustext_says_kind_phase_and_exclusion_in_50_characters():
+    """What does not fit is left out: the score first, then the exclusion, the phase last."""
+    spoof = Alert(0, 8.8, 8.8, "bias", 29.3, None)
+    assert statustext(spoof, 29.3, exclusion=True) == "GPS SPOOF ALERT bias s=29.3 GPS excluded"
+    on_ground = dataclasses.replace(spoof, attack_type="intermittent", phase="ground")
+    assert statustext(on_ground, 29.3) == "GPS SPOOF ALERT intermittent s=29.3 on ground"
+    assert statustext(dataclasses.replace(spoof, phase="transition"), 1234.5, exclusion=True) == \
+        "GPS SPOOF ALERT bias in takeoff GPS excluded"
+    assert statustext(dataclasses.replace(on_ground, phase="transition"), 1234.5, exclusion=True) == \
+        "GPS SPOOF ALERT intermittent in takeoff"
+    lost = Alert(0, 20.0, 20.0, "none", math.nan, None, kind="degraded", reason="fix lost (fix type 1)")
+    assert statustext(lost, math.nan) == "GPS DEGRADED: fix lost"
+    failsafe = dataclasses.replace(lost, phase="transition", reason="autopilot GPS failsafe")
+    assert statustext(failsafe, math.nan) == "GPS DEGRADED: autopilot GPS failsafe in takeoff"
+    assert statustext(dataclasses.replace(failsafe, reason="autopilot reports GPS lost"), math.nan) == \
+        "GPS DEGRADED: autopilot reports GPS lost"                 # 51 characters with the phase
+    alarm = dataclasses.replace(lost, attack_type="bias", score=7.0, phase="ground",
+                                reason="accuracy jump (eph 7.0 m, median 1.0 m)")
+    assert statustext(alarm, 7.0) == statustext(alarm, 7.0, exclusion=True) == \
+        "GPS DEGRADED: accuracy jump alarm bias on ground"
+    assert statustext(dataclasses.replace(alarm, attack_type="intermittent"), 7.0) == \
+        "GPS DEGRADED: accuracy jump on ground"
+    assert describe(alarm) == "degraded receiver (accuracy jump (eph 7.0 m, median 1.0 m)) on the ground"
+
+
 # -- equivalence with offline detection ----------------------------------------------------------
 def _same_as_offline(detector, fixes, summary, record, config):
     res = detect_log(reference_log(record), detector, config=config)
@@ -248,22 +280,56 @@ def _same_as_offline(detector, fixes, summary, record, config):
     np.testing.assert_array_equal(t, res.rows.t.to_numpy())
     np.testing.assert_allclose(scores, res.scores, rtol=0, atol=1e-9)
     np.testing.assert_array_equal([f.alarm for f in fixes], res.alarms)
-    live_alerts = [tuple(a.values()) for a in summary["alert_list"]]
-    offline = [(a.flight_id, a.start_s, a.onset_s, a.attack_type, a.score, a.end_s, a.confirmed_type)
-               for a in res.alerts]
-    assert live_alerts == offline         # the type confirmed 5 s later too
+    assert alert_rows(summary["alert_list"]) == alert_rows(dataclasses.asdict(a) for a in res.alerts)
     return res
 
 
-def test_a_simulated_spoofed_flight_scores_as_offline_detection(detector, sim_streams, flight):
-    fixes, summary, report, _ = run_monitor(detector, sim_streams, SenderConfig(record=True), filter=FILTER)
+def alert_rows(alerts) -> list[tuple]:
+    """Alerts (as dicts) as tuples of every field, NaN as None, by start, kind and type: the
+    monitor lists them as they end, detect by their start."""
+    rows = [tuple(None if isinstance(v, float) and math.isnan(v) else v for v in a.values()) for a in alerts]
+    return sorted(rows, key=lambda r: (r[1], r[7], r[3]))
+
+
+def test_a_simulated_spoofed_flight_scores_as_offline_detection(detector, sim_streams, flight, tmp_path):
+    """The vehicle arms at 1 s and takes off at 5 s (HEARTBEAT, EXTENDED_SYS_STATE), the attack
+    begins near 8.8 s, in the take-off transition (5 s), and the receiver reports no fix from 20
+    to 21.5 s: the same alerts, with the same kinds and flight phases, live and offline."""
+    sender = SenderConfig(record=True, armed=(1.0, 60.0), in_air=(5.0, 60.0), fix_lost=(20.0, 1.5))
+    fixes, summary, report, lines = run_monitor(detector, sim_streams, sender, filter=FILTER, out=tmp_path)
     assert report.lost == report.stalls == 0 and summary["link"]["lost_packets"] == 0
     res = _same_as_offline(detector, fixes, summary, report.record, FILTER)
-    assert res.alerts and all(a.confirmed_type in ATTACK_TYPES for a in res.alerts)
+    assert [e for _, e, _ in report.record["events"] if e != "mode"] == ["armed", "takeoff"]
+    scored = [a for a in res.alerts if a.attack_type != "none"]
+    assert scored and all(a.confirmed_type in ATTACK_TYPES for a in scored)
     assert summary["vehicle"]["origin_source"] == "first fix" and summary["vehicle"]["gps_receiver"] == 0
-    assert summary["alerts"] >= 1                       # the bias attack is seen
     onset = float(flight["attacks"].onset[0])           # t: 0 at the first sample
-    assert any(onset <= a.start_s <= onset + 5.0 for a in res.alerts)
+    first = min(scored, key=lambda a: a.start_s)
+    assert onset <= first.start_s <= onset + 5.0 and (first.kind, first.phase) == ("spoofing", "transition")
+    lost = [a for a in res.alerts if a.attack_type == "none"]
+    assert [(a.kind, a.phase, a.reason) for a in lost] == [("degraded", "air", "fix lost (fix type 1)")]
+    assert lost[0].start_s == pytest.approx(20.0 - sim_streams.start, abs=0.01)
+    assert {(a.kind, a.phase) for a in res.alerts} == {("spoofing", "transition"), ("spoofing", "air"),
+                                                       ("degraded", "air")}
+    # counted apart in the summary, as detect counts a log's: the headline, spoofing in the air
+    counts = alert_counts(res.alerts)
+    assert {k: summary[k] for k in counts} == counts and counts["alerts_transition"] == 1
+    assert summary["flight"]["phase"] == "air" and summary["flight"]["phase_source"] == "events"
+    # what the vehicle and the records were told
+    texts = report.statustexts          # rate-limited on the wall clock: the first five at least
+    assert texts[0] == (M.mavlink2.MAV_SEVERITY_ALERT, "GPS SPOOF ALERT bias in takeoff GPS excluded")
+    assert all(t.startswith("GPS DEGRADED: fix lost" if sev == M.mavlink2.MAV_SEVERITY_WARNING else "GPS ")
+               and len(t) <= 50 for sev, t in texts), texts
+    assert any("spoofing in the take-off transition" in line for line in lines)
+    assert any("] GPS DEGRADED: fix lost (fix type 1), in the air, segment 0," in line for line in lines), lines
+    starts = [json.loads(x) for x in (tmp_path / "alerts.jsonl").read_text().splitlines()]
+    starts = [e for e in starts if e["event"] == "alert_start"]
+    assert sorted((e["kind"], e["phase"]) for e in starts) == sorted((a.kind, a.phase) for a in res.alerts)
+    assert next(e for e in starts if e["attack_type"] == "none")["score"] is None
+    on_disk = json.loads((tmp_path / "summary.json").read_text())
+    assert {k: on_disk[k] for k in counts} == counts
+    phases = pd.read_csv(tmp_path / "fixes.csv").set_index("t")["phase"]    # take-off at 4.99 s
+    assert phases.loc[5.0:9.9].eq("transition").all() and phases.loc[10.0:].eq("air").all()
 
 
 def test_b_a_px4_logs_sensors_score_as_offline_detection(detector):

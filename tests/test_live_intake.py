@@ -102,13 +102,13 @@ class Vehicle:
 
 
 @contextlib.contextmanager
-def monitor(detector, clock=None, on_fix=None, **config):
+def monitor(detector, clock=None, on_fix=None, on_alert=None, **config):
     """A monitor listening on 127.0.0.1 (ephemeral port), run in a thread; yields
     (monitor, its console lines, a dict that receives its summary once stopped)."""
     lines: list[str] = []
     extra = {} if clock is None else {"clock": clock}
     mon = Monitor(detector, MonitorConfig(connect=f"udpin:{LOCAL}:0", **config), echo=lines.append,
-                  on_fix=on_fix, **extra)
+                  on_fix=on_fix, on_alert=on_alert, **extra)
     mon.open()
     out: dict = {}
     thread = threading.Thread(target=lambda: out.update(summary=mon.run()), daemon=True)
@@ -282,3 +282,51 @@ def test_f_duplicate_packets_show_on_the_status_line_and_in_the_summary(quiet):
     assert "duplicate packets 4" in Monitor.summary_text(s)
 
 
+
+
+# -- 7. the vehicle's state: its flight phase and its receiver's health ---------------------------------------
+def test_g_a_fix_lost_in_the_air_is_a_degraded_alert_before_any_fix_returns(quiet):
+    """The vehicle arms and takes off (HEARTBEAT, EXTENDED_SYS_STATE: untimed, at the link's
+    latest t), flies, then its receiver reports no fix and no position for 1 s: the degraded
+    alert comes with the reports, while no fix is scored, labelled in the air; the fix's return
+    ends it hold_s (3 s) later. The GPS admission never reads the phase or the health."""
+    fixes, alerts = [], []
+    with monitor(quiet, filter=FILTER, on_fix=fixes.append, on_alert=alerts.append) as (mon, lines, out):
+        peer = Vehicle(mon.address[1])
+        peer.stream(2.0, attitude=True)
+        peer.sync()
+        mode = M.mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
+        peer.send(M.mavlink2.MAVLink_heartbeat_message(M.mavlink2.MAV_TYPE_QUADROTOR, M.mavlink2.MAV_AUTOPILOT_PX4,
+                                                       mode, 0, M.mavlink2.MAV_STATE_ACTIVE, 3))
+        peer.send(M.mavlink2.MAVLink_extended_sys_state_message(0, M.mavlink2.MAV_LANDED_STATE_IN_AIR))
+        peer.stream(6.0)                                      # the take-off transition (5 s), then air
+        peer.sync()
+        assert mon.flight.phase.update(7.5) == "air" and not alerts
+        lost_at = peer.t - 100.0                              # t of the first report without a fix
+        nowhere = M.INT32_MAX * 1e-7
+        for k in range(100):                                  # 1 s: IMU at 100 Hz, no fix at 10 Hz
+            t = peer.t + k / 100.0
+            peer.send(M.encode_highres_imu(t, imu=UP))
+            if k % 10 == 0:
+                peer.send(M.encode_gps_raw_int(t, nowhere, nowhere, 0.0, np.full(3, np.nan), fix_type=0,
+                                               satellites=3))
+        peer.t += 1.0
+        peer.sync()
+        (start,) = alerts
+        assert (start["event"], start["kind"], start["phase"], start["reason"]) == (
+            "alert_start", "degraded", "air", "fix lost (fix type 0)")
+        assert start["vehicle_t"] == pytest.approx(lost_at) and start["score"] is None
+        assert max(f.t for f in fixes) < lost_at                # raised with no fix since the loss
+        assert "receiver degraded: fix lost (fix type 0)" in mon.status_line()
+        peer.stream(5.0)
+        peer.sync()
+    end = alerts[-1]
+    assert end["event"] == "alert_end" and end["vehicle_t"] == pytest.approx(lost_at + 1.0 + 3.0, abs=0.011)
+    s = out["summary"]
+    assert (s["alerts"], s["alerts_degraded"], s["alerts_total"]) == (0, 1, 1)
+    assert s["flight"]["phase"] == "air" and s["flight"]["height_source"] == "gps"
+    assert s["flight"]["inputs"]["armed"] == s["flight"]["inputs"]["takeoff"] == 1
+    assert s["link"]["dropped"].get("gps_no_3d_fix", 0) == 0   # no position: no fix sample, a report only
+    assert {f.admission for f in fixes} == {"fusing"}
+    assert [f.phase for f in fixes if f.t > 7.0] == ["air"] * sum(f.t > 7.0 for f in fixes)
+    assert any(line.endswith("GPS DEGRADED: fix lost (fix type 0), in the air, segment 0, fusing") for line in lines)

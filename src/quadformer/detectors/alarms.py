@@ -32,7 +32,8 @@ ALERT_COLUMNS = ["flight_id", "start_s", "onset_s", "attack_type", "score", "end
                  "kind", "phase", "reason"]
 ALERT_EVENTS = ("alert_start", "alert_end", "alert_type")
 ALERT_KINDS = ("spoofing", "degraded")
-_WHERE = {"ground": "on the ground", "transition": "in the take-off transition", "air": "in the air"}
+#: a flight phase in words, as alerts and the live monitor say it
+PHASE_WORDS = {"ground": "on the ground", "transition": "in the take-off transition", "air": "in the air"}
 
 
 def runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -73,7 +74,7 @@ class Alert:
         peak = f", peak score {self.score:.3g}" if np.isfinite(self.score) else ""
         confirmed = f", confirmed {self.confirmed_type}" if self.confirmed_type is not None else ""
         reason = f"; {self.reason}" if self.reason is not None else ""
-        where = _WHERE.get(self.phase, self.phase)
+        where = PHASE_WORDS.get(self.phase, self.phase)
         return (f"flight {self.flight_id}: {what} at {self.start_s:.1f} s {where} "
                 f"(onset ~{self.onset_s:.1f} s, until {end}{peak}{confirmed}{reason})")
 

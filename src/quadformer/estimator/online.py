@@ -111,6 +111,7 @@ class ResidueStream:
         self._bin_id: int | None = None
         self._recent: dict[str, deque] = {k: deque() for k in ("imu", "att", "mag", "baro")}
         self._last_fix: tuple[float, np.ndarray] | None = None
+        self._fused: dict[float, tuple[np.ndarray, float]] = {}   # measurement time -> (fix, stamp)
         self._baro_offset: np.ndarray | None = None             # barometric altitude minus the filter's height
         self._baro_diffs: list[np.ndarray] = []
         self._dt: float | None = None
@@ -224,6 +225,12 @@ class ResidueStream:
         """Visual odometry: ENU velocity and attitude quaternion (n, 7) or (7,)."""
         if "vio" in self.aiding and self.filter is not None:
             self.filter.push("vio", t, torch.as_tensor(np.array(np.broadcast_to(np.asarray(x, float), (self.n, 7)))))
+
+    @property
+    def waiting(self) -> float:
+        """The stamp of the earliest fix handed to the filter whose row has not come yet (inf:
+        none): no row stamped before it can come from the fixes given so far."""
+        return min((t for _, t in self._fused.values()), default=math.inf)
 
     def flush(self) -> list[dict[str, Any]]:
         """The rows of the IMU samples held back and of the last IMU bin (end of the stream)."""

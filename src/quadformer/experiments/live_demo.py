@@ -7,11 +7,14 @@ only on the seed and i). The detector (``bht`` by default: the GPS NIS, no netwo
 the training flights' residues (train / validation by flight). The monitor's filter takes the
 simulation's tuning and fuses GPS, IMU and the magnetometer: over MAVLink the GPS gives no
 vertical velocity (GPS_RAW_INT) and the barometer's offset is fixed at the first fix, so the
-vertical channel is left to GPS (the NIS then keeps the scale the detector was fit on).
+vertical channel is left to GPS (the NIS then keeps the scale the detector was fit on). The
+simulated vehicle flies from its first sample: the sender says so (armed and in the air from
+then), so the monitor's flight phase is the take-off transition for its first 5 s, then the air.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 from pathlib import Path
 from typing import Any, Callable
@@ -85,7 +88,8 @@ def run_demo(out: Path | None = None, detector=None, method: str = "bht", speed:
     def play() -> None:
         try:
             send(streams, f"udpout:127.0.0.1:{monitor.address[1]}",
-                 SenderConfig(speed=speed, timeout_s=cfg.duration / speed + 60.0), stop=done)
+                 SenderConfig(speed=speed, timeout_s=cfg.duration / speed + 60.0, armed=(0.0, math.inf),
+                              in_air=(0.0, math.inf)), stop=done)
         finally:
             monitor.stop()
 

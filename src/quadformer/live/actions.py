@@ -153,8 +153,8 @@ class Records:
     log's start), with ``boot_t``, the vehicle's time since boot, beside it: ``boot_time`` maps one to the
     other (a fix's ``t`` is its second value; an event's is ``vehicle_t``)."""
 
-    FIX_COLUMNS = ("segment", "t", "boot_t", "score", "alarm", "attack_type", "admission", "nis", "gps_x", "gps_y",
-                   "gps_z", "est_x", "est_y", "est_z", "ap_x", "ap_y", "ap_z", "latency_ms")
+    FIX_COLUMNS = ("segment", "t", "boot_t", "score", "alarm", "attack_type", "admission", "phase", "nis", "gps_x",
+                   "gps_y", "gps_z", "est_x", "est_y", "est_z", "ap_x", "ap_y", "ap_z", "latency_ms")
 
     def __init__(self, out: Path | None, boot_time: Callable[[float | None], float | None] = lambda t: None):
         self.boot_time = boot_time

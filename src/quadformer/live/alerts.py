@@ -2,32 +2,78 @@
 (``resilience.step.OnlineStep``: start, end, confirmed type) and the admission's transitions
 (GPS excluded, re-admitted) become console lines, STATUSTEXTs to the vehicle, records in
 ``alerts.jsonl``, ``on_alert`` calls and, with ``act``, the EKF source set switch. The last
-``MAX_ALERTS`` ended alerts are kept for the summary (all are in ``alerts.jsonl``)."""
+``MAX_ALERTS`` ended alerts are kept for the summary (all are in ``alerts.jsonl``), and every
+alert raised is counted by kind and flight phase (``detectors.alert_counts``: the headline, the
+spoofing alerts in the air, and the others beside it).
+
+Each alert says its kind (``spoofing``, or ``degraded``: raised while the receiver was degraded,
+or the receiver's degraded episode itself), its flight phase and its reason. Its STATUSTEXT
+(``statustext``) is at most 50 characters: ``GPS SPOOF ALERT <type> s=<score>`` (severity ALERT)
+with ``on ground`` or ``in takeoff`` outside the air and ``GPS excluded`` when the alert excluded
+GPS, or ``GPS DEGRADED: <reason>`` (severity WARNING, the reason's words before its
+parenthesis, e.g. ``fix lost``) with ``alarm <type>`` for a detector alarm raised then; what
+does not fit is left out, the score first."""
 
 from __future__ import annotations
 
 import dataclasses
-from collections import deque
+import math
+from collections import Counter, deque
 from datetime import datetime, timezone
 from typing import Callable
 
-from quadformer.detectors.alarms import Alert
-from quadformer.live.actions import Records, VehicleLink
+from quadformer.detectors.alarms import PHASE_WORDS, Alert, alert_counts
+from quadformer.live.actions import STATUSTEXT_MAX, Records, VehicleLink
 from quadformer.live.config import MonitorConfig
 from quadformer.live.status import STATES
 from quadformer.sensors.mavlink import mavlink2
 from quadformer.resilience.admission import BLENDING, EXCLUDE_NIS, EXCLUDED, READMIT_STALE
 
-__all__ = ["MAX_ALERTS", "Alerting"]
+__all__ = ["MAX_ALERTS", "Alerting", "describe", "statustext"]
 
 MAX_ALERTS = 1000                 # alerts kept in memory (all are in alerts.jsonl)
+SHORT_PHASE = {"ground": "on ground", "transition": "in takeoff"}     # STATUSTEXT words (none in the air)
+
+
+def episode(a: Alert) -> bool:
+    """Whether an alert is the receiver's degraded episode itself (no detector score)."""
+    return a.kind == "degraded" and not math.isfinite(a.score)
+
+
+def describe(a: Alert) -> str:
+    """An alert's kind, reason and flight phase in words: "spoofing in the air", "degraded
+    receiver (fix lost (fix type 1)) on the ground"."""
+    what = "spoofing" if a.kind == "spoofing" else "degraded receiver"
+    why = f" ({a.reason})" if a.reason else ""
+    return f"{what}{why} {PHASE_WORDS.get(a.phase, a.phase)}"
+
+
+def statustext(a: Alert, score: float, exclusion: bool = False) -> str:
+    """The STATUSTEXT of an alert's start (see the module text), at most ``STATUSTEXT_MAX``
+    characters; ``exclusion``: GPS was excluded at this alert's fix."""
+    where = SHORT_PHASE.get(a.phase)
+    excluded = "GPS excluded" if exclusion else None
+    if a.kind == "degraded":
+        head = f"GPS DEGRADED: {(a.reason or 'receiver').split(' (')[0]}"
+        alarm = None if episode(a) else f"alarm {a.attack_type}"
+        parts = [(alarm, 2), (where, 1), (excluded, 3)]          # (text, the order they are left out in, last first)
+    else:
+        head = f"GPS SPOOF ALERT {a.attack_type}"
+        parts = [(f"s={score:.3g}" if math.isfinite(score) else None, 3), (where, 1), (excluded, 2)]
+    parts = [p for p in parts if p[0]]
+    text = " ".join([head, *(p for p, _ in parts)])
+    while len(text) > STATUSTEXT_MAX and parts:
+        parts.remove(max(parts, key=lambda p: p[1]))
+        text = " ".join([head, *(p for p, _ in parts)])
+    return text[:STATUSTEXT_MAX]
 
 
 class Alerting:
     """The alert and admission side of the monitor: ``echo`` every console line, ``on_alert``
     every alert event; ``attach`` gives it the vehicle link and the records once the
     connection is open (before that, console and callbacks only). ``alerts``: the ended
-    alerts kept, ``n_alerts``: alerts raised."""
+    alerts kept, ``n_alerts``: alerts raised, ``counts``: they counted apart by kind and flight
+    phase (``detectors.alert_counts``)."""
 
     def __init__(self, detector, config: MonitorConfig, echo: Callable[[str], None],
                  on_alert: Callable[[dict], None] | None = None):
@@ -36,6 +82,7 @@ class Alerting:
         self.records: Records | None = None
         self.alerts: deque[Alert] = deque(maxlen=MAX_ALERTS)
         self.n_alerts = 0
+        self.counts: Counter = Counter(alert_counts([]))
 
     def attach(self, link: VehicleLink | None, records: Records | None) -> None:
         self.link, self.records = link, records
@@ -86,24 +133,37 @@ class Alerting:
                 self.echo(f"[t {ev.t:.1f} s] alert of t {a.start_s:.1f} s: type {kind}"
                           + (f" (raised as {raised})" if kind != raised else " confirmed"))
             else:
-                value = a.score if ev.event == "alert_end" else float(score)
-                event.update(score=value, onset_s=a.onset_s, attack_type=a.attack_type, admission=STATES[state],
-                             threshold=float(self.detector.threshold_))
+                value = a.score if ev.event == "alert_end" or episode(a) else float(score)
+                event.update(score=value if math.isfinite(value) else None, onset_s=a.onset_s,
+                             attack_type=a.attack_type, kind=a.kind, phase=a.phase, reason=a.reason,
+                             admission=STATES[state], threshold=float(self.detector.threshold_))
                 if ev.event == "alert_start":
-                    self.n_alerts += 1
-                    text = f"GPS SPOOF ALERT {a.attack_type} s={value:.3g}"
-                    if exclusion:
-                        text += " GPS excluded"
-                    if self.link is not None:
-                        self.link.statustext(text, mavlink2.MAV_SEVERITY_ALERT)
+                    self._raised(a, value, exclusion)
                 else:
                     self.alerts.append(a)
-                    event.update(start_s=a.start_s, peak_score=a.score)
-                when = f"t {ev.t:.1f} s" if ev.t is not None else "end of segment"
-                self.echo(f"[{when}] {'ALERT' if ev.event == 'alert_start' else 'alert ended'}: {a.attack_type}, "
-                          f"score {value:.3g} (threshold {self.detector.threshold_:.3g}), segment {segment}, "
-                          f"{STATES[state]}")
+                    event.update(start_s=a.start_s, peak_score=event["score"])
+                self.echo(self._line(ev, value, segment, state))
             if self.records is not None:
                 self.records.alert(event)
             if self.on_alert is not None:
                 self.on_alert(event)
+
+    def _raised(self, a: Alert, score: float, exclusion: bool) -> None:
+        """An alert raised: counted, and told to the vehicle."""
+        self.n_alerts += 1
+        self.counts.update(alert_counts([a]))
+        if self.link is not None:
+            severity = mavlink2.MAV_SEVERITY_WARNING if a.kind == "degraded" else mavlink2.MAV_SEVERITY_ALERT
+            self.link.statustext(statustext(a, score, exclusion), severity)
+
+    def _line(self, ev, score: float, segment: int, state: int) -> str:
+        """The console line of an alert's start or end."""
+        a = ev.alert
+        when = f"t {ev.t:.1f} s" if ev.t is not None else "end of segment"
+        tail = f"segment {segment}, {STATES[state]}"
+        if episode(a):
+            what = "GPS DEGRADED" if ev.event == "alert_start" else "GPS degraded episode ended"
+            return f"[{when}] {what}: {a.reason}, {PHASE_WORDS.get(a.phase, a.phase)}, {tail}"
+        what = "ALERT" if ev.event == "alert_start" else "alert ended"
+        return (f"[{when}] {what}: {a.attack_type}, score {score:.3g} (threshold {self.detector.threshold_:.3g}), "
+                f"{describe(a)}, {tail}")

@@ -81,6 +81,7 @@ class FixRecord:
     alarm: bool
     attack_type: str | None
     admission: str                 # state after this fix's decision
+    phase: str                     # the flight phase at the fix (detectors.flight_phase.PHASES)
     std_scale: float               # GPS noise factor the admission asks for (blend)
     nis: float
     gps_pos: np.ndarray            # ENU m about the origin

@@ -172,6 +172,13 @@ class Intake:
             return None
         return stamp - self.epoch_offset
 
+    def link_time(self, stamp: float) -> float | None:
+        """A stamp of the vehicle as ``t`` on the link's time base (its clock's latest run),
+        without the order checks or counts of ``accept``: None before the first sample, or for a
+        UNIX-epoch stamp before SYSTEM_TIME."""
+        boot = self.boot_time(stamp, count=False)
+        return None if boot is None or not self.time.epochs else self.time.t(boot)
+
     def accept(self, s, kind: str, may_switch: bool = True) -> Accepted | None:
         """A sensor sample from message ``kind``: where it goes and when, or None when it is not
         used (counted in ``dropped``). ``may_switch``: a preferred IMU may still replace the one

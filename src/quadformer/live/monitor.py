@@ -5,7 +5,11 @@ link intake (``live.intake``) -> the calls of ``estimator.online.ResidueStream``
 gps, mag, baro, vio) -> each residue row (one per fused GPS fix) -> the online step of the
 segment (``live.segment``; ``detector.stream(1).update(row)`` -> the alarm ->
 ``resilience.Admission(["resilient"])``) -> actions (``live.alerts``: console, ``alerts.jsonl``,
-STATUSTEXT, and with ``act`` the EKF source set switch). Causal throughout; the only state is the
+STATUSTEXT, and with ``act`` the EKF source set switch). Alerts say their kind and flight phase:
+the vehicle's events (HEARTBEAT arming, EXTENDED_SYS_STATE take-off and landing, STATUSTEXT GPS
+glitches and failsafes), every GPS status report (fix or not) and a height (the barometer, else
+the GPS altitude) feed the segment's flight phase and receiver health in time order
+(``live.flight_state``), as ``detect`` feeds a log's. Causal throughout; the only state is the
 residue stream's, the detector stream's (a recursion or ring buffers), the admission's,
 fixed-size counters, a fixed-size latency histogram (``live.status``) and the last fixes the
 attack typer reads (``detectors.attack_types``; ``typing="shape"``: an alert's type is the shape
@@ -57,17 +61,19 @@ from quadformer.live import status
 from quadformer.live.actions import Records, VehicleLink, autopilot_name
 from quadformer.live.alerts import Alerting
 from quadformer.live.config import FixRecord, MonitorConfig, monitor_sensors
+from quadformer.live.flight_state import FlightState
 from quadformer.live.intake import Intake
 from quadformer.live.mavlink import local_address, open_link
 from quadformer.live.segment import Segment
 from quadformer.live.status import STALE, STATES, Latency
 from quadformer.live.vehicle import Vehicle
 from quadformer.resilience.admission import EXCLUDED, FUSING
-from quadformer.sensors.mavlink import Estimate, Origin, decode
+from quadformer.sensors.mavlink import GPS_MESSAGES, Estimate, Origin, decode, gps_status
 
 __all__ = ["STALE", "STATES", "FixRecord", "Monitor", "MonitorConfig", "monitor_sensors"]
 
 MAX_SEGMENTS = 100                # segment descriptions kept in memory
+EVENT_MESSAGES = ("EXTENDED_SYS_STATE", "STATUSTEXT")    # the vehicle's messages read for events only
 
 
 class Monitor:
@@ -108,6 +114,8 @@ class Monitor:
                              note=self._note, clock=clock)
         # the vehicle followed, its autopilot, the local origin and the autopilot's own estimate
         self.followed = Vehicle(config.system, note=self._note)
+        # its events, receiver reports and height: the flight phase and receiver health of the alerts
+        self.flight = FlightState(stale_s=config.stale_s)
         # alert events and admission transitions: console, STATUSTEXT, alerts.jsonl, on_alert
         self.alerting = Alerting(detector, config, self.echo, on_alert)
         self.latency = Latency()
@@ -241,6 +249,10 @@ class Monitor:
                 return
             if kind == "HEARTBEAT":
                 self._heartbeat(msg, src)
+                self._vehicle_message(msg, src)
+                return
+            if kind in EVENT_MESSAGES:
+                self._vehicle_message(msg, src)
                 return
             if kind == "COMMAND_ACK":
                 if self.vehicle is None or src[0] == self.vehicle:
@@ -248,7 +260,7 @@ class Monitor:
                     if line:
                         self._note(line)
                 return
-            if not samples:
+            if not samples and kind not in GPS_MESSAGES:
                 return
             first = self.vehicle is None
             if not self.followed.follows(src, "the first to send sensor data"):
@@ -258,6 +270,8 @@ class Monitor:
                 self.link.target = src
             for s in samples:
                 self._sample(s, kind, t_in)
+            if kind in GPS_MESSAGES:
+                self._receiver(msg)
         except Exception as e:          # noqa: BLE001 - the loop must outlive any one message
             self._error(e)
 
@@ -276,6 +290,40 @@ class Monitor:
                 self._rates_requested = True
                 self._note("requested streams: " + ", ".join(self.link.request_rates(self.autopilot)))
 
+    def _vehicle_message(self, msg, src) -> None:
+        """A HEARTBEAT, EXTENDED_SYS_STATE or STATUSTEXT: the followed vehicle's events, at the
+        link's latest t."""
+        if self.vehicle is not None and src[0] == self.vehicle:
+            now = self.intake.now_t
+            self.flight.message(now if math.isfinite(now) else 0.0, msg)
+            self._advance()
+
+    def _receiver(self, msg) -> None:
+        """A GPS message: the status report of the receiver in use (receiver 0 until one is)."""
+        status = gps_status(msg)
+        if status.instance != (self.intake.gps_instance or 0):
+            return
+        t = self.intake.link_time(status.t)
+        if t is None:
+            self.dropped["receiver_report_untimed"] += 1
+            return
+        self.flight.report(t, status)
+        self._advance()
+
+    def _advance(self) -> None:
+        """Feed the segment's step the flight inputs before the watermark (``FlightState``)."""
+        seg = self.segment
+        if seg is None:
+            self.flight.trim()
+            return
+        until = self.flight.watermark(self.intake.now_t, seg.stream.waiting)
+        self._labelled(seg, self.flight.feed(seg.step, until, inclusive=False))
+
+    def _labelled(self, seg: Segment, events: list) -> None:
+        """The alert events of the receiver's degraded episodes, between fixes."""
+        if events:
+            self.alerting.events(events, seg.index, seg.last_score, seg.state)
+
     def _sample(self, s, kind: str, t_in: float) -> None:
         if isinstance(s, Origin):
             self.followed.set_origin(s)
@@ -292,6 +340,9 @@ class Monitor:
         if self.segment is None:
             self._new_segment("start")
         seg, stream, t = self.segment, got.stream, got.t
+        if stream in ("baro", "gps"):
+            self.flight.height(t, s.alt, stream)
+            self._advance()
         if stream == "imu":
             self._imu(seg, t, s.x, t_in)
         elif stream != "attitude" and not seg.fusable(stream, t):
@@ -312,6 +363,7 @@ class Monitor:
         seg = self.segment
         for row in rows:
             t = float(row["t"])
+            self._labelled(seg, self.flight.feed(seg.step, t))
             before = seg.state
             try:
                 out = seg.score(t, row)
@@ -329,11 +381,12 @@ class Monitor:
                                  exclusion=after == EXCLUDED and before != EXCLUDED)
             self._admission(t, before, after, int(dec.readmit[0]), int(dec.exclude[0]))
             cols = {c: float(v[0]) for c, v in out.columns.items()}
-            rec = FixRecord(seg.index, t, score, alarm, kind, STATES[after], float(dec.std_scale[0]),
+            phase = self.flight.phase.update(t)
+            rec = FixRecord(seg.index, t, score, alarm, kind, STATES[after], phase, float(dec.std_scale[0]),
                             cols["res_gps_nis"], row["gps_pos"][0].copy(), row["est_pos"][0].copy(),
                             self.followed.position.copy(), latency, cols)
             if self.records is not None:
-                self.records.fix((seg.index, t, score, int(alarm), kind or "", STATES[after], rec.nis,
+                self.records.fix((seg.index, t, score, int(alarm), kind or "", STATES[after], phase, rec.nis,
                                   *map(float, rec.gps_pos), *map(float, rec.est_pos), *map(float, rec.ap_pos),
                                   latency * 1e3))
             if self.on_fix is not None:
@@ -348,6 +401,7 @@ class Monitor:
         seg = self.segment
         if seg is None:
             return
+        self._labelled(seg, self.flight.feed(seg.step, math.inf))
         self.alerting.events(seg.step.finish(), seg.index, seg.last_score, seg.state)
         self.segments.append(seg.describe(why))
 
@@ -358,7 +412,7 @@ class Monitor:
             excluded = self.segment.state != FUSING
             self._note(f"segment {self.n_segments}: {reason}")
         self.segment = Segment(self.n_segments, reason, self.detector, self.filter_config, self.sensors,
-                               self.config.admission, self.typer, excluded)
+                               self.config.admission, self.typer, excluded, phase=self.flight.phase)
         self.n_segments += 1
         return self.segment
 
@@ -397,6 +451,8 @@ class Monitor:
     # -- summary --------------------------------------------------------------------------
     alerts = property(lambda self: self.alerting.alerts, doc="The ended alerts kept (all are in alerts.jsonl).")
     n_alerts = property(lambda self: self.alerting.n_alerts, doc="Alerts raised.")
+    alert_counts = property(lambda self: {k: int(v) for k, v in self.alerting.counts.items()},
+                            doc="Alerts raised, counted apart by kind and flight phase (detectors.alert_counts).")
     vehicle = property(lambda self: self.followed.system, doc="The followed vehicle's system id.")
     autopilot = property(lambda self: self.followed.autopilot)
     origin = property(lambda self: self.followed.origin, doc="(lat deg, lon deg, alt m) of the ENU frame.")

@@ -1,9 +1,10 @@
 """One segment of the live monitor: a continuous stretch of the vehicle's clock. It holds the
 residue stream (``estimator.online.ResidueStream``), fed one sample at a time, and the online
 step that scores its rows (``resilience.step.OnlineStep``: detector stream, admission, alert
-lifecycle and typer). A restart of the vehicle's clock, an IMU gap longer than the filter's
-``max_gap_s`` or an error ends a segment and starts the next; GPS stays excluded across it
-until re-admitted by the rule."""
+lifecycle and typer; the link's flight phase and the segment's own receiver health label its
+alerts, as ``detect`` gives each segment of a log its own). A restart of the vehicle's clock,
+an IMU gap longer than the filter's ``max_gap_s`` or an error ends a segment and starts the
+next; GPS stays excluded across it until re-admitted by the rule."""
 
 from __future__ import annotations
 
@@ -13,6 +14,8 @@ from typing import Any
 import numpy as np
 
 from quadformer.detectors.attack_types import OnlineTyper, ShapeTyper
+from quadformer.detectors.flight_phase import FlightPhase
+from quadformer.detectors.receiver_health import ReceiverHealth
 from quadformer.estimator.online import FilterConfig, ResidueStream
 from quadformer.live.alerts import MAX_ALERTS
 from quadformer.resilience.admission import EXCLUDED, Admission, AdmissionConfig
@@ -23,10 +26,12 @@ __all__ = ["Segment"]
 
 class Segment:
     """Segment ``index``, started for ``reason``; ``excluded``: the vehicle is still off GPS, so
-    the admission starts excluded and re-admission follows the rule."""
+    the admission starts excluded and re-admission follows the rule; ``phase``: the link's
+    flight phase (None: alerts are not labelled by phase or receiver health)."""
 
     def __init__(self, index: int, reason: str, detector, filter_config: FilterConfig, sensors: str,
-                 admission: AdmissionConfig, typer: ShapeTyper | None = None, excluded: bool = False):
+                 admission: AdmissionConfig, typer: ShapeTyper | None = None, excluded: bool = False,
+                 phase: FlightPhase | None = None):
         self.index, self.reason = index, reason
         self.max_gap_s = filter_config.max_gap_s
         self.stream = ResidueStream(filter_config, sensors, n=1)
@@ -34,7 +39,9 @@ class Segment:
         if excluded:
             rule.state[:] = EXCLUDED
         typer = None if typer is None else OnlineTyper(typer, filter_config.gps_rate_hz)
-        self.step = OnlineStep(detector.stream(1), rule, flight_ids=[index], typer=typer, keep=MAX_ALERTS)
+        health = None if phase is None else ReceiverHealth(flight_id=index, keep=MAX_ALERTS)
+        self.step = OnlineStep(detector.stream(1), rule, flight_ids=[index], typer=typer, keep=MAX_ALERTS,
+                               phase=phase, health=health)
         self.first_imu: float | None = None
         self.last_imu: float | None = None
         self.fixes = 0

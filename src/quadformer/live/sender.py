@@ -6,8 +6,9 @@ DataFrames) or a simulated flight's (``from_simulation``, the ``sensors`` entry 
 ``simulate_batch(..., record_sensors=True)``). ``send(streams, connect, config)`` plays them as
 HIGHRES_IMU (IMU, and the magnetometer in the same message when stamped alike),
 GPS_RAW_INT, ATTITUDE, SCALED_PRESSURE, ODOMETRY (with VIO) and a HEARTBEAT per vehicle
-second, in stamp order and, for equal stamps, in ``estimator.online.CALL_ORDER`` (the order of
-the log replay), faster than real time:
+second (armed within ``armed``; with ``in_air``, EXTENDED_SYS_STATE beside it), in stamp
+order and, for equal stamps, in ``estimator.online.CALL_ORDER`` (the order of the log
+replay), faster than real time:
 
 - ``speed``: times real time (None: no pacing);
 - flow control (``window`` > 0): a TIMESYNC request every ``window // 4`` packets and at most
@@ -18,13 +19,14 @@ the log replay), faster than real time:
 Faults, seeded (``np.random.default_rng(seed)``): packet loss, duplicates, reordering (a
 packet held back behind the next), corrupt bytes (one payload byte flipped: a bad CRC), a
 silent pause, an outage of some streams over a span of vehicle time, streams never sent, and
-a restart with the vehicle's clock going back. TIMESYNC and HEARTBEAT packets are not
-faulted.
+a restart with the vehicle's clock going back; a span in which the receiver reports no fix
+(``fix_lost``). TIMESYNC, HEARTBEAT and EXTENDED_SYS_STATE packets are not faulted.
 
 With ``record=True`` the report holds the data exactly as encoded: every data packet that
 left intact, parsed back and decoded (``mavlink.decode``), as FlightLog-like frames
-(1e-7 deg, mm, cm/s and float32 quantisation included), so that an offline reference can be
-computed on the very data the receiver got. Messages the receiver sends back (STATUSTEXT,
+(1e-7 deg, mm, cm/s and float32 quantisation included), with every GPS status report and the
+vehicle's events (timed as a monitor times them: at the latest sample sent before them), so that
+an offline reference can be computed on the very data the receiver got. Messages the receiver sends back (STATUSTEXT,
 COMMAND_LONG, answered with COMMAND_ACK as a vehicle does) are collected in the report.
 """
 
@@ -38,7 +40,7 @@ import numpy as np
 from quadformer.live.mavlink import open_link
 from quadformer.live.sender_config import SenderConfig, SendReport
 from quadformer.live.sender_link import Peer, Recorder, pack
-from quadformer.live.vehicle_streams import VehicleStreams, events
+from quadformer.live.vehicle_streams import VehicleStreams, events, state_messages
 from quadformer.sensors.mavlink import encode_origin, mavlink2
 
 __all__ = ["SenderConfig", "SendReport", "VehicleStreams", "send"]
@@ -62,7 +64,6 @@ def send(streams: VehicleStreams, connect, config: SenderConfig = SenderConfig()
     rec = Recorder() if cfg.record else None
     t_start = time.monotonic()
     deadline = t_start + cfg.timeout_s
-    autopilot = mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA if cfg.autopilot == "ardupilot" else mavlink2.MAV_AUTOPILOT_PX4
     try:
         if listen:
             end = time.monotonic() + cfg.peer_timeout_s
@@ -104,8 +105,11 @@ def send(streams: VehicleStreams, connect, config: SenderConfig = SenderConfig()
             report.vehicle_s = tv - t0_vehicle
             if tv >= next_heartbeat:
                 next_heartbeat = tv + 1.0
-                control(mavlink2.MAVLink_heartbeat_message(mavlink2.MAV_TYPE_QUADROTOR, autopilot, 0, 0,
-                                                           mavlink2.MAV_STATE_ACTIVE, 3))
+                for m in state_messages(cfg, tv):
+                    buf = pack(conn, m)
+                    write(buf)
+                    if rec is not None:
+                        rec.add(buf)
             if cfg.pause is not None and not paused and tv >= cfg.pause[0]:
                 paused = True
                 wait = min(cfg.pause[1], max(deadline - now, 0.0))

@@ -32,6 +32,11 @@ class SenderConfig:
     system: int = 1                         # the vehicle's MAVLink identity
     component: int = 1
     autopilot: str = "px4"                  # px4 or ardupilot (its HEARTBEAT)
+    armed: tuple[float, float] | None = None            # (arming, disarming) vehicle time: HEARTBEAT armed between
+    in_air: tuple[float, float] | None = None           # (take-off, landing) vehicle time: EXTENDED_SYS_STATE's
+                                            # landed state, sent with each HEARTBEAT (None: not sent)
+    fix_lost: tuple[float, float] | None = None         # (start, length) of vehicle time during which GPS_RAW_INT
+                                            # says no fix (fix type 1, the position still in it)
     record: bool = False                    # keep the data as encoded (tests; memory grows with the flight)
     peer_timeout_s: float = 10.0            # udpin: wait this long for the receiver's first packet
     sync_timeout_s: float = 10.0            # give up waiting for a TIMESYNC answer after this long
@@ -50,6 +55,12 @@ class SenderConfig:
             raise ValueError(f"sender.speed must be > 0, got {self.speed!r}")
         if self.loops < 1 or self.window < 0:
             raise ValueError("sender.loops must be >= 1 and sender.window >= 0")
+        for name in ("armed", "in_air"):
+            span = getattr(self, name)
+            if span is not None and not (len(span) == 2 and span[0] <= span[1]):
+                raise ValueError(f"sender.{name} must be (start, end) vehicle times, start <= end; got {span!r}")
+        if self.fix_lost is not None and not (len(self.fix_lost) == 2 and self.fix_lost[1] > 0):
+            raise ValueError(f"sender.fix_lost must be (start, length > 0) of vehicle time; got {self.fix_lost!r}")
 
 
 @dataclass

@@ -1,17 +1,22 @@
 """The test sender's end of the link: the receiver as the sender sees it (answers, commands,
-status texts), packets with the link's sequence numbers, and the data packets as they left."""
+status texts), packets with the link's sequence numbers, and the packets as they left: the
+sensor samples, the GPS status reports and the vehicle's events."""
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Any
 
 import pandas as pd
 
 from quadformer.live.sender_config import SendReport
-from quadformer.sensors.mavlink import Attitude, Baro, Gps, Imu, Mag, Odometry, Origin, decode, mavlink2
+from quadformer.sensors.mavlink import (Attitude, Baro, Gps, Imu, Mag, Odometry, Origin, VehicleEvents, decode,
+                                        gps_status, mavlink2)
 
 __all__ = ["Peer", "Recorder", "pack"]
+
+SAMPLES = (Imu, Gps, Mag, Baro, Odometry, Attitude)     # the samples a monitor's link time counts
 
 
 class Peer:
@@ -63,17 +68,37 @@ def pack(conn, msg) -> bytes:
 
 
 class Recorder:
-    """The data packets that left intact, parsed back and decoded (samples in lists)."""
+    """The packets that left intact, parsed back and decoded (samples in lists); every GPS
+    status report (``gps_status``, receiver 0); the vehicle's events (``VehicleEvents``), timed
+    as the monitor times them: at the latest stamp of a sample it takes (a 3D fix's, not a
+    report's without one), the first sample's for those before it."""
 
     def __init__(self):
         self.parser = mavlink2.MAVLink(None)
         self.parser.robust_parsing = True
-        self.rows: dict[str, list] = {k: [] for k in ("imu", "gps", "mag", "baro", "odometry", "attitude")}
+        self.rows: dict[str, list] = {k: [] for k in ("imu", "gps", "mag", "baro", "odometry", "attitude",
+                                                      "receiver", "events")}
         self.origin: tuple[float, float, float] | None = None
+        self.vehicle = VehicleEvents(start="at the link's first report")
+        self.latest = -math.inf                  # the latest sample stamp
+        self.early: list[tuple[str, str]] = []    # events before the first sample
 
     def add(self, buf: bytes) -> None:
         for m in self.parser.parse_buffer(buf) or []:
+            status = gps_status(m)
+            if status is not None and status.instance == 0:
+                self.rows["receiver"].append([status.t, status.fix_type, status.satellites, status.eph, status.epv,
+                                              status.speed_acc])
+            for _, event, detail in self.vehicle.message(self.latest, m):
+                if math.isfinite(self.latest):
+                    self.rows["events"].append((self.latest, event, detail))
+                else:
+                    self.early.append((event, detail))
             for s in decode(m):
+                if isinstance(s, SAMPLES) and not (isinstance(s, Gps) and s.fix_type < 3):
+                    if not math.isfinite(self.latest):
+                        self.rows["events"] += [(s.t, e, d) for e, d in self.early]
+                    self.latest = max(self.latest, s.t)
                 if isinstance(s, Imu):
                     self.rows["imu"].append([s.t, *s.x])
                 elif isinstance(s, Mag):
@@ -96,7 +121,10 @@ class Recorder:
                         "satellites"],
                 "mag": ["t", "mx", "my", "mz"], "baro": ["t", "alt"],
                 "odometry": ["t", "x", "y", "z", "vx", "vy", "vz", "qx", "qy", "qz", "qw"],
-                "attitude": ["t", "qx", "qy", "qz", "qw"]}
-        out: dict[str, Any] = {k: (pd.DataFrame(v, columns=cols[k]) if v else None) for k, v in self.rows.items()}
+                "attitude": ["t", "qx", "qy", "qz", "qw"],
+                "receiver": ["t", "fix_type", "satellites", "eph", "epv", "speed_acc"]}
+        out: dict[str, Any] = {k: (pd.DataFrame(v, columns=cols[k]) if v else None) for k, v in self.rows.items()
+                               if k != "events"}
+        out["events"] = list(self.rows["events"])
         out["origin"] = self.origin
         return out

@@ -1,5 +1,7 @@
-"""What the live monitor reports: its state in words, the periodic status line, the summary
-(``summary.json``) and the summary text printed at the end, read from the monitor's counters;
+"""What the live monitor reports: its state in words, the periodic status line (with the flight
+phase, and the receiver's degradation while it lasts), the summary (``summary.json``: the alerts
+counted apart by kind and flight phase as ``detect`` counts a log's, the headline the spoofing
+alerts in the air) and the summary text printed at the end, read from the monitor's counters;
 and the fixed-size latency histogram those report per fix."""
 
 from __future__ import annotations
@@ -69,6 +71,11 @@ def status_line(m: Monitor, elapsed: float = 1.0) -> str:
         if math.isfinite(intake.now_t) else "t -"
     parts = [now, f"seg {seg.index if seg else '-'}", f"{rates or 'no samples'} /s", f"fixes {m.fixes}",
              f"score {score} (thr {m.detector.threshold_:.3g})", m.state_text()]
+    if math.isfinite(intake.now_t):
+        parts.append(f"phase {m.flight.phase.update(intake.now_t)}")
+        why = seg.step.health.degraded(intake.now_t) if seg is not None and seg.step.health is not None else None
+        if why is not None:
+            parts.append(f"receiver degraded: {why}")
     need = ["imu", "gps"] + [s for s in ("mag", "baro", "vio") if s in m.sensors.split("+")]
     for s in need:
         age = intake.stale(s)
@@ -100,8 +107,10 @@ def summary(m: Monitor, wall_s: float) -> dict[str, Any]:
         "rates_hz": dict(intake.rates),
         "messages": dict(sorted(m.messages.items())), "n_messages": m.n_messages,
         "messages_per_s": m.n_messages / wall_s if wall_s > 0 else math.nan,
-        "samples": dict(intake.samples), "fixes_scored": m.fixes, "alerts": m.n_alerts,
+        "samples": dict(intake.samples), "fixes_scored": m.fixes, **m.alert_counts,
         "alert_list": [dataclasses.asdict(a) for a in m.alerts],
+        "flight": {"phase": m.flight.phase.update(intake.now_t) if math.isfinite(intake.now_t) else None,
+                   **m.flight.summary()},
         "link": {"lost_packets": packets["lost"], "corrupt_packets": m.messages["BAD_DATA"],
                  "duplicate_packets": packets["duplicate"], "reordered_packets": packets["reordered"],
                  "datagrams": intake.reader.datagrams if intake.reader is not None else None,
@@ -126,7 +135,9 @@ def summary_text(s: dict[str, Any]) -> str:
         f"monitor stopped ({s['stop_reason']}) after {s['wall_s']:.1f} s: {s['n_messages']} messages "
         f"({s['messages_per_s']:.0f}/s)",
         f"  messages: {msgs or 'none'}",
-        f"  fixes scored {s['fixes_scored']}, alerts {s['alerts']}, segments {s['segments']}, errors {s['errors']}",
+        f"  fixes scored {s['fixes_scored']}, spoofing alerts in the air {s['alerts']} (beside them "
+        f"{s['alerts_ground']} on the ground, {s['alerts_transition']} in the take-off transition, "
+        f"{s['alerts_degraded']} of a degraded receiver), segments {s['segments']}, errors {s['errors']}",
         f"  state at the end: {s['state']}; t counts from the link's first sensor sample, at "
         + (f"{s['time']['first_sample_boot_s']:.3f} s after the vehicle's boot"
            if s["time"]["first_sample_boot_s"] is not None else "none received"),

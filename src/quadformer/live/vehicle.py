@@ -15,11 +15,9 @@ from typing import Callable
 import numpy as np
 
 from quadformer.geometry.frames import geodetic_to_enu
-from quadformer.sensors.mavlink import Estimate, Gps, Origin, mavlink2
+from quadformer.sensors.mavlink import Estimate, Gps, Origin, vehicle_heartbeat
 
 __all__ = ["Vehicle"]
-
-NOT_VEHICLES = (mavlink2.MAV_TYPE_GCS, mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_TYPE_GIMBAL)
 
 
 class Vehicle:
@@ -45,8 +43,9 @@ class Vehicle:
         return src[0] == self.system
 
     def heartbeat(self, msg, src: tuple[int, int]) -> bool:
-        """Whether a HEARTBEAT is the vehicle's (the first vehicle heartbeat chooses it)."""
-        if msg.autopilot == mavlink2.MAV_AUTOPILOT_INVALID or msg.type in NOT_VEHICLES:
+        """Whether a HEARTBEAT is the vehicle's (the first vehicle heartbeat chooses it;
+        ``sensors.mavlink.vehicle_heartbeat``)."""
+        if not vehicle_heartbeat(msg):
             return False
         return self.follows(src, "the first vehicle heartbeat")
 

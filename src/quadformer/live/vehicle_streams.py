@@ -1,5 +1,6 @@
 """What a vehicle streams, for the test sender: a recorded log's or a simulated flight's sensors,
-and those streams as encoded MAVLink messages in sending order, loop after loop."""
+and those streams as encoded MAVLink messages in sending order, loop after loop; and what the
+vehicle says of its state once a second (HEARTBEAT, EXTENDED_SYS_STATE)."""
 
 from __future__ import annotations
 
@@ -18,11 +19,12 @@ from quadformer.sensors.mavlink import (
     encode_highres_imu,
     encode_odometry,
     encode_scaled_pressure,
+    mavlink2,
     msec,
     usec,
 )
 
-__all__ = ["RANK", "SIM_ORIGIN", "VehicleStreams", "events"]
+__all__ = ["RANK", "SIM_ORIGIN", "VehicleStreams", "events", "state_messages"]
 
 #: a default geodetic origin for simulated flights (deg, deg, m)
 SIM_ORIGIN = (47.3977418, 8.5455939, 488.0)
@@ -122,6 +124,9 @@ def events(s: VehicleStreams, cfg: SenderConfig):
         n_gps = len(s.gps_t)
         acc = s.gps_acc if s.gps_acc is not None else np.full((n_gps, 3), np.nan)
         fix = s.gps_fix if s.gps_fix is not None else np.full(n_gps, 3.0)
+        if cfg.fix_lost is not None:
+            a, n = cfg.fix_lost
+            fix = np.where((s.gps_t + dt_k >= a) & (s.gps_t + dt_k < a + n), 1.0, fix)
 
         def enc_t(t: float) -> float:
             if cfg.restart_at is not None and t >= cfg.restart_at:
@@ -163,3 +168,20 @@ def events(s: VehicleStreams, cfg: SenderConfig):
             else:
                 yield tv, stamp, "attitude", encode_attitude(te, s.att[i])
             j += 1
+
+
+def state_messages(cfg: SenderConfig, tv: float) -> list:
+    """What the vehicle says of its state at vehicle time tv: its HEARTBEAT (armed within
+    ``cfg.armed``) and, with ``cfg.in_air``, EXTENDED_SYS_STATE (in the air within it, else on
+    the ground)."""
+    autopilot = mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA if cfg.autopilot == "ardupilot" else mavlink2.MAV_AUTOPILOT_PX4
+    armed = cfg.armed is not None and cfg.armed[0] <= tv < cfg.armed[1]
+    out = [mavlink2.MAVLink_heartbeat_message(mavlink2.MAV_TYPE_QUADROTOR, autopilot,
+                                              mavlink2.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0, 0,
+                                              mavlink2.MAV_STATE_ACTIVE, 3)]
+    if cfg.in_air is not None:
+        up = cfg.in_air[0] <= tv < cfg.in_air[1]
+        out.append(mavlink2.MAVLink_extended_sys_state_message(
+            mavlink2.MAV_VTOL_STATE_UNDEFINED,
+            mavlink2.MAV_LANDED_STATE_IN_AIR if up else mavlink2.MAV_LANDED_STATE_ON_GROUND))
+    return out

@@ -17,20 +17,11 @@ the others time since boot), so ``boot_t0`` is NaN. Streams:
 
 A telemetry link's streams are slow (an IMU at a few Hz): the ekf replay refuses an IMU under
 the filter's least rate, naming it. ``HEARTBEAT`` arming changes and ``STATUSTEXT`` texts go to
-the notes and ``vehicle["messages"]``. Events (``FlightLog.events``), from the vehicle's messages
-(a ``HEARTBEAT`` neither of a ground station nor of a component without an autopilot):
-
-* ``HEARTBEAT``: armed / disarmed where ``base_mode`` & 128 (MAV_MODE_FLAG_SAFETY_ARMED) changes,
-  mode where the mode (``custom_mode``, named by pymavlink) changes;
-* ``EXTENDED_SYS_STATE.landed_state`` (1 on ground, 2 in air, 3 taking off, 4 landing): takeoff
-  where it leaves 1 for 2, 3 or 4, landed where it comes back to 1 (0, undefined, is skipped);
-* a log that starts armed (in the air) begins with armed (takeoff) at its first report;
-* ``STATUSTEXT``, case-insensitive (``TEXT_EVENTS``): ArduPilot's "GPS Glitch" and, since 3.6,
-  "GPS Glitch or Compass error" -> gps_glitch; "GPS Glitch cleared" / "Glitch cleared" ->
-  gps_glitch_cleared; "GPS failsafe" or ArduCopter 3.1's "Lost GPS!" -> gps_failsafe (a text with
-  "cleared" or "resolved" -> gps_failsafe_cleared); "EKF variance" -> ekf_variance (sent at most
-  every 30 s; it has no clearing text). Pre-arm check texts ("PreArm: ...", "Arm: ...") repeat a
-  state while disarmed and give no event.
+the notes and ``vehicle["messages"]``. Events (``FlightLog.events``) are the vehicle's messages
+as ``sensors.mavlink.VehicleEvents`` reads them, the live monitor's conversion: arming and mode
+from the autopilot's ``HEARTBEAT``, takeoff and landed from ``EXTENDED_SYS_STATE.landed_state``,
+GPS glitches and failsafes and EKF variance from ``STATUSTEXT`` (``sensors.mavlink.TEXT_EVENTS``);
+a log that starts armed (in the air) begins with armed (takeoff) at its first report.
 """
 
 from __future__ import annotations
@@ -38,7 +29,6 @@ from __future__ import annotations
 import contextlib
 import io
 import math
-import re
 from collections import defaultdict
 from pathlib import Path
 
@@ -47,22 +37,13 @@ from pymavlink import mavutil
 
 from quadformer.geometry import frames
 from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, LogError, assemble, gps_stream, make_stream
-from quadformer.sensors.mavlink import IMU_MESSAGES, Estimate, Gps, GpsStatus, Origin, decode, gps_status
+from quadformer.sensors.mavlink import (ARMED, IMU_MESSAGES, Estimate, Gps, GpsStatus, Origin, VehicleEvents, decode,
+                                        gps_status, vehicle_heartbeat)
 
-__all__ = ["TEXT_EVENTS", "looks_like_tlog", "read_tlog"]
+__all__ = ["looks_like_tlog", "read_tlog"]
 
 _MAGIC = (0xFE, 0xFD)                     # MAVLink 1 and 2 start bytes
 _UNIX_US = (1.0e15, 4.0e15)               # plausible receive times: 2001 to 2096
-_ARMED = 128                              # MAV_MODE_FLAG_SAFETY_ARMED
-_ON_GROUND = 1                            # MAV_LANDED_STATE_ON_GROUND (0 undefined; 2, 3, 4 in the air)
-
-#: STATUSTEXT -> event: the first pattern that matches (case-insensitive) wins
-TEXT_EVENTS = ((re.compile(r"^(pre)?arm\b", re.I), None),
-               (re.compile(r"glitch cleared", re.I), "gps_glitch_cleared"),
-               (re.compile(r"gps glitch", re.I), "gps_glitch"),
-               (re.compile(r"gps failsafe.*(cleared|resolved)", re.I), "gps_failsafe_cleared"),
-               (re.compile(r"gps failsafe|lost gps", re.I), "gps_failsafe"),
-               (re.compile(r"^ekf variance", re.I), "ekf_variance"))
 
 
 def looks_like_tlog(head: bytes) -> bool:
@@ -83,7 +64,8 @@ def read_tlog(path: str | Path, *, imu_gap: float = IMU_GAP, gps_gap: float = GP
     samples: dict[str, list] = defaultdict(list)
     notes: list[str] = []
     texts: list[str] = []
-    events = _Events()
+    events = VehicleEvents()
+    rows: list[tuple[float, str, str]] = []
     armed, bad, count = None, 0, 0
     sink = io.StringIO()
     try:
@@ -97,19 +79,15 @@ def read_tlog(path: str | Path, *, imu_gap: float = IMU_GAP, gps_gap: float = GP
                         bad += 1
                         continue
                     t = float(m._timestamp)
-                    if kind == "HEARTBEAT" and m.type != mavutil.mavlink.MAV_TYPE_GCS \
-                            and m.autopilot != mavutil.mavlink.MAV_AUTOPILOT_INVALID:
-                        now = bool(m.base_mode & _ARMED)
+                    if kind == "HEARTBEAT" and vehicle_heartbeat(m):
+                        now = bool(m.base_mode & ARMED)
                         if now != armed:
                             samples["arming"].append((t, now))
                             armed = now
-                        events.heartbeat(t, m)
-                    elif kind == "EXTENDED_SYS_STATE":
-                        events.landed_state(t, int(m.landed_state))
                     elif kind == "STATUSTEXT":
                         texts.append(str(m.text))
-                        events.text(t, str(m.text))
-                    elif kind == "GPS_RAW_INT":
+                    rows += events.message(t, m)
+                    if kind == "GPS_RAW_INT":
                         samples["GpsStatus"].append((t, gps_status(m)))
                     for s in decode(m):
                         samples[type(s).__name__].append((t, s))
@@ -133,43 +111,7 @@ def read_tlog(path: str | Path, *, imu_gap: float = IMU_GAP, gps_gap: float = GP
                  "tlog); the link's latency and jitter are in them")
     vehicle = {"autopilot": "MAVLink", "messages": texts[:20]}
     return assemble("mavlink-tlog", path, streams, notes, vehicle, origin, origin_source, imu_gap, gps_gap,
-                    events=[(t - t0, e, d) for t, e, d in events.rows])
-
-
-class _Events:
-    """The vehicle's events as its messages arrive (see the module docstring), at receive times."""
-
-    def __init__(self) -> None:
-        self.rows: list[tuple[float, str, str]] = []
-        self.armed: bool | None = None
-        self.mode: str | None = None
-        self.airborne: bool | None = None
-
-    def heartbeat(self, t: float, m) -> None:
-        armed = bool(m.base_mode & _ARMED)
-        if armed != self.armed and (armed or self.armed is not None):
-            start = " at the log's start" if self.armed is None else ""
-            self.rows.append((t, "armed" if armed else "disarmed", f"HEARTBEAT base_mode {m.base_mode}{start}"))
-        self.armed = armed
-        mode = mavutil.mode_string_v10(m)
-        if mode != self.mode:
-            self.rows.append((t, "mode", f"HEARTBEAT mode {mode}"))
-            self.mode = mode
-
-    def landed_state(self, t: float, state: int) -> None:
-        if state == 0:
-            return
-        airborne = state != _ON_GROUND
-        if airborne != self.airborne and (airborne or self.airborne is not None):
-            start = " at the log's start" if self.airborne is None else ""
-            self.rows.append((t, "takeoff" if airborne else "landed",
-                              f"EXTENDED_SYS_STATE landed_state {state}{start}"))
-        self.airborne = airborne
-
-    def text(self, t: float, text: str) -> None:
-        event = next((e for pattern, e in TEXT_EVENTS if pattern.search(text)), None)
-        if event is not None:
-            self.rows.append((t, event, f"STATUSTEXT {text!r}"))
+                    events=[(t - t0, e, d) for t, e, d in rows])
 
 
 def _streams(samples: dict[str, list], t0: float, notes: list[str]) -> dict:
