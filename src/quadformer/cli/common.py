@@ -224,7 +224,7 @@ def replay_config(sensors: Optional[str], imu_rate: Optional[float], gps_rate: O
     """The replay's filter tuning: EKF2's defaults, the simulation a model was fit on, or a
     simulated dataset's; explicit rates override it."""
     from quadformer.dataset import DatasetError, load_dataset
-    from quadformer.estimator.online import FilterConfig
+    from quadformer.estimator.filter_config import FilterConfig
 
     over = {k: v for k, v in (("sensors", sensors), ("imu_rate_hz", imu_rate), ("gps_rate_hz", gps_rate),
                               ("min_segment_s", min_segment), ("gps_delay_s", gps_delay),

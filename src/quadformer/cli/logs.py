@@ -36,6 +36,8 @@ def detect(
     quiet: bool = typer.Option(False, help="No progress bar."),
 ) -> None:
     """Detect GPS spoofing in flight logs: per-step scores, alerts (printed and CSV) and a report per log."""
+    import sys
+
     from quadformer.detectors.alarms import alert_counts
     from quadformer.io import set_threads
     from quadformer.report.detection_outputs import detect_logs
@@ -45,7 +47,8 @@ def detect(
     check_typing(typing)
     config = replay_config(sensors, imu_rate, gps_rate, min_segment, filter, det, gps_delay, receiver_accuracy)
     paths = log_paths(logs, format)
-    set_threads(1)
+    if residues == "ekf" or "torch" in sys.modules:   # the replayed filter, a network detector: torch runs
+        set_threads(1)
     bar = None
     if not quiet and len(paths) > 1:
         from tqdm.auto import tqdm

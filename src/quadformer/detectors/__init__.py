@@ -1,10 +1,11 @@
 """Attack detectors under one contract, registered by name: classical statistics, learned
 window classifiers and QUADFormer; their online streams and alert events, labelled by flight
 phase and receiver health; the network detectors exported as ONNX graphs and scored with
-onnxruntime."""
+onnxruntime.
 
-from quadformer.detectors import classical, pca, svm  # noqa: F401  (registration)
-from quadformer.detectors import neural  # noqa: F401  (registration)
+A detector's module is imported when the detector is first asked for by name (``get``,
+``make``, ``load``; ``registry.BUILTIN``), so the classical ones score without loading torch."""
+
 from quadformer.detectors.alarms import Alert, alert_counts, alerts_frame, alerts_from_scores, runs, write_alerts
 from quadformer.detectors.attack_types import ShapeTyper
 from quadformer.detectors.base import Detector, NotFittedError, flight_slices

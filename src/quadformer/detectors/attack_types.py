@@ -66,7 +66,7 @@ import numpy as np
 import pandas as pd
 
 from quadformer.detectors.base import flight_slices
-from quadformer.estimator.reference import ReferenceConfig
+from quadformer.estimator.reference_config import ReferenceConfig
 from quadformer.estimator.schema import ATTACK_TYPES, columns
 
 #: the columns the typer reads

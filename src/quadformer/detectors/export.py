@@ -28,7 +28,6 @@ opens a saved model with PyTorch or onnxruntime.
 
 from __future__ import annotations
 
-import copy
 import hashlib
 import json
 import warnings
@@ -37,15 +36,10 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import torch
-from torch import nn
 
 from quadformer.detectors.base import Detector, check_residues
-from quadformer.detectors.neural.detector import WindowClassifier
-from quadformer.detectors.neural.quadformer import FLOOR, KofNStream, QUADFormer, kth_of_last_n, last_step_parts
-from quadformer.detectors.neural.quadformer import onset_times as _onset_times
 from quadformer.detectors.registry import load
-from quadformer.detectors.windows import Normalizer, RawInputs, Windows, WindowStream
+from quadformer.detectors.windows import RawInputs, Windows, WindowStream
 from quadformer.io import PACKAGES, atomic_path, package_versions, write_json
 
 FORMAT = "quadformer-onnx"
@@ -59,91 +53,22 @@ RUNTIMES = ("torch", "onnx")
 BATCH = 64
 
 
-# -- the graph ------------------------------------------------------------------------------
-class _Asinh(torch.autograd.Function):
-    """asinh, exported as ``sign(x) * log(a + sqrt(a^2 + 1))`` with ``a = min(|x|, 1e18)``
-    (so that a^2 cannot overflow: inputs beyond 1e18 read as 1e18, asinh 42.1).
-    onnxruntime's ``Asinh`` kernel is scalar: on a 320-step window of 65 features it took
-    about 0.6 ms, half of a QUADFormer step; Log, Sqrt and the rest are vectorised. Within
-    2e-7 absolute of float32 ``asinh`` (the formula loses relative, not absolute, precision
-    near zero)."""
-
-    @staticmethod
-    def forward(ctx, x):
-        return torch.asinh(x)
-
-    @staticmethod
-    def symbolic(g, x):
-        def const(v):
-            return g.op("Constant", value_t=torch.tensor(v, dtype=torch.float32))
-
-        a = g.op("Min", g.op("Abs", x), const(1e18))
-        y = g.op("Log", g.op("Add", a, g.op("Sqrt", g.op("Add", g.op("Mul", a, a), const(1.0)))))
-        return g.op("Mul", g.op("Sign", x), y)
-
-
-class _Normalise(nn.Module):
-    """``Normalizer.transform`` in float32: raw residues -> the network's inputs."""
-
-    def __init__(self, normalizer: Normalizer):
-        super().__init__()
-        self.register_buffer("centre", torch.from_numpy(_centre(normalizer)))
-        self.register_buffer("scale", torch.from_numpy(np.asarray(normalizer.std_, dtype=np.float32)))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return _Asinh.apply((x - self.centre) / self.scale)
-
-
-class _LogitGraph(nn.Module):
-    """CNN / LSTM: raw windows -> the window's logit (float64)."""
-
-    def __init__(self, det: WindowClassifier):
-        super().__init__()
-        self.norm = _Normalise(det.normalizer_)
-        self.net = copy.deepcopy(det.model_).cpu().eval()
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.net(self.norm(x)).double()
-
-
-class _QUADFormerGraph(nn.Module):
-    """QUADFormer: raw windows -> (raw score of the last step (float64), attack class index).
-    The score is ``QUADFormer._raw`` on ``last_step_parts`` (float32 network, float64 tail)."""
-
-    def __init__(self, det: QUADFormer):
-        super().__init__()
-        self.norm = _Normalise(det.normalizer_)
-        self.net = copy.deepcopy(det.model_).cpu().eval()
-        self.disc = det._disc
-        self.supervised = det.supervised
-        self.w = float(det.w_anomaly) if det.supervised else 1.0
-        self.ref = float(det.anomaly_ref_)
-        self.dis_scale = float(det.dis_scale_)
-
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        parts = last_step_parts(self.net, self.norm(x), self.disc)
-        log_a = torch.log(torch.clamp_min(parts["err"].double(), 1e-12))     # QUADFormer._anomaly
-        if self.disc:
-            log_a = log_a - parts["dis"].double() / self.dis_scale
-        s = self.w * (log_a - self.ref)
-        if self.supervised:
-            p = torch.clamp(parts["p_attack"].double(), 1e-6, 1 - 1e-6)
-            s = s + torch.log(p) - torch.log1p(-p)
-        return s, parts["type"]
-
-
-def _centre(normalizer: Normalizer) -> np.ndarray:
-    return np.asarray(normalizer.mean_, dtype=np.float32)
-
-
+# -- the graph (torch, loaded by export_onnx: detectors.neural.graph) ------------------------
 def exportable(detector: Detector) -> bool:
     """Whether ``export_onnx`` takes this detector (the network detectors)."""
+    from quadformer.detectors.neural import QUADFormer, WindowClassifier
+
     return isinstance(detector, (WindowClassifier, QUADFormer))
 
 
 def export_onnx(detector: Detector, path: str | Path, *, opset: int = OPSET) -> Path:
     """Write a fitted network detector as ``path`` (an ONNX graph, name ending in ``.onnx``)
     and its metadata as ``path`` + ``.json``; returns ``path``. See the module docstring."""
+    import torch
+
+    from quadformer.detectors.neural.graph import LogitGraph, QUADFormerGraph, centre
+    from quadformer.detectors.neural.quadformer import QUADFormer
+
     if not exportable(detector):
         raise ValueError(f"{detector.name}: only the network detectors (cnn, lstm, quadformer and its variants) "
                          "export to ONNX; the classical statistics and the SVM are plain numbers in their "
@@ -153,8 +78,8 @@ def export_onnx(detector: Detector, path: str | Path, *, opset: int = OPSET) -> 
     if path.suffix != ".onnx":
         raise ValueError(f"{path}: an exported graph's name ends in .onnx")
     quad = isinstance(detector, QUADFormer)
-    graph = (_QUADFormerGraph if quad else _LogitGraph)(detector).eval()
-    example = torch.from_numpy(np.tile(_centre(detector.normalizer_), (2, detector.window, 1)))
+    graph = (QUADFormerGraph if quad else LogitGraph)(detector).eval()
+    example = torch.from_numpy(np.tile(centre(detector.normalizer_), (2, detector.window, 1)))
     outputs = ["score", "attack_class"] if quad else ["score"]
     with atomic_path(path) as tmp, warnings.catch_warnings():
         # The TorchScript-based exporter is the one that needs no extra package (the
@@ -180,8 +105,11 @@ def export_onnx(detector: Detector, path: str | Path, *, opset: int = OPSET) -> 
 
 def _metadata(detector: Detector, graph_sha256: str, opset: int = OPSET) -> dict[str, Any]:
     """The JSON document beside an exported graph."""
+    from quadformer.detectors.neural.graph import centre as graph_centre
+    from quadformer.detectors.neural.quadformer import FLOOR, QUADFormer
+
     quad = isinstance(detector, QUADFormer)
-    centre = _centre(detector.normalizer_)
+    centre = graph_centre(detector.normalizer_)
     threshold = getattr(detector, "threshold_", None)
     budget = getattr(detector, "budget_threshold_", None)
     rule = {"threshold": threshold, "budget_threshold": budget, "k": None, "n": None,
@@ -344,6 +272,8 @@ class OnnxDetector(Detector):
         self.__dict__.pop("_cache", None)
 
     def decision_function(self, X: pd.DataFrame) -> np.ndarray:
+        from quadformer.detectors.neural.quadformer import kth_of_last_n
+
         raw, _ = self.raw_scores(X)
         return raw.copy() if self.k is None else kth_of_last_n(raw, X, self.k, self.n)
 
@@ -367,12 +297,16 @@ class OnnxDetector(Detector):
         return self._onset_times
 
     def _onset_times(self, X: pd.DataFrame, alarms: np.ndarray) -> list[tuple[Any, float, float]]:
+        from quadformer.detectors.neural.quadformer import onset_times
+
         raw, _ = self.raw_scores(X)
-        return _onset_times(X, alarms, raw, self.onset_level_)
+        return onset_times(X, alarms, raw, self.onset_level_)
 
     def stream(self, n_flights: int = 1) -> WindowStream:
         if self.k is None:
             return WindowStream(self, n_flights, self.inputs_)
+        from quadformer.detectors.neural.quadformer import KofNStream
+
         return KofNStream(self, n_flights, self.inputs_)
 
 

@@ -4,25 +4,44 @@
 
     @register("mine")
     class Mine(Detector): ...
+
+The built-in detectors are named in ``BUILTIN`` with their module, which is imported when one
+of its detectors is first asked for (``get``, ``make``, ``load``): ``available()`` and
+``defaults()`` list them without importing anything, and a classical detector never loads
+torch.
 """
 
 from __future__ import annotations
 
+import importlib
 import json
 from pathlib import Path
 from typing import Callable
 
 from quadformer.detectors.base import Detector
 
+_CLASSICAL = "quadformer.detectors.classical"
+_QUADFORMER = "quadformer.detectors.neural.quadformer"
+#: the built-in detectors, in the order of ``available()``: name -> (module that registers it,
+#: whether a benchmark runs it by default)
+BUILTIN: dict[str, tuple[str, bool]] = {
+    "chi2": (_CLASSICAL, True), "cusum": (_CLASSICAL, True), "sprt": (_CLASSICAL, True), "bht": (_CLASSICAL, True),
+    "chi2-vref": (_CLASSICAL, True), "cusum-vref": (_CLASSICAL, True), "cusum-ref": (_CLASSICAL, True),
+    "pca": ("quadformer.detectors.pca", True), "svm": ("quadformer.detectors.svm", True),
+    "cnn": ("quadformer.detectors.neural.detector", True), "lstm": ("quadformer.detectors.neural.detector", True),
+    "quadformer": (_QUADFORMER, True), "quadformer-noprior": (_QUADFORMER, False),
+    "quadformer-nosup": (_QUADFORMER, False), "quadformer-nodisc": (_QUADFORMER, False),
+}
 _REGISTRY: dict[str, type[Detector]] = {}
-_EXTRA: set[str] = set()
+_EXTRA: set[str] = {name for name, (_, default) in BUILTIN.items() if not default}
 
 
 def register(name: str, default: bool = True) -> Callable[[type[Detector]], type[Detector]]:
     """Register a detector; ``default=False`` (ablations) keeps it out of the default
     method list, though ``--methods NAME`` or ``--methods all`` still run it."""
     def deco(cls: type[Detector]) -> type[Detector]:
-        if name in _REGISTRY and _REGISTRY[name] is not cls:
+        taken = name in BUILTIN and cls.__module__ != BUILTIN[name][0]    # a built-in, loaded or not
+        if taken or (name in _REGISTRY and _REGISTRY[name] is not cls):
             raise ValueError(f"a detector named {name!r} is already registered")
         cls.name = name
         _REGISTRY[name] = cls
@@ -33,20 +52,23 @@ def register(name: str, default: bool = True) -> Callable[[type[Detector]], type
 
 
 def available() -> list[str]:
-    """Every registered detector."""
-    return list(_REGISTRY)
+    """Every registered detector: the built-in ones, then those registered since."""
+    return [*BUILTIN, *(n for n in _REGISTRY if n not in BUILTIN)]
 
 
 def defaults() -> list[str]:
     """The detectors a benchmark runs when no method is named."""
-    return [n for n in _REGISTRY if n not in _EXTRA]
+    return [n for n in available() if n not in _EXTRA]
 
 
 def get(name: str) -> type[Detector]:
+    """The detector class registered as ``name``, importing its module on first use."""
+    if name not in _REGISTRY and name in BUILTIN:
+        importlib.import_module(BUILTIN[name][0])
     try:
         return _REGISTRY[name]
     except KeyError:
-        raise KeyError(f"unknown detector {name!r}; available: {', '.join(_REGISTRY)}") from None
+        raise KeyError(f"unknown detector {name!r}; available: {', '.join(available())}") from None
 
 
 def make(name: str, **params) -> Detector:

@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from quadformer.config import SENSOR_NAMES
-from quadformer.estimator.eskf import NoiseModel
+
+if TYPE_CHECKING:
+    from quadformer.estimator.eskf import NoiseModel
 
 
 MAX_GPS_DELAY = 0.5                  # s, the largest receiver latency the stream compensates
@@ -112,6 +113,10 @@ class FilterConfig:
 def noise_model_for(config: FilterConfig, dt: float, mag_field: np.ndarray | None = None) -> NoiseModel:
     """The filter's noise for IMU steps of dt seconds: the configured per-step noise at
     ``imu_rate_hz``, scaled to the same density at dt."""
+    import torch
+
+    from quadformer.estimator.eskf import NoiseModel
+
     f64 = lambda v: torch.tensor(v, dtype=torch.float64)   # noqa: E731
     c = config
     density = math.sqrt(1.0 / (c.imu_rate_hz * dt))      # per-step std ~ 1/sqrt(dt)

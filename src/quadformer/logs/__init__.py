@@ -14,28 +14,46 @@ directories):
 * ROS 2 bag: a directory holding ``metadata.yaml``, ``.db3`` or ``.mcap`` files, or a single
   ``.db3`` (SQLite) / ``.mcap`` file.
 
-This package depends only on numpy, pandas, pymap3d, pyulog, pymavlink and rosbags.
+This package depends only on numpy, pandas, pymap3d, pyulog, pymavlink and rosbags. A reader's
+module is imported when a log of its format is first read (or its name first used), so reading
+a ULog does not load pymavlink.
 """
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
+from typing import Any
 
-from quadformer.logs.ardupilot import read_dataflash
 from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, STREAMS, FlightLog, LogError
-from quadformer.logs.px4 import read_ulog
-from quadformer.logs.ros import RosTopics, read_rosbag
-from quadformer.logs.tlog import looks_like_tlog, read_tlog
 
 __all__ = ["FORMATS", "GPS_GAP", "IMU_GAP", "STREAMS", "FlightLog", "LogError", "RosTopics",
            "detect_format", "find_logs", "read_dataflash", "read_log", "read_rosbag", "read_tlog", "read_ulog"]
 
 FORMATS = ("px4", "ardupilot", "tlog", "ros")
+#: the readers' names, loaded on first use: name -> module
+_READERS = {"read_ulog": "px4", "read_dataflash": "ardupilot", "read_tlog": "tlog", "looks_like_tlog": "tlog",
+            "read_rosbag": "ros", "RosTopics": "ros"}
 _ULOG_MAGIC = b"ULog\x01\x12\x35"
 _DATAFLASH = b"\xa3\x95"
 _ROSBAG1 = b"#ROSBAG V2.0"
 _SQLITE = b"SQLite format 3\x00"
 _MCAP = b"\x89MCAP"
+
+
+def _reader(name: str) -> Any:
+    """A reader's name from its module (imported on first use)."""
+    return getattr(importlib.import_module(f"quadformer.logs.{_READERS[name]}"), name)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _READERS:
+        return _reader(name)
+    raise AttributeError(f"module 'quadformer.logs' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
 
 
 def _describe(head: bytes) -> str:
@@ -60,6 +78,8 @@ def detect_format(path: str | Path) -> str | None:
         return "px4"
     if head.startswith(_DATAFLASH):
         return "ardupilot"
+    from quadformer.logs.tlog import looks_like_tlog
+
     if looks_like_tlog(head):
         return "tlog"
     if head.startswith(_ROSBAG1) or head.startswith(_SQLITE) or head.startswith(_MCAP):
@@ -113,5 +133,5 @@ def read_log(path: str | Path, format: str | None = None, **options) -> FlightLo
         raise LogError(f"{path}: format={format!r} was asked but the content is a {found!r} log; "
                        f"use format={found!r} or leave format=None")
     fmt = format or found
-    reader = {"px4": read_ulog, "ardupilot": read_dataflash, "tlog": read_tlog, "ros": read_rosbag}[fmt]
-    return reader(path, **options)
+    reader = {"px4": "read_ulog", "ardupilot": "read_dataflash", "tlog": "read_tlog", "ros": "read_rosbag"}[fmt]
+    return _reader(reader)(path, **options)

@@ -19,7 +19,7 @@ import pandas as pd
 
 from quadformer.logs import read_log
 from quadformer.logs.flightlog import FlightLog, LogError
-from quadformer.estimator.online import FilterConfig
+from quadformer.estimator.filter_config import FilterConfig
 from quadformer.logs.replay import (RESIDUE_SOURCES, LogFlight, autopilot_rows, ekf_flights, ekf_rows, imu_too_slow,
                                     missing_features, no_innovations)
 

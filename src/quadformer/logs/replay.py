@@ -33,8 +33,6 @@ import pandas as pd
 
 from quadformer.config import SENSOR_NAMES
 from quadformer.estimator.filter_config import MAX_GPS_DELAY, MIN_REPLAY_IMU_HZ, FilterConfig
-from quadformer.estimator.online import CALL_ORDER, ResidueStream, spaced
-from quadformer.estimator.online_filter import GapError
 from quadformer.estimator.schema import GROUPS, RESIDUES, as_columns
 from quadformer.logs.flightlog import FlightLog, LogError
 
@@ -78,6 +76,8 @@ def missing_features(features: list[str], columns) -> list[str]:
 # --------------------------------------------------------------------------- helpers
 def _decimate(t: np.ndarray, rate_hz: float) -> np.ndarray:
     """Indices of the fixes ``ResidueStream`` fuses (the first one kept, then those spaced)."""
+    from quadformer.estimator.online import spaced
+
     keep, last = [], -np.inf
     for i, ti in enumerate(t):
         if spaced(ti - last, rate_hz):
@@ -219,6 +219,9 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
     """``ekf_rows`` for several injections into the same segment (None: none), replayed
     together as one batch of flights sharing the log's timestamps: the segment's samples go,
     in time order, through the same ``ResidueStream`` a live link feeds."""
+    from quadformer.estimator.online import CALL_ORDER, ResidueStream
+    from quadformer.estimator.online_filter import GapError
+
     part = log.segment(seg) if len(log.segments) > 1 else log
     sensors = _sensors_of(part, config)
     delay_notes = []

@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from quadformer.detectors import alert_counts, alerts_frame
-from quadformer.estimator.online import FilterConfig
+from quadformer.estimator.filter_config import FilterConfig
 from quadformer.io import atomic_dir, atomic_path, write_json
 from quadformer.logs import LogError
 from quadformer.logs.detect import DetectorInputError, LogDetection, NothingToScore, detect_log

@@ -30,17 +30,18 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
-import torch
 
 from quadformer.detectors.alarms import AlertEvent, AlertTracker
 from quadformer.detectors.attack_types import OnlineTyper
 from quadformer.detectors.flight_phase import FlightPhase
 from quadformer.detectors.receiver_health import SPOOFED, ReceiverHealth
 from quadformer.estimator.schema import GROUPS, NIS, as_columns
-from quadformer.resilience.admission import Decision
+
+if TYPE_CHECKING:
+    from quadformer.resilience.admission import Decision
 
 GPS_R, GPS_S = GROUPS["res_gps_r"].columns, GROUPS["res_gps_s"].columns   # the admission's inputs
 MAX_PENDING = 100          # alerts awaiting their confirmed type (one per alarm start within confirm_s)
@@ -112,6 +113,8 @@ class OnlineStep:
             score, alarm, types, above = self._zeros, self._quiet, None, None
         dec = before = after = None
         if self.admission is not None:
+            import torch    # loaded with the admission's module
+
             before = self.admission.state.numpy().copy()
             nis = torch.as_tensor(np.asarray(cols[NIS]))
             r = torch.as_tensor(np.stack([np.asarray(cols[c]) for c in GPS_R], axis=-1))
