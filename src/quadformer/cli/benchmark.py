@@ -10,14 +10,15 @@ import typer
 
 from quadformer.cli.common import (ADDRESS_HELP, BACKEND_HELP, CONFIGS_HELP, DEVICE_HELP, MODEL_HELP, RUNTIME_HELP,
                                    STALE_HOLD_HELP, TYPING_HELP, check_backend, check_typing, fail,
-                                   load_dataset_dir, load_model_file, message, method_names, print_alerts,
+                                   load_dataset_dir, load_model_file, log_paths, message, method_names, print_alerts,
                                    seed_runs, select_profile)
-from quadformer.cli.tables import print_resilience, print_seeds, print_tables
+from quadformer.cli.tables import print_field, print_resilience, print_seeds, print_tables
 
 
 def benchmark(
-    profile: str = typer.Option("demo", help="demo (20 flights/config), quick (60), paper (600), or mixed (60 "
-                                "flights/config of mixed attacks, Model I/II x exponential/Laplace noise)."),
+    profile: str = typer.Option("demo", help="demo (20 flights/config), quick (60), paper (600), mixed (60 "
+                                "flights/config of mixed attacks, Model I/II x exponential/Laplace noise), or field "
+                                "(detectors trained in simulation, judged on the real flight logs of --logs)."),
     methods: Optional[str] = typer.Option(None, help="Comma-separated detector names; default: every registered "
                                           "detector except ablations; 'all': every one."),
     data: list[Path] = typer.Option([], "--data", help="Benchmark on these dataset directories instead of a "
@@ -38,10 +39,20 @@ def benchmark(
     backend: str = typer.Option("local", help=BACKEND_HELP),
     address: Optional[str] = typer.Option(None, help=ADDRESS_HELP),
     device: str = typer.Option("auto", help=DEVICE_HELP),
+    logs: list[Path] = typer.Option([], "--logs", help="Field profile: real flight logs or directories of them "
+                                    "(repeatable)."),
+    manifest: Optional[Path] = typer.Option(None, help="Field profile: a CSV naming the clean logs and the "
+                                            "others' GPS-trouble times (docs/field.md); without it every log "
+                                            "counts as clean."),
+    flights: int = typer.Option(60, help="Field profile: simulated training flights."),
+    injections: int = typer.Option(6, help="Field profile: spoofs of each kind injected into each clean log "
+                                   "segment in air."),
     quiet: bool = typer.Option(False, help="No progress bars."),
 ) -> None:
     """Simulate (or reuse) the profile's configurations, tune and evaluate methods, write tables and a
-    report. With --data, the same protocol on given datasets."""
+    report. With --data, the same protocol on given datasets; with --profile field, on real logs."""
+    if profile == "field" or logs or manifest is not None:
+        return _field(profile, logs, manifest, methods, data, configs, out, seed, flights, injections)
     from quadformer.dataset import DatasetError
     from quadformer.experiments.detection import run_benchmark, run_datasets, run_seeds
     from quadformer.experiments.pool import BackendError, UnitError
@@ -80,6 +91,34 @@ def benchmark(
         print_tables(results)
         typer.echo(f"\nbenchmark took {results['timing_s']['total']:.0f} s "
                    f"(simulation {results['timing_s']['simulate']:.0f} s)")
+    typer.echo(f"results: {(out / 'results.json').resolve()}")
+    typer.echo(f"report:  {(out / 'report.html').resolve()}")
+
+
+def _field(profile, logs, manifest, methods, data, configs, out, seed, flights, injections) -> None:
+    from quadformer.experiments.field import FieldPlan, run_field
+    from quadformer.io import set_threads
+    from quadformer.logs import LogError
+    from quadformer.logs.manifest import ManifestError
+
+    if profile != "field":
+        fail("--logs and --manifest belong to --profile field")
+    if not logs:
+        fail("--profile field needs --logs LOG|DIR (repeatable): the real flights to judge the detectors on")
+    if data or configs is not None:
+        fail("--profile field takes --logs, not --data or --configs")
+    if flights < 2 or injections < 0:
+        fail(f"--flights must be >= 2 and --injections >= 0, got {flights} and {injections}")
+    if manifest is not None and not manifest.is_file():
+        fail(f"manifest: {manifest} is not a file")
+    paths = log_paths(logs, None)
+    set_threads()
+    try:
+        results = run_field(paths, out, FieldPlan(tuple(method_names(methods)), flights=flights, seed=seed,
+                                                  injections=injections), manifest, echo=typer.echo)
+    except (LogError, ManifestError, ValueError) as e:
+        fail(str(e))
+    print_field(results)
     typer.echo(f"results: {(out / 'results.json').resolve()}")
     typer.echo(f"report:  {(out / 'report.html').resolve()}")
 

@@ -69,3 +69,30 @@ def print_resilience(results: dict) -> None:
     n = sum(c.get("alerts", 0) for c in results["configs"])
     typer.echo(f"{n} alert(s) raised on the resilient flights (start, estimated onset, type, peak score, end, "
                "type confirmed 5 s later) in alerts.csv")
+
+
+def print_field(results: dict) -> None:
+    """The field benchmark's tables: false alarms on clean flights, injected spoofs, GPS trouble."""
+    import pandas as pd
+
+    fmt = {"float_format": lambda v: f"{v:.2f}", "index": False}
+    fa = pd.DataFrame(results["false_alarms"])
+    typer.echo(f"\n{len(results['read'])} logs read, {len(results['refused'])} refused")
+    for r in results["refused"]:
+        typer.echo(f"  refused {r['log']}: {r['reason']}")
+    if len(fa):
+        typer.echo("\nClean flights: spoofing alerts in air per in-air hour (95% Poisson interval); ground, "
+                   "transition and degraded alerts apart")
+        typer.echo(fa.to_string(**fmt))
+    inj = pd.DataFrame(results["injection"])
+    if len(inj):
+        typer.echo("\nSpoofs injected in air (recall_big: offsets >= 2 m, drifts >= 0.2 m/s)")
+        typer.echo(inj.to_string(**fmt))
+    tr = pd.DataFrame(results.get("troubles", []))
+    if len(tr):
+        typer.echo("\nLogs with GPS trouble: alerts inside the manifest's windows by kind, spoofing alerts outside")
+        typer.echo(tr.to_string(**fmt))
+    rec = results.get("receiver", [])
+    if rec:
+        covered = sum(r["covered"] for r in rec)
+        typer.echo(f"\nReceiver signs of trouble with a degraded alert within 2 s: {covered} of {len(rec)}")

@@ -1,0 +1,127 @@
+"""The field benchmark: the fleet manifest, and a run on logs the project writes itself."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pandas as pd
+import pytest
+
+from quadformer.logs.manifest import INSTANT_WINDOW, ManifestError, read_manifest, trouble_windows
+
+from logs_support import FIX
+
+
+def test_trouble_text_gives_windows_and_first_signs():
+    text = ("in-air GPS fix<3 (t_rel s): 69.7-74.7; 95.1-107.6 ... | ERR GPS-glitch(11/2) at 69.7,120.0 "
+            "| ERR EKF-check(16/2) at 151.6")
+    windows, signs = trouble_windows(text)
+    lo, hi = INSTANT_WINDOW
+    # the fix losses as given, the glitch at 69.7 inside the first, the one at 120 its own window; the EKF
+    # check names no GPS trouble and is left out
+    assert windows == [(69.7 + lo, 69.7 + hi), (95.1, 107.6), (120.0 + lo, 120.0 + hi)]
+    assert signs == [69.7, 95.1, 120.0]
+    assert trouble_windows("") == ([], [])
+    assert trouble_windows("STATUSTEXT \"GPS Glitch\" at t_rel 244.3-273.4, 278.4-318.7 s while DISARMED")[1] == \
+        [244.3, 278.4]
+
+
+def test_manifest_columns_and_errors(tmp_path):
+    good = tmp_path / "m.csv"
+    good.write_text("file,clean,gps_trouble,vehicle\na.bin,yes,,quad\nb.bin,no (GPS degraded),fix lost 10-12,quad\n")
+    m = read_manifest(good)
+    assert m["a.bin"].clean and not m["b.bin"].clean
+    assert m["b.bin"].trouble == [(10.0, 12.0)] and m["b.bin"].signs == [10.0]
+    assert m["a.bin"].extra == {"vehicle": "quad"}
+    bad = tmp_path / "bad.csv"
+    bad.write_text("name,clean\na.bin,yes\n")
+    with pytest.raises(ManifestError, match="needs the columns file and clean"):
+        read_manifest(bad)
+    twice = tmp_path / "twice.csv"
+    twice.write_text("file,clean\na.bin,yes\na.bin,no\n")
+    with pytest.raises(ManifestError, match="row 3: a.bin is listed twice"):
+        read_manifest(twice)
+    with pytest.raises(ManifestError, match="cannot read"):
+        read_manifest(tmp_path / "missing.csv")
+
+
+# -- the benchmark end to end, on logs the project writes ---------------------------------
+
+SPAN = 25.0    # s of each log the benchmark reads (the filter's replay is the cost)
+
+
+@pytest.fixture(scope="module")
+def field_run(tmp_path_factory):
+    """Three 25-s ArduCopter logs cut from the simulated fixture log and written again: two clean
+    (its first and its last 25 s) and a copy of the first whose receiver loses its fix for 2 s
+    (fix type 1 from 12 s after its first GPS sample), with a manifest saying so; two classical
+    methods trained on 4 short simulated flights."""
+    from quadformer.experiments.field import FieldPlan, run_field
+    from quadformer.logs import read_log
+    from quadformer.logs.dataflash_writer import write_dataflash
+    from quadformer.logs.writing import LogHeader
+
+    d = tmp_path_factory.mktemp("field")
+    full = read_log(FIX / "sim_copter.bin")
+
+    def cut(a: float):
+        return dataclasses.replace(full, segments=[(a, a + SPAN)], events=None).segment(0)
+
+    first, last = cut(0.0), cut(full.duration - SPAN)
+    gps = first.gps.copy()
+    rel = gps["t"] - gps["t"].iloc[0]
+    gps.loc[(rel >= 12.0) & (rel < 14.0), "fix_type"] = 1.0
+    paths = [write_dataflash(first, d / "first.bin", LogHeader(airborne=True)),
+             write_dataflash(last, d / "last.bin", LogHeader(airborne=True)),
+             write_dataflash(dataclasses.replace(first, gps=gps), d / "lost.bin", LogHeader(airborne=True))]
+    man = d / "manifest.csv"
+    man.write_text("file,clean,gps_trouble\nfirst.bin,yes,\nlast.bin,yes,\n"
+                   "lost.bin,no,in-air GPS fix<3 (t_rel s): 12.0-14.0\n")
+    plan = FieldPlan(("chi2", "cusum"), flights=4, duration=12.0, injections=1)
+    out = d / "run"
+    return run_field(paths, out, plan, man, echo=lambda s: None), out
+
+
+def test_field_benchmark_counts_false_alarms_degradation_and_injected_spoofs(field_run):
+    res, out = field_run
+    assert [r["clean"] for r in res["read"]] == [True, True, False] and res["refused"] == []
+    # every flight is airborne from its first sample (take-off event at 0): in air after the 5 s settle,
+    # counted from the replayed filter's first row (it starts once it has the IMU, a fix and a heading)
+    for r in res["read"]:
+        assert r["phase_source"] == "events"
+        assert (SPAN - 5.0 - 4.0) / 3600 <= r["air_hours"] <= (SPAN - 5.0 + 0.2) / 3600     # +- one GPS step
+    fa = {(r["method"], r["threshold"]): r for r in res["false_alarms"]}
+    assert set(fa) == {(m, t) for m in ("chi2", "cusum") for t in ("sim", "calibrated")}
+    clean_hours = sum(r["air_hours"] for r in res["read"] if r["clean"])
+    for r in fa.values():
+        assert r["logs"] == 2 and r["air_hours"] == pytest.approx(clean_hours)
+        assert r["ci_low"] <= r["per_air_hour"] <= r["ci_high"]
+    # the fix loss: a degraded alert at its first report without a fix, inside the manifest's window
+    (sign,) = res["receiver"]
+    assert sign["covered"] and sign["delay_s"] <= 0.2 and sign["sign_s"] == pytest.approx(12.0)
+    for r in res["troubles"]:
+        assert r["windows"] == 1 and r["in_window_degraded"] >= 1
+    # one bias and one ramp injected into each clean log, scored by each method at both thresholds
+    inj = pd.read_csv(out / "injections.csv")
+    assert len(inj) == 2 * 2 * 2 * 2 and set(inj["kind"]) == {"bias", "ramp"}
+    assert ((inj.loc[inj.kind == "bias", "size"] >= 1.0) & (inj.loc[inj.kind == "bias", "size"] <= 10.0)).all()
+    assert ((inj.loc[inj.kind == "ramp", "size"] >= 0.05) & (inj.loc[inj.kind == "ramp", "size"] <= 2.0)).all()
+    hit = inj[inj.detected]
+    assert (hit["delay_s"] >= 0).all()
+    page = (out / "report.html").read_text()
+    assert "False alarms on clean flights" in page and page.count("<img") >= 3
+
+
+def test_field_cli_refuses_what_it_cannot_run(tmp_path):
+    from typer.testing import CliRunner
+
+    from quadformer.cli import app
+
+    run = CliRunner().invoke
+    res = run(app, ["benchmark", "--profile", "field", "--out", str(tmp_path / "o")])
+    assert res.exit_code != 0 and "needs --logs" in res.output
+    res = run(app, ["benchmark", "--profile", "quick", "--logs", str(FIX / "sim_copter.bin")])
+    assert res.exit_code != 0 and "belong to --profile field" in res.output
+    res = run(app, ["benchmark", "--profile", "field", "--logs", str(FIX / "sim_copter.bin"), "--manifest",
+                    str(tmp_path / "none.csv")])
+    assert res.exit_code != 0 and "is not a file" in res.output
