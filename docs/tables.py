@@ -32,6 +32,10 @@ Kinds (``kind``), and what they read:
 - ``typing``: per method, the share of detected attacks typed right (own classifier at the
   first alarm; shape typer at the first alarm and confirmed later), pooled over configurations.
 - ``resilience``: a ``resilience`` run: one row per policy over every configuration's flights.
+- ``field``: a ``benchmark --profile field`` run: per method and threshold (the simulation's,
+  calibrated on the other clean logs), spoofing alerts in the air per in-air hour on the clean
+  flights with the exposure and the Poisson interval, the alerts counted apart, and the injected
+  spoofs' event recall, recall on the targets' sizes and median delay.
 
 Options common to every kind: ``methods`` (a subset of methods, in this order; default every
 method of the run), ``digits`` (default 2). Only the standard library is needed, except for
@@ -263,8 +267,35 @@ def table_resilience(res: dict[str, Any], spec: dict[str, Any], name: str) -> st
     return markdown(head, rows)
 
 
+def table_field(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
+    if "false_alarms" not in res or "injection" not in res:
+        raise TableError(f"table {name!r}: not a field run's results.json (no false_alarms / injection)")
+    fa = {(r["method"], r["threshold"]): r for r in res["false_alarms"]}
+    inj = {(r["method"], r["threshold"], r["kind"]): r for r in res["injection"]}
+    methods = pick_methods(list(dict.fromkeys(r["method"] for r in res["false_alarms"])), spec.get("methods"), name)
+    digits = spec.get("digits", 2)
+    rows = []
+    for m in methods:
+        for thr in ("sim", "calibrated"):
+            f = fa.get((m, thr))
+            if f is None:
+                continue
+            cells = [m, thr, f"{f['spoofing_air']} in {f['air_hours']:.3f} h: {fmt(f['per_air_hour'], 0)} "
+                             f"[{fmt(f['ci_low'], 0)}, {fmt(f['ci_high'], 0)}]",
+                     f"{f['ground']} / {f['transition']} / {f['degraded']}"]
+            for kind in ("bias", "ramp"):
+                r = inj.get((m, thr, kind))
+                cells.append("-" if r is None else f"{fmt(r['event_recall'], digits)} / {fmt(r['recall_big'], digits)}"
+                             f" / {fmt(r['delay_median_s'], 1)} s")
+            rows.append(cells)
+    head = ["method", "threshold", "spoofing alerts in air on clean flights: count in in-air hours, per hour [95%]",
+            "ground / transition / degraded alerts", "injected bias: recall / recall >= 2 m / median delay",
+            "injected ramp: recall / recall >= 0.2 m/s / median delay"]
+    return markdown(head, rows)
+
+
 KINDS = {"methods": table_methods, "seeds": table_seeds, "stress": table_stress, "typing": table_typing,
-         "resilience": table_resilience}
+         "resilience": table_resilience, "field": table_field}
 
 
 # ---------------------------------------------------------------------------------------------

@@ -455,8 +455,9 @@ def example_traces(plan: FieldPlan, logs: list[FieldLog], trained: dict[str, Any
     m = "quadformer" if "quadformer" in trained else next(iter(trained))
     det = trained[m]
     out = []
-    clean = sorted((fl for fl in logs if fl.clean), key=lambda fl: -_air_hours(fl, rate))
-    bad = sorted((fl for fl in logs if not fl.clean), key=lambda fl: -len(fl.signs()))
+    scored = [(li, fl) for li, fl in enumerate(logs) if not missing_features(det.features_, fl.rows.columns)]
+    clean = sorted((fl for _, fl in scored if fl.clean), key=lambda fl: -_air_hours(fl, rate))
+    bad = sorted((fl for _, fl in scored if not fl.clean), key=lambda fl: -len(fl.signs()))
     if clean:
         fl = clean[0]
         out.append(_trace(f"{m} on a clean flight: {fl.path.name} (ground grey, take-off transition yellow; "
@@ -465,7 +466,7 @@ def example_traces(plan: FieldPlan, logs: list[FieldLog], trained: dict[str, Any
         fl = bad[0]
         out.append(_trace(f"{m} on a flight with GPS trouble: {fl.path.name} (manifest windows pink)", fl, fl.rows,
                           fl.phase, det, rate))
-    for li, fl in enumerate(logs):
+    for li, fl in scored:
         inj = _injections(plan, fl, li, "bias") if fl.clean else {}
         if inj:
             seg, (t0, batches) = next(iter(inj.items()))
