@@ -25,7 +25,7 @@ def bias_dataset():
 def consistency_run():
     """Gaussian white noise only, no attack: the filter's own assumptions hold. 32 flights of
     15 s in one batch: the simulator's cost grows with the flights' length, hardly with their
-    number, and the statistics see as many steps as 16 flights of 30 s."""
+    number, and the statistics see about as many steps as in 16 flights of 30 s."""
     cfg = SimConfig(model="I", noise="gaussian", flights=32, duration=15.0, seed=11,
                     gps=GPSConfig(gm_std=0.0))
     return simulate_batch(cfg, np.arange(32), np.zeros(32, dtype=bool), record_nees=True)
