@@ -36,9 +36,9 @@ runner = CliRunner()
 BUDGET = TrainingBudget("tiny", 0.1)
 #: two of the paper's configurations, sized by the datasets copied into the cache
 TINY = Profile("tiny", 6, grid=PAPER_GRID[:2], budget=BUDGET)
-#: a dataset simulated in a few seconds
-SMALL = SimConfig(model="I", noise="laplace", flights=2, duration=12.0, seed=5,
-                  attack=AttackConfig(kind="bias", onset=(4.0, 6.0), duration=(3.0, 5.0)))
+#: a dataset simulated in a few seconds (the simulator's time goes with the flights' length)
+SMALL = SimConfig(model="I", noise="laplace", flights=2, duration=6.0, seed=5,
+                  attack=AttackConfig(kind="bias", onset=(2.0, 3.0), duration=(1.5, 2.5)))
 #: what changes from run to run whatever the backend: timings, paths, versions
 VOLATILE = {"tune_seconds", "score_seconds", "timing_s", "versions", "dataset"}
 
@@ -175,13 +175,15 @@ def test_concurrent_writers_build_a_cache_entry_once_and_readers_never_see_it_pa
     writers = [ctx.Process(target=_writer, args=(path, barrier, wq)) for _ in range(n)]
     for w in writers:
         w.start()
-    outcomes = [wq.get(timeout=120) for _ in range(n)]
+    # the queues and processes say when each has finished; the timeouts are only a safety net
+    # for a hung process, ten times what a loaded 2-core machine needs
+    outcomes = [wq.get(timeout=600) for _ in range(n)]
     for w in writers:
-        w.join(timeout=30)
+        w.join(timeout=300)
         assert w.exitcode == 0
     stop.set()
-    seen, bad = rq.get(timeout=60)
-    reader.join(timeout=30)
+    seen, bad = rq.get(timeout=300)
+    reader.join(timeout=300)
     assert bad == []
     assert seen["complete"] >= 1 and seen["model"] >= 1
     assert sorted(w for w, _ in outcomes) == [False] * (n - 1) + [True]     # simulated once

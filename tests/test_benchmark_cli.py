@@ -47,7 +47,7 @@ def test_benchmark_writes_schema_tables_report_and_reuses_cache(dataset_dir, tmp
     before = {p: p.stat().st_mtime for p in cache.rglob("flights.parquet")}
     out = tmp_path / "bench"
     res = runner.invoke(app, ["benchmark", "--profile", "demo", "--methods", "chi2,cusum", "--cache",
-                              str(cache), "--out", str(out), "--quiet"])
+                              str(cache), "--out", str(out), "--quiet", "--workers", "1"])
     assert res.exit_code == 0, res.output
     assert "Model I" in res.output and "Model II" in res.output and "report.html" in res.output
     assert before == {p: p.stat().st_mtime for p in cache.rglob("flights.parquet")}   # reused, not simulated
@@ -78,7 +78,7 @@ def test_resilience_cli_flies_four_policies_and_reuses_tuned_detectors(short_dat
     for name, cfg in profile_configs(PROFILES["demo"]):
         shutil.copytree(short_dataset_dir, cache / f"{name}-{dataset_key(cfg)}")
     out = tmp_path / "res"
-    args = ["--profile", "demo", "--cache", str(cache), "--quiet", "--workers", "2"]
+    args = ["--profile", "demo", "--cache", str(cache), "--quiet", "--workers", "1"]     # no worker to spawn
     res = runner.invoke(app, ["benchmark", "--methods", "cusum", "--out", str(tmp_path / "bench"), *args])
     assert res.exit_code == 0, res.output
     res = runner.invoke(app, ["resilience", "--detector", "cusum", "--out", str(out), *args])
@@ -275,7 +275,7 @@ def test_benchmark_stress_scores_the_tuned_detectors_on_stress_sets(dataset_dir,
         _fill(cache, [(n, c) for n, _, c in stress_configs(name, cfg, PROFILES["demo"].stress_flights)], dataset_dir)
     out = tmp_path / "bench"
     res = runner.invoke(app, ["benchmark", "--profile", "demo", "--methods", "chi2,cusum", "--stress", "--cache",
-                              str(cache), "--out", str(out), "--quiet"])
+                              str(cache), "--out", str(out), "--quiet", "--workers", "1"])
     assert res.exit_code == 0, res.output
     assert "Stress sets" in res.output and "slow-drifts" in res.output and "Model I" in res.output
     r = json.loads((out / "results.json").read_text())
@@ -337,7 +337,7 @@ def test_benchmark_mixed_profile_reports_types(mixed_dir, tmp_path):
     _fill(cache, profile_configs(PROFILES["mixed"]), mixed_dir)
     out = tmp_path / "bench"
     res = runner.invoke(app, ["benchmark", "--profile", "mixed", "--methods", "chi2,cusum", "--cache", str(cache),
-                              "--out", str(out), "--quiet"])
+                              "--out", str(out), "--quiet", "--workers", "1"])
     assert res.exit_code == 0, res.output
     assert "exp-mixed-F1" in res.output
     r = json.loads((out / "results.json").read_text())
@@ -379,13 +379,13 @@ def test_benchmark_mixed_profile_reports_types(mixed_dir, tmp_path):
         assert 0 <= t["shape_first"]["right"] <= t["shape_first"]["attacks"]
 
 
-def test_benchmark_over_seeds_keeps_each_run_and_the_spread(dataset_dir, tmp_path):
+def test_benchmark_over_seeds_keeps_each_run_and_the_spread(short_dataset_dir, tmp_path):
     cache = tmp_path / "cache"
-    for s in (0, 1):
-        _fill(cache, profile_configs(dataclasses.replace(PROFILES["demo"], seed=s)), dataset_dir)
+    for s in (0, 1):      # the short flights: 16 entries tuned and scored
+        _fill(cache, profile_configs(dataclasses.replace(PROFILES["demo"], seed=s)), short_dataset_dir)
     out = tmp_path / "seeds"
     res = runner.invoke(app, ["benchmark", "--profile", "demo", "--methods", "chi2,cusum", "--seeds", "2",
-                              "--cache", str(cache), "--out", str(out), "--quiet"])
+                              "--cache", str(cache), "--out", str(out), "--quiet", "--workers", "1"])
     assert res.exit_code == 0, res.output
     assert "over seeds 0, 1" in res.output and "±" in res.output
     r = json.loads((out / "results.json").read_text())

@@ -13,8 +13,8 @@ from quadformer.dataset import DatasetError, load_dataset, write_dataset
 from quadformer.simulation import simulate
 from quadformer.simulation.closed_loop import simulate_batch
 
-SMALL = SimConfig(model="II", noise="exponential", flights=3, duration=6.0, seed=5,
-                  attack=AttackConfig(kind="ramp", onset=(2.0, 4.0), fraction=1.0))
+SMALL = SimConfig(model="II", noise="exponential", flights=3, duration=3.0, seed=5,
+                  attack=AttackConfig(kind="ramp", onset=(1.0, 2.0), fraction=1.0))
 
 
 def test_columns_and_labels(bias_dataset):
@@ -109,7 +109,7 @@ def test_cli_simulate_end_to_end(tmp_path):
     cfg_file = tmp_path / "c.toml"
     cfg_file.write_text('model = "II"\n[attack]\nkind = "bias"\nmagnitude = [2.0, 2.5]\n')
     out = tmp_path / "cli"
-    res = runner.invoke(app, ["simulate", "--config", str(cfg_file), "--flights", "2", "--duration", "10",
+    res = runner.invoke(app, ["simulate", "--config", str(cfg_file), "--flights", "2", "--duration", "6",
                               "--onset", "3,5", "--set", "gps.gm_std=0.2", "--out", str(out), "--quiet"])
     assert res.exit_code == 0, res.output
     ds = load_dataset(out)

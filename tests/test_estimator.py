@@ -214,7 +214,7 @@ def test_predict_jacobian_matches_finite_differences():
 
 
 def test_vehicle_tracks_mission_without_attack(consistency_run):
-    """The controller flies on the estimate: without an attack every one of the 16 flights stays
+    """The controller flies on the estimate: without an attack every one of the 32 flights stays
     within 3 m of its mission (here, beside the other test of this shared run, so that it is
     simulated once)."""
     r = consistency_run

@@ -52,9 +52,18 @@ def roundtrip(msg):
     return out[0]
 
 
-def run_monitor(detector, streams, sender=SenderConfig(), seconds=60.0, **config):
+#: wall-clock safety nets, ten times what a loaded 2-core machine needs: the sender's flow
+#: control (TIMESYNC answers) and the streams' length bound every run, not the wall clock
+SAFETY_S = 600.0
+PEER_WAIT_S = 100.0
+
+
+def run_monitor(detector, streams, sender=SenderConfig(), seconds=SAFETY_S, **config):
     """Stream ``streams`` from a sender to a monitor on 127.0.0.1 (ephemeral port); returns
-    (the monitor's fixes, its summary, the sender's report, its console lines)."""
+    (the monitor's fixes, its summary, the sender's report, its console lines). The sender
+    waits for the monitor's answers as long as a loaded machine may need (a wait that gave up
+    would let it run ahead and lose packets), within ``seconds`` of wall time."""
+    sender = dataclasses.replace(sender, peer_timeout_s=PEER_WAIT_S, sync_timeout_s=PEER_WAIT_S, timeout_s=seconds)
     fixes, lines = [], []
     mon = Monitor(detector, MonitorConfig(connect=f"udpin:{LOCAL}:0", **config), on_fix=fixes.append,
                   echo=lines.append)
@@ -425,16 +434,19 @@ def test_e_cli_monitor_end_to_end(detector, sim_streams, tmp_path):
     conn = open_link(f"udpin:{LOCAL}:0", 1, 1)            # the vehicle side listens; the monitor connects out
     port = local_address(conn)[1]
     out = {}
-    sender = threading.Thread(target=lambda: out.update(r=send(sim_streams, conn, SenderConfig(speed=20.0))),
-                              daemon=True)
+    config = SenderConfig(speed=20.0, peer_timeout_s=PEER_WAIT_S, sync_timeout_s=PEER_WAIT_S, timeout_s=SAFETY_S)
+    done = threading.Event()            # the monitor stopped: the sender stops too
+    sender = threading.Thread(target=lambda: out.update(r=send(sim_streams, conn, config, stop=done)), daemon=True)
     sender.start()
     # the sender waits for the monitor (TIMESYNC), so a count of messages, not wall time, says
     # how far into the flight the monitor gets: 2500 of them are about 15 s of vehicle time, the
     # attack begins at 8-9 s; the duration only bounds a monitor that stalls
-    with time_limit(90):
+    with time_limit(SAFETY_S + 60):
         res = CliRunner().invoke(app, ["monitor", "--connect", f"udpout:{LOCAL}:{port}", "--model", str(model),
-                                       "--sensors", "gps+imu+mag", "--max-messages", "2500", "--duration", "60",
+                                       "--sensors", "gps+imu+mag", "--max-messages", "2500",
+                                       "--duration", f"{SAFETY_S:g}",
                                        "--out", str(tmp_path / "o")])
+    done.set()
     sender.join(10)
     assert res.exit_code == 0, res.output
     assert "fixes scored" in res.output and "ALERT" in res.output
@@ -449,8 +461,9 @@ def test_e_cli_monitor_end_to_end(detector, sim_streams, tmp_path):
 
 
 def test_e_cli_monitor_demo(tmp_path):
-    with time_limit(150):
-        res = CliRunner().invoke(app, ["monitor", "--demo", "--out", str(tmp_path / "demo"), "--duration", "120"])
+    with time_limit(SAFETY_S + 60):      # the demo's own flight and sender bound it
+        res = CliRunner().invoke(app, ["monitor", "--demo", "--out", str(tmp_path / "demo"),
+                                       "--duration", f"{SAFETY_S:g}"])
     assert res.exit_code == 0, res.output
     # alerts typed by shape: a kind when raised, confirmed 5 s later (vehicle time) for every alert
     assert re.search(rf"ALERT: ({'|'.join(ATTACK_TYPES)}), score", res.output), res.output

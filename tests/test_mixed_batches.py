@@ -14,11 +14,11 @@ from quadformer.simulation import mixable, simulate, simulate_groups, simulate_m
 from quadformer.simulation.closed_loop import simulate_batch
 from quadformer.simulation.simulate import plan_batches
 
-A = SimConfig(model="I", noise="exponential", flights=3, duration=4.0, seed=7,
+A = SimConfig(model="I", noise="exponential", flights=3, duration=3.0, seed=7,
               attack=AttackConfig(kind="bias", onset=(1.0, 2.0), fraction=0.7))
-B = SimConfig(model="II", noise="laplace", flights=2, duration=4.0, seed=8,
+B = SimConfig(model="II", noise="laplace", flights=2, duration=3.0, seed=8,
               attack=AttackConfig(kind="ramp", onset=(1.0, 2.0), fraction=1.0))
-C = SimConfig(model="II", noise="gaussian", flights=2, duration=4.0, seed=9,
+C = SimConfig(model="II", noise="gaussian", flights=2, duration=3.0, seed=9,
               attack=AttackConfig(kind="mix", onset=(1.0, 2.0), fraction=1.0))
 
 

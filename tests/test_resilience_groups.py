@@ -16,11 +16,11 @@ from quadformer.simulation import simulate_many
 
 @pytest.fixture(scope="module")
 def two_configs():
-    """Two configurations that differ in vehicle, noise and attack: 10 flights of 14 s each."""
-    a = SimConfig(model="I", noise="exponential", flights=10, duration=14.0, seed=21,
-                  attack=AttackConfig(kind="bias", onset=(3.0, 5.0), duration=(4.0, 6.0)))
-    b = SimConfig(model="II", noise="laplace", flights=10, duration=14.0, seed=22,
-                  attack=AttackConfig(kind="ramp", onset=(3.0, 5.0), duration=(4.0, 6.0)))
+    """Two configurations that differ in vehicle, noise and attack: 10 flights of 10 s each."""
+    a = SimConfig(model="I", noise="exponential", flights=10, duration=10.0, seed=21,
+                  attack=AttackConfig(kind="bias", onset=(2.0, 3.0), duration=(3.0, 4.0)))
+    b = SimConfig(model="II", noise="laplace", flights=10, duration=10.0, seed=22,
+                  attack=AttackConfig(kind="ramp", onset=(2.0, 3.0), duration=(3.0, 4.0)))
     return tuple(simulate_many([a, b]))          # flown in one batch; each equals simulate() alone
 
 
