@@ -60,6 +60,9 @@ ROOT = DOCS.parent
 #:     "paper-f1": {"source": "results/paper/results.json", "kind": "methods", "metric": "f1",
 #:                  "command": "quadformer benchmark --profile paper --out runs/paper-now"},
 TABLES: dict[str, dict[str, Any]] = {
+    "field": {"source": "results/field/results.json", "kind": "field",
+              "command": "quadformer benchmark --profile field --logs ../shared/data/real-flights "
+                         "--manifest ../shared/data/real-flights/MANIFEST.csv --out runs/field"},
 }
 
 #: the pages whose markers this script fills
@@ -285,8 +288,9 @@ def table_field(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
                      f"{f['ground']} / {f['transition']} / {f['degraded']}"]
             for kind in ("bias", "ramp"):
                 r = inj.get((m, thr, kind))
+                delay = fmt(r["delay_median_s"], 1) if r is not None else "-"
                 cells.append("-" if r is None else f"{fmt(r['event_recall'], digits)} / {fmt(r['recall_big'], digits)}"
-                             f" / {fmt(r['delay_median_s'], 1)} s")
+                             f" / {delay}{' s' if delay != '-' else ''}")
             rows.append(cells)
     head = ["method", "threshold", "spoofing alerts in air on clean flights: count in in-air hours, per hour [95%]",
             "ground / transition / degraded alerts", "injected bias: recall / recall >= 2 m / median delay",

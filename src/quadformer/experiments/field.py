@@ -134,8 +134,10 @@ def read_logs(paths: list[Path], manifest: dict[str, ManifestEntry] | None, conf
             log = read_log(p)
             flights, notes = log_rows(log, "ekf", config)
         except (LogError, ValueError) as e:
-            refused.append({"log": str(p), "reason": str(e)})
-            echo(f"  refused {p.name}: {e}")
+            reason = str(e)
+            reason = reason[len(f"{p}: "):] if reason.startswith(f"{p}: ") else reason   # the path once
+            refused.append({"log": str(p), "reason": reason})
+            echo(f"  refused {p.name}: {reason}")
             continue
         rows = pd.concat([f.rows for f in flights], ignore_index=True)
         phase = phases(rows["t"].to_numpy(dtype=float), log.events, log_height(log), rule)
