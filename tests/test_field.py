@@ -108,6 +108,10 @@ def test_field_benchmark_counts_false_alarms_degradation_and_injected_spoofs(fie
     assert ((inj.loc[inj.kind == "ramp", "size"] >= 0.05) & (inj.loc[inj.kind == "ramp", "size"] <= 2.0)).all()
     hit = inj[inj.detected]
     assert (hit["delay_s"] >= 0).all()
+    # the tuned detectors are cached with the simulation they were fit on (detect replays with its tuning)
+    from quadformer.detectors import load
+
+    assert load(out / "models" / "chi2.qfm").calibration_["sim_config"]["duration"] == 12.0
     page = (out / "report.html").read_text()
     assert "False alarms on clean flights" in page and page.count("<img") >= 3
 

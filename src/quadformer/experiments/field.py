@@ -174,12 +174,15 @@ def tune_methods(plan: FieldPlan, cfg: SimConfig, out: Path, echo: Callable[[str
             t0 = time.perf_counter()
             sim = simulate(cfg)
             parts = (split_flights(sim.scenarios, plan.seed, label_fraction=plan.label_fraction).frames(sim.flights),
-                     sim.gps_rate_hz)
+                     sim.gps_rate_hz, sim.meta.get("config"))
             echo(f"  simulated {cfg.flights} training flights in {time.perf_counter() - t0:.0f} s")
         t0 = time.perf_counter()
-        fr, rate = parts
-        trained[m] = tune(m, fr.train, fr.y_train, fr.val, gps_rate_hz=rate).detector
-        trained[m].save(path)
+        fr, rate, sim_config = parts
+        det = tune(m, fr.train, fr.y_train, fr.val, gps_rate_hz=rate).detector
+        det.calibrate(det.threshold_, det.budget_threshold_, split_seed=plan.seed, label_fraction=plan.label_fraction,
+                      sim_config=sim_config)      # so that `detect` replays a log with this filter tuning
+        trained[m] = det
+        det.save(path)
         atomic_write_text(stamp, key)
         echo(f"  {m}: tuned in {time.perf_counter() - t0:.0f} s")
     return trained
