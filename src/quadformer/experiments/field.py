@@ -47,7 +47,6 @@ from quadformer.detectors.flight_phase import PhaseRule, phases
 from quadformer.estimator.filter_config import FilterConfig
 from quadformer.io import atomic_write_text, package_versions
 from quadformer.logs import LogError, read_log
-from quadformer.logs.calibration import poisson_interval
 from quadformer.logs.detect import log_height, log_rows, step_alerts
 from quadformer.logs.flightlog import FlightLog
 from quadformer.logs.manifest import ManifestEntry, read_manifest
@@ -57,8 +56,6 @@ __all__ = ["FieldPlan", "run_field"]
 
 DEGRADED_WITHIN_S = 2.0     # s after a receiver's first sign of trouble, the degraded alert's deadline
 INJECT_BEFORE_END_S = 12.0  # s of air kept after an injected onset
-BIG_OFFSET_M = 2.0          # the targets' offsets and drifts
-BIG_DRIFT_MPS = 0.2
 THRESHOLDS = ("sim", "calibrated")
 
 
@@ -336,28 +333,12 @@ def injected_events(fl: FieldLog, injected: list[Injected], method: str, dets: d
     return rows_out
 
 
-def injection_summary(df: pd.DataFrame) -> pd.DataFrame:
-    """Event recall, delays and offsets by method, threshold and attack kind."""
-    out = []
-    for (m, thr, kind), g in df.groupby(["method", "threshold", "kind"], sort=False):
-        big = g[g["size"] >= (BIG_OFFSET_M if kind == "bias" else BIG_DRIFT_MPS)]
-        d = g["delay_s"].dropna().to_numpy(dtype=float)
-        off = g["offset_at_detection_m"].dropna().to_numpy(dtype=float)
-        out.append({"method": m, "threshold": thr, "kind": kind, "injected": len(g),
-                    "event_recall": float(g["detected"].mean()),
-                    "recall_big": float(big["detected"].mean()) if len(big) else float("nan"),
-                    "big_injected": len(big),
-                    "delay_median_s": float(np.median(d)) if len(d) else float("nan"),
-                    "delay_p95_s": float(np.percentile(d, 95)) if len(d) else float("nan"),
-                    "offset_median_m": float(np.median(off)) if len(off) else float("nan")})
-    return pd.DataFrame(out)
-
 
 def run_field(paths: list[Path], out: Path, plan: FieldPlan, manifest: Path | None = None,
               echo: Callable[[str], None] = print) -> dict[str, Any]:
     """The field benchmark (see the module text); writes ``out``/results.json, tables and report.html."""
     from quadformer.logs.noise import estimate_noise
-    from quadformer.report.field import write_field_report
+    from quadformer.report.field import clean_summary, injection_summary, trouble_summary, write_field_report
 
     t_start = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
@@ -491,35 +472,6 @@ def _phase_source(fl: FieldLog) -> str:
     return "height" if log_height(fl.log) is not None else "none"
 
 
-def clean_summary(per_log: pd.DataFrame) -> pd.DataFrame:
-    """Spoofing alerts in air per in-air hour on the clean logs, by method and threshold, with
-    the exposure and a Poisson 95% interval; ground, transition and degraded alerts beside them."""
-    out = []
-    clean = per_log[per_log["clean"]]
-    for (m, thr), g in clean.groupby(["method", "threshold"], sort=False):
-        hours = float(g["air_hours"].sum())
-        n = int(g["spoofing_air"].sum())
-        lo, hi = poisson_interval(n, hours) if hours > 0 else (float("nan"), float("nan"))
-        out.append({"method": m, "threshold": thr, "logs": len(g), "air_hours": hours, "spoofing_air": n,
-                    "per_air_hour": n / hours if hours > 0 else float("nan"), "ci_low": lo, "ci_high": hi,
-                    "ground": int(g["spoofing_ground"].sum()), "transition": int(g["spoofing_transition"].sum()),
-                    "degraded": int(g["degraded"].sum())})
-    return pd.DataFrame(out)
-
-
-def trouble_summary(per_log: pd.DataFrame) -> pd.DataFrame:
-    """On the logs with GPS trouble: alerts inside the windows by kind, spoofing alerts outside."""
-    bad = per_log[~per_log["clean"]]
-    if not len(bad) or "windows" not in bad:
-        return pd.DataFrame()
-    out = []
-    for (m, thr), g in bad.groupby(["method", "threshold"], sort=False):
-        out.append({"method": m, "threshold": thr, "logs": len(g), "windows": int(g["windows"].sum()),
-                    "in_window_degraded": int(g["in_window_degraded"].sum()),
-                    "in_window_spoofing": int(g["in_window_spoofing"].sum()),
-                    "outside_spoofing_air": int(g["outside_spoofing_air"].sum()),
-                    "air_hours": float(g["air_hours"].sum())})
-    return pd.DataFrame(out)
 
 
 def _json(x):
