@@ -261,18 +261,28 @@ def receiver_coverage(fl: FieldLog, alerts: list) -> list[dict[str, Any]]:
 
 
 def _injections(plan: FieldPlan, fl: FieldLog, li: int, kind: str):
-    """The attacks injected into each segment of a clean log in air: {segment: [AttackBatch]}."""
+    """The attacks injected into each segment of a clean log in air: {segment: (t0, [AttackBatch])},
+    their times counting from the segment's first fix (t0 on the log's clock), as the replay counts
+    them. The onsets fall in the segment's longest stretch in air (a segment may hold a landing and a
+    second take-off), from the first step in air to ``INJECT_BEFORE_END_S`` before its last."""
     from quadformer.attacks import sample_attacks
+    from quadformer.detectors.alarms import runs
     from quadformer.rng import Stream, flight_generator
 
     out = {}
     t = fl.rows["t"].to_numpy(dtype=float)
     seg_ids = fl.rows["flight_id"].to_numpy()
     for seg in np.unique(seg_ids):
-        air_t = t[(seg_ids == seg) & (fl.phase == "air")]
+        mine = seg_ids == seg
+        spans = runs(fl.phase[mine] == "air")
+        if not spans:
+            continue
+        a, b = max(spans, key=lambda r: r[1] - r[0])
+        air_t = t[mine][a:b]
         if len(air_t) < 2:
             continue
-        t0 = float(fl.log.segment(int(seg)).gps["t"].iloc[0]) if len(fl.log.segments) > 1 else fl.gps_t0
+        part = fl.log.segment(int(seg)) if len(fl.log.segments) > 1 else fl.log
+        t0 = float(part.gps["t"].iloc[0])
         lo, hi = air_t[0] - t0, air_t[-1] - t0 - INJECT_BEFORE_END_S
         if hi <= lo:
             continue
