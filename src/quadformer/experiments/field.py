@@ -41,13 +41,14 @@ from typing import Any, Callable
 import numpy as np
 import pandas as pd
 
-from quadformer.config import AttackConfig, SimConfig, merge
+from quadformer.config import SimConfig, merge
 from quadformer.detectors.calibration import budget_threshold
 from quadformer.detectors.flight_phase import PhaseRule, phases
 from quadformer.estimator.filter_config import FilterConfig
-from quadformer.io import atomic_write_text, package_versions
+from quadformer.experiments.field_spoofs import inject, injected_events, log_alerts, planned_injections
+from quadformer.io import atomic_write_text, package_versions, write_json
 from quadformer.logs import LogError, read_log
-from quadformer.logs.detect import log_height, log_rows, step_alerts
+from quadformer.logs.detect import log_height, log_rows
 from quadformer.logs.flightlog import FlightLog
 from quadformer.logs.manifest import ManifestEntry, read_manifest
 from quadformer.logs.replay import ekf_flights, missing_features
@@ -55,8 +56,6 @@ from quadformer.logs.replay import ekf_flights, missing_features
 __all__ = ["FieldPlan", "run_field"]
 
 DEGRADED_WITHIN_S = 2.0     # s after a receiver's first sign of trouble, the degraded alert's deadline
-INJECT_BEFORE_END_S = 12.0  # s of air kept after an injected onset
-THRESHOLDS = ("sim", "calibrated")
 
 
 @dataclass(frozen=True)
@@ -122,13 +121,16 @@ def fleet_noise_logs(logs: list[FlightLog], entries: dict[str, ManifestEntry] | 
             and lg.imu is not None and lg.gps is not None and not imu_too_slow(lg)]
 
 
-def read_logs(paths: list[Path], manifest: dict[str, ManifestEntry] | None, config: FilterConfig, rule: PhaseRule,
-              echo: Callable[[str], None]) -> tuple[list[FieldLog], list[dict[str, str]]]:
-    """Every log read and replayed, or refused with its reason."""
+def replay_logs(read: dict[Path, FlightLog | LogError], manifest: dict[str, ManifestEntry] | None,
+                config: FilterConfig, rule: PhaseRule,
+                echo: Callable[[str], None]) -> tuple[list[FieldLog], list[dict[str, str]]]:
+    """Every log read (``read``: path -> its FlightLog, or the error reading it) replayed, or refused
+    with its reason."""
     used, refused = [], []
-    for p in paths:
+    for p, log in read.items():
         try:
-            log = read_log(p)
+            if isinstance(log, LogError):
+                raise log
             flights, notes = log_rows(log, "ekf", config)
         except (LogError, ValueError) as e:
             reason = str(e)
@@ -191,7 +193,7 @@ def _with_threshold(det, thr: float):
     return d
 
 
-def _air_hours(fl: FieldLog, rate: float | None = None) -> float:
+def _air_hours(fl: FieldLog) -> float:
     """In-air flight-hours of a log: its in-air GPS steps times its own median step (a log's
     receiver rate, 1 to 10 Hz on real vehicles, is not the simulation's)."""
     t = fl.rows["t"].to_numpy(dtype=float)
@@ -199,8 +201,7 @@ def _air_hours(fl: FieldLog, rate: float | None = None) -> float:
     return float(np.sum(fl.phase == "air")) * step / 3600.0
 
 
-def calibrated_thresholds(scores: dict[int, np.ndarray], logs: list[FieldLog], rate: float,
-                          per_hour: float) -> dict[int, float]:
+def calibrated_thresholds(scores: dict[int, np.ndarray], logs: list[FieldLog], per_hour: float) -> dict[int, float]:
     """Per log, the threshold of the clean logs other than it (in-air rows) at ``per_hour``."""
     clean = [i for i, fl in enumerate(logs) if fl.clean and i in scores]
     out = {}
@@ -212,18 +213,13 @@ def calibrated_thresholds(scores: dict[int, np.ndarray], logs: list[FieldLog], r
             fj = logs[j].rows["flight_id"].to_numpy()[air] + 1000 * j
             s.append(scores[j][air])
             fid.append(fj)
-            hours += _air_hours(logs[j], rate)
+            hours += _air_hours(logs[j])
         if not s or hours <= 0:
             out[i] = float("nan")
             continue
         s, fid = np.concatenate(s), np.concatenate(fid)
         out[i] = budget_threshold(s, fid, np.unique(fid), hours, per_hour)
     return out
-
-
-def _alerts(fl: FieldLog, rows: pd.DataFrame, scores: np.ndarray, det, rate: float) -> list:
-    return step_alerts(rows, scores, det, "shape", rate, events=fl.log.events, receiver=fl.log.receiver,
-                       height=log_height(fl.log))
 
 
 def clean_counts(alerts: list, hours: float) -> dict[str, Any]:
@@ -260,90 +256,6 @@ def receiver_coverage(fl: FieldLog, alerts: list) -> list[dict[str, Any]]:
     return out
 
 
-def _injections(plan: FieldPlan, fl: FieldLog, li: int, kind: str):
-    """The attacks injected into each segment of a clean log in air: {segment: (t0, [AttackBatch])},
-    their times counting from the segment's first fix (t0 on the log's clock), as the replay counts
-    them. The onsets fall in the segment's longest stretch in air (a segment may hold a landing and a
-    second take-off), from the first step in air to ``INJECT_BEFORE_END_S`` before its last."""
-    from quadformer.attacks import sample_attacks
-    from quadformer.detectors.alarms import runs
-    from quadformer.rng import Stream, flight_generator
-
-    out = {}
-    t = fl.rows["t"].to_numpy(dtype=float)
-    seg_ids = fl.rows["flight_id"].to_numpy()
-    for seg in np.unique(seg_ids):
-        mine = seg_ids == seg
-        spans = runs(fl.phase[mine] == "air")
-        if not spans:
-            continue
-        a, b = max(spans, key=lambda r: r[1] - r[0])
-        air_t = t[mine][a:b]
-        if len(air_t) < 2:
-            continue
-        part = fl.log.segment(int(seg)) if len(fl.log.segments) > 1 else fl.log
-        t0 = float(part.gps["t"].iloc[0])
-        lo, hi = air_t[0] - t0, air_t[-1] - t0 - INJECT_BEFORE_END_S
-        if hi <= lo:
-            continue
-        ranges = {"magnitude": plan.bias} if kind == "bias" else {"rate": plan.ramp}
-        cfg = AttackConfig(kind=kind, fraction=1.0, onset=(lo, hi), duration=(hi - lo + INJECT_BEFORE_END_S,) * 2,
-                           **ranges)
-        batches = []
-        for k in range(plan.injections):
-            gen = flight_generator(plan.seed, 100_000 * (li + 1) + 1000 * int(seg) + k + (500 if kind == "ramp" else 0),
-                                   Stream.SCENARIO)
-            b = sample_attacks([gen], cfg, np.ones(1, bool), air_t[-1] - t0)
-            b = dataclasses.replace(b, end=np.minimum(b.end, air_t[-1] - t0))
-            batches.append(b)
-        out[int(seg)] = (t0, batches)
-    return out
-
-
-@dataclass
-class Injected:
-    """One spoof injected into a clean log's segment in air, and the replay's rows."""
-    kind: str
-    segment: int
-    onset: float            # s, on the log's clock
-    end: float
-    size: float             # m (bias) or m/s (ramp)
-    rows: pd.DataFrame
-
-
-def inject(plan: FieldPlan, fl: FieldLog, li: int, config: FilterConfig) -> list[Injected]:
-    """The spoofs injected into a clean log in air, each replayed through the filter (the replays of
-    one segment together, as one batch)."""
-    out = []
-    for kind in ("bias", "ramp"):
-        for seg, (t0, batches) in _injections(plan, fl, li, kind).items():
-            for k, (f, b) in enumerate(zip(ekf_flights(fl.log, seg, config, batches), batches)):
-                size = float(b.magnitude[0]) if kind == "bias" else float(b.rate[0])
-                out.append(Injected(kind, seg, float(b.onset[0]) + t0, float(b.end[0]) + t0, size,
-                                    f.rows.assign(flight_id=np.int32(k))))
-    return out
-
-
-def injected_events(fl: FieldLog, injected: list[Injected], method: str, dets: dict[str, Any],
-                    rate: float) -> list[dict[str, Any]]:
-    """One row per injected spoof and threshold: detected (a spoofing alert raised in air between the
-    onset and the end), delay, offset at detection."""
-    rows_out = []
-    for inj in injected:
-        scores = np.asarray(next(iter(dets.values())).decision_function(inj.rows), dtype=float)
-        for thr_name, det in dets.items():
-            alerts = _alerts(fl, inj.rows, scores, det, rate)
-            hit = [a.start_s for a in alerts if a.kind == "spoofing" and a.phase == "air"
-                   and inj.onset <= a.start_s < inj.end]
-            delay = (min(hit) - inj.onset) if hit else None
-            offset = None if delay is None else (inj.size if inj.kind == "bias" else inj.size * delay)
-            rows_out.append({"log": fl.path.name, "segment": inj.segment, "kind": inj.kind, "size": inj.size,
-                             "method": method, "threshold": thr_name, "detected": bool(hit),
-                             "delay_s": delay, "offset_at_detection_m": offset})
-    return rows_out
-
-
-
 def run_field(paths: list[Path], out: Path, plan: FieldPlan, manifest: Path | None = None,
               echo: Callable[[str], None] = print) -> dict[str, Any]:
     """The field benchmark (see the module text); writes ``out``/results.json, tables and report.html."""
@@ -355,20 +267,20 @@ def run_field(paths: list[Path], out: Path, plan: FieldPlan, manifest: Path | No
     entries = read_manifest(manifest) if manifest is not None else None
     paths = [Path(p) for p in paths]
     echo(f"reading {len(paths)} logs")
-    logs0 = []
+    read: dict[Path, FlightLog | LogError] = {}
     for p in paths:
         try:
-            logs0.append(read_log(p))
-        except LogError:
-            pass
-    clean0 = fleet_noise_logs(logs0, entries)
+            read[p] = read_log(p)
+        except LogError as e:
+            read[p] = e
+    clean0 = fleet_noise_logs([lg for lg in read.values() if isinstance(lg, FlightLog)], entries)
     if not clean0:
         raise LogError("no clean log with an IMU fast enough for the filter could be read: the fleet noise and "
                        "the false-alarm counts need such flights")
     noise = estimate_noise(clean0)
     cfg = plan.sim_config(noise.sim_overrides())
     config = FilterConfig.matching(dataclasses.asdict(cfg))
-    logs, refused = read_logs(paths, entries, config, plan.phase, echo)
+    logs, refused = replay_logs(read, entries, config, plan.phase, echo)
     if not any(fl.clean for fl in logs):
         raise LogError("no clean log could be replayed (see the refusals above)")
     echo(f"tuning {len(plan.methods)} methods on {cfg.flights} simulated flights (fleet noise from "
@@ -378,7 +290,7 @@ def run_field(paths: list[Path], out: Path, plan: FieldPlan, manifest: Path | No
     results: dict[str, Any] = {"plan": dataclasses.asdict(plan), "sim_config": dataclasses.asdict(cfg),
                                "noise": noise.to_dict(), "manifest": None if manifest is None else str(manifest),
                                "read": [{"log": str(fl.path), "clean": fl.clean, "steps": len(fl.rows),
-                                         "air_hours": _air_hours(fl, rate), "phase_source": _phase_source(fl),
+                                         "air_hours": _air_hours(fl), "phase_source": _phase_source(fl),
                                          "notes": fl.notes} for fl in logs],
                                "refused": refused, "methods": {}, "versions": package_versions()}
     per_log_rows, inj_rows = [], []
@@ -400,14 +312,14 @@ def run_field(paths: list[Path], out: Path, plan: FieldPlan, manifest: Path | No
             else:
                 usable[i] = fl
         scores = {i: np.asarray(det.decision_function(fl.rows), dtype=float) for i, fl in usable.items()}
-        cal = calibrated_thresholds(scores, logs, rate, plan.budget_per_hour)
+        cal = calibrated_thresholds(scores, logs, plan.budget_per_hour)
         dets_by_log = {i: {"sim": det, **({"calibrated": _with_threshold(det, cal[i])} if np.isfinite(cal[i]) else {})}
                        for i in usable}
         for i, fl in usable.items():
             for thr_name, d in dets_by_log[i].items():
-                alerts = _alerts(fl, fl.rows, scores[i], d, rate)
+                alerts = log_alerts(fl, fl.rows, scores[i], d, rate)
                 row = {"method": m, "threshold": thr_name, "log": fl.path.name, "clean": fl.clean,
-                       "threshold_value": float(d.threshold_), **clean_counts(alerts, _air_hours(fl, rate))}
+                       "threshold_value": float(d.threshold_), **clean_counts(alerts, _air_hours(fl))}
                 if not fl.clean:
                     row.update(trouble_counts(fl, alerts))
                 per_log_rows.append(row)
@@ -429,7 +341,7 @@ def run_field(paths: list[Path], out: Path, plan: FieldPlan, manifest: Path | No
     results["timing_s"] = time.perf_counter() - t_start
     per_log.to_csv(out / "per_log.csv", index=False)
     inj.to_csv(out / "injections.csv", index=False)
-    atomic_write_text(out / "results.json", json.dumps(results, indent=1, default=_json))
+    write_json(out / "results.json", results)
     write_field_report(results, per_log, inj, example_traces(plan, logs, trained, rate, config), out / "report.html")
     echo(f"field benchmark took {results['timing_s']:.0f} s; report in {out / 'report.html'}")
     return results
@@ -438,7 +350,7 @@ def run_field(paths: list[Path], out: Path, plan: FieldPlan, manifest: Path | No
 def _trace(title: str, fl: FieldLog, rows: pd.DataFrame, phase: np.ndarray, det, rate: float,
            attack: tuple[float, float] | None = None) -> dict[str, Any]:
     s = np.asarray(det.decision_function(rows), dtype=float)
-    alerts = _alerts(fl, rows, s, det, rate)
+    alerts = log_alerts(fl, rows, s, det, rate)
     return {"title": title, "t": rows["t"].to_numpy(dtype=float), "score": s, "threshold": float(det.threshold_),
             "phase": phase, "windows": fl.windows(), "attack": attack,
             "alerts": [{"start_s": a.start_s, "kind": a.kind, "phase": a.phase} for a in alerts]}
@@ -452,7 +364,7 @@ def example_traces(plan: FieldPlan, logs: list[FieldLog], trained: dict[str, Any
     det = trained[m]
     out = []
     scored = [(li, fl) for li, fl in enumerate(logs) if not missing_features(det.features_, fl.rows.columns)]
-    clean = sorted((fl for _, fl in scored if fl.clean), key=lambda fl: -_air_hours(fl, rate))
+    clean = sorted((fl for _, fl in scored if fl.clean), key=lambda fl: -_air_hours(fl))
     bad = sorted((fl for _, fl in scored if not fl.clean), key=lambda fl: -len(fl.signs()))
     if clean:
         fl = clean[0]
@@ -463,7 +375,7 @@ def example_traces(plan: FieldPlan, logs: list[FieldLog], trained: dict[str, Any
         out.append(_trace(f"{m} on a flight with GPS trouble: {fl.path.name} (manifest windows pink)", fl, fl.rows,
                           fl.phase, det, rate))
     for li, fl in scored:
-        inj = _injections(plan, fl, li, "bias") if fl.clean else {}
+        inj = planned_injections(plan, fl, li, "bias") if fl.clean else {}
         if inj:
             seg, (t0, batches) = next(iter(inj.items()))
             b = batches[0]
@@ -480,15 +392,3 @@ def _phase_source(fl: FieldLog) -> str:
     if ev is not None and ev["event"].isin(["takeoff", "landed"]).any():
         return "events"
     return "height" if log_height(fl.log) is not None else "none"
-
-
-
-
-def _json(x):
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (np.floating,)):
-        return float(x)
-    if isinstance(x, (np.bool_,)):
-        return bool(x)
-    return str(x)
