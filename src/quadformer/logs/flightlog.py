@@ -17,10 +17,10 @@ and exactly the columns of ``STREAMS``, in SI units, world frame ENU and body fr
 
 Beside the streams, ``events`` is what the autopilot said happened (arming, takeoff and
 landing, GPS glitches and failsafes, EKF variance, mode changes; ``EVENTS``), as a frame of
-``t``, ``event`` and ``detail`` on the streams' clock, built by ``make_events``. The ``gps``
-stream holds the fixes (fix_type >= 2) only; the ``receiver`` stream holds every status
-report of the same receiver, fix or not, so that a lost fix shows as fix_type < 3 rather than
-as a gap. Neither sets the log's t = 0 nor its segments.
+``t``, ``event`` and ``detail`` on the streams' clock, built by ``make_events`` (both from
+the ``events`` module). The ``gps`` stream holds the fixes (fix_type >= 2) only; the
+``receiver`` stream holds every status report of the same receiver, fix or not, so that a
+lost fix shows as fix_type < 3 rather than as a gap. Neither sets the log's t = 0 nor its segments.
 
 Every such repair is written to ``notes`` as "stream: what was done", so that nothing is
 changed silently. Any problem with a log file raises ``LogError`` (a ``ValueError``) whose
@@ -39,6 +39,7 @@ import numpy as np
 import pandas as pd
 
 from quadformer.geometry import frames
+from quadformer.logs.events import EVENT_COLUMNS, EVENT_REPEAT, EVENTS, event_errors, make_events
 
 __all__ = ["EVENTS", "EVENT_COLUMNS", "EVENT_REPEAT", "GPS_GAP", "IMU_GAP", "REQUIRED", "SENSOR_STREAMS", "SOURCES",
            "STREAMS", "FlightLog", "LogError", "assemble", "clean_stream", "find_segments", "gps_stream",
@@ -48,18 +49,6 @@ IMU_GAP = 0.5   # s, an IMU interval longer than this ends a segment
 GPS_GAP = 2.0   # s, a GPS interval longer than this ends a segment
 
 SENSOR_STREAMS = ("imu", "gps", "mag", "baro", "odometry", "attitude")   # t = 0: the first of these
-
-#: What ``FlightLog.events`` may say, in the autopilot's own words mapped to one vocabulary:
-#: armed / disarmed (the motors may spin), takeoff / landed (the land detector's verdict),
-#: gps_glitch / gps_glitch_cleared (the autopilot rejects the fixes as inconsistent with its
-#: estimate), gps_failsafe / gps_failsafe_cleared (the GPS failsafe is triggered / resolved),
-#: gps_lost (the autopilot reports the GPS as lost), ekf_variance / ekf_variance_cleared (the
-#: EKF check finds the estimator's variances over their thresholds / back under), mode (a
-#: flight mode change; the detail names the mode).
-EVENTS = ("armed", "disarmed", "takeoff", "landed", "gps_glitch", "gps_glitch_cleared", "gps_failsafe",
-          "gps_failsafe_cleared", "gps_lost", "ekf_variance", "ekf_variance_cleared", "mode")
-EVENT_COLUMNS = ("t", "event", "detail")
-EVENT_REPEAT = 0.5   # s, the same event again within this time is one event told twice (kept once)
 
 SOURCES = ("px4-ulog", "ardupilot-dataflash", "mavlink-tlog", "ros1-bag", "ros2-bag", "arrays")
 
@@ -130,27 +119,6 @@ def _frame_errors(name: str, df: pd.DataFrame) -> list[str]:
     return errors
 
 
-def _event_errors(df: pd.DataFrame) -> list[str]:
-    if tuple(df.columns) != EVENT_COLUMNS:
-        return [f"events: columns {list(df.columns)} != {list(EVENT_COLUMNS)}"]
-    errors = []
-    if df["t"].dtype != np.float64:
-        errors.append(f"events.t: dtype {df['t'].dtype}, expected float64")
-    else:
-        t = df["t"].to_numpy()
-        if len(t) == 0:
-            errors.append("events: empty (use None for a log without events)")
-        elif not np.all(np.isfinite(t)) or np.any(np.diff(t) < 0):
-            errors.append("events: t is not finite and non-decreasing")
-    for col in ("event", "detail"):
-        if not all(isinstance(v, str) for v in df[col]):
-            errors.append(f"events.{col}: not all strings")
-    unknown = sorted({str(v) for v in df["event"]} - set(EVENTS))
-    if unknown:
-        errors.append(f"events: unknown event(s) {unknown}; known: {list(EVENTS)}")
-    return errors
-
-
 @dataclass(frozen=True, eq=False)
 class FlightLog:
     """Timestamped streams of one flight log; ``None`` marks a stream the log lacks.
@@ -195,7 +163,7 @@ class FlightLog:
             if df is not None:
                 errors += _frame_errors(name, df)
         if self.events is not None:
-            errors += _event_errors(self.events)
+            errors += event_errors(self.events)
         for a, b in self.segments:
             if not (math.isfinite(a) and math.isfinite(b) and a <= b):
                 errors.append(f"segment ({a}, {b}) is not a finite span")
@@ -253,34 +221,6 @@ def make_stream(name: str, t: np.ndarray, values: Mapping[str, np.ndarray | floa
     if missing and notes is not None:
         notes.append(f"{name}: not logged, NaN: {', '.join(missing)}")
     return pd.DataFrame(cols)
-
-
-def make_events(rows: list[tuple[float, str, str]], notes: list[str] | None = None) -> pd.DataFrame | None:
-    """The ``events`` frame of (t, event, detail) rows: sorted by t (stably: rows of one time
-    keep their order), an event told again within ``EVENT_REPEAT`` s of the same one kept once
-    (an arming said by two messages; for ``mode``, the same mode), rows with a non-finite t
-    dropped; None without rows. Every drop is noted when ``notes`` is given."""
-    unknown = sorted({e for _, e, _ in rows} - set(EVENTS))
-    if unknown:
-        raise KeyError(f"events: unknown event(s) {unknown}; known: {list(EVENTS)}")
-    finite = [r for r in rows if math.isfinite(r[0])]
-    if len(finite) < len(rows) and notes is not None:
-        notes.append(f"events: dropped {len(rows) - len(finite)} of {len(rows)} events with a non-finite time")
-    kept: list[tuple[float, str, str]] = []
-    last: dict[tuple[str, str], float] = {}
-    for t, event, detail in sorted(finite, key=lambda r: r[0]):
-        key = (event, detail if event == "mode" else "")
-        if key in last and t - last[key] <= EVENT_REPEAT:
-            continue
-        last[key] = t
-        kept.append((float(t), event, detail))
-    if len(kept) < len(finite) and notes is not None:
-        notes.append(f"events: {len(finite) - len(kept)} repeated event(s) (the same event again within "
-                     f"{EVENT_REPEAT} s, e.g. an arming in two messages) kept once")
-    if not kept:
-        return None
-    return pd.DataFrame({"t": np.array([r[0] for r in kept], dtype=np.float64),
-                         "event": [r[1] for r in kept], "detail": [r[2] for r in kept]})
 
 
 def gps_stream(raw: Mapping[str, np.ndarray] | None, origin: tuple[float, float, float],
