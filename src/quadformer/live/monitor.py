@@ -52,31 +52,26 @@ from collections import Counter, deque
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
-
 from quadformer.detectors.attack_types import ShapeTyper
-from quadformer.estimator.online_filter import GapError
 from quadformer.io import write_json
 from quadformer.live import status
-from quadformer.live.actions import Records, VehicleLink, autopilot_name
+from quadformer.live.actions import Records, VehicleLink
 from quadformer.live.alerts import Alerting
 from quadformer.live.config import FixRecord, MonitorConfig, monitor_sensors
 from quadformer.live.flight_state import FlightState
 from quadformer.live.intake import Intake
 from quadformer.live.mavlink import local_address, open_link
+from quadformer.live.pipeline import EVENT_MESSAGES, Pipeline  # noqa: F401 - EVENT_MESSAGES: importable here as before
 from quadformer.live.segment import Segment
 from quadformer.live.status import STALE, STATES, Latency
 from quadformer.live.vehicle import Vehicle
-from quadformer.resilience.admission import EXCLUDED, FUSING
-from quadformer.sensors.mavlink import GPS_MESSAGES, Estimate, Origin, decode, gps_status
 
 __all__ = ["STALE", "STATES", "FixRecord", "Monitor", "MonitorConfig", "monitor_sensors"]
 
 MAX_SEGMENTS = 100                # segment descriptions kept in memory
-EVENT_MESSAGES = ("EXTENDED_SYS_STATE", "STATUSTEXT")    # the vehicle's messages read for events only
 
 
-class Monitor:
+class Monitor(Pipeline):
     """Listen to one vehicle on a MAVLink connection and watch its GPS.
 
     ``Monitor(detector, MonitorConfig(connect=...)).run()`` returns the summary when a bound
@@ -226,195 +221,6 @@ class Monitor:
     def __exit__(self, *exc) -> None:
         if self.conn is not None and not self.stop_reason:
             self.close("stopped")
-
-    # -- one message --------------------------------------------------------------------
-    def process(self, msg) -> None:
-        """Handle one pymavlink message. Never raises for what a link can carry: problems are
-        counted (``summary()``) and, inside the filter, start a new segment."""
-        t_in = time.perf_counter()
-        self.n_messages += 1
-        kind = msg.get_type()
-        self.messages[kind] += 1
-        if kind == "BAD_DATA":
-            return
-        try:
-            src = (msg.get_srcSystem(), msg.get_srcComponent())
-            if src == (self.config.source_system, self.config.source_component):
-                return
-            samples = decode(msg)
-            self.intake.packet(src, msg.get_seq(), samples)
-            if kind == "TIMESYNC":
-                if msg.tc1 == 0 and self.link is not None:
-                    self.link.timesync_reply(msg.ts1)
-                return
-            if kind == "HEARTBEAT":
-                self._heartbeat(msg, src)
-                self._vehicle_message(msg, src)
-                return
-            if kind in EVENT_MESSAGES:
-                self._vehicle_message(msg, src)
-                return
-            if kind == "COMMAND_ACK":
-                if self.vehicle is None or src[0] == self.vehicle:
-                    line = self.link.on_ack(msg) if self.link is not None else None
-                    if line:
-                        self._note(line)
-                return
-            if not samples and kind not in GPS_MESSAGES:
-                return
-            first = self.vehicle is None
-            if not self.followed.follows(src, "the first to send sensor data"):
-                self.dropped["other_system"] += 1
-                return
-            if first and self.link is not None:
-                self.link.target = src
-            for s in samples:
-                self._sample(s, kind, t_in)
-            if kind in GPS_MESSAGES:
-                self._receiver(msg)
-        except Exception as e:          # noqa: BLE001 - the loop must outlive any one message
-            self._error(e)
-
-    def _error(self, e: Exception) -> None:
-        self.errors += 1
-        self.last_error = f"{type(e).__name__}: {e}"
-        self._note(f"error: {self.last_error}; new segment")
-        if self.segment is not None:
-            self._new_segment(f"after an error ({self.last_error})")
-
-    def _heartbeat(self, msg, src) -> None:
-        if self.followed.heartbeat(msg, src) and self.link is not None:
-            self.link.target = src
-            self.followed.autopilot = autopilot_name(msg.autopilot)
-            if self.config.request_rates and not self._rates_requested:
-                self._rates_requested = True
-                self._note("requested streams: " + ", ".join(self.link.request_rates(self.autopilot)))
-
-    def _vehicle_message(self, msg, src) -> None:
-        """A HEARTBEAT, EXTENDED_SYS_STATE or STATUSTEXT: the followed vehicle's events, at the
-        link's latest t."""
-        if self.vehicle is not None and src[0] == self.vehicle:
-            now = self.intake.now_t
-            self.flight.message(now if math.isfinite(now) else 0.0, msg)
-            self._advance()
-
-    def _receiver(self, msg) -> None:
-        """A GPS message: the status report of the receiver in use (receiver 0 until one is)."""
-        status = gps_status(msg)
-        if status.instance != (self.intake.gps_instance or 0):
-            return
-        t = self.intake.link_time(status.t)
-        if t is None:
-            self.dropped["receiver_report_untimed"] += 1
-            return
-        self.flight.report(t, status)
-        self._advance()
-
-    def _advance(self) -> None:
-        """Feed the segment's step the flight inputs before the watermark (``FlightState``)."""
-        seg = self.segment
-        if seg is None:
-            self.flight.trim()
-            return
-        until = self.flight.watermark(self.intake.now_t, seg.stream.waiting)
-        self._labelled(seg, self.flight.feed(seg.step, until, inclusive=False))
-
-    def _labelled(self, seg: Segment, events: list) -> None:
-        """The alert events of the receiver's degraded episodes, between fixes."""
-        if events:
-            self.alerting.events(events, seg.index, seg.last_score, seg.state)
-
-    def _sample(self, s, kind: str, t_in: float) -> None:
-        if isinstance(s, Origin):
-            self.followed.set_origin(s)
-            return
-        if isinstance(s, Estimate):
-            if self.intake.boot_time(s.t) is not None:
-                self.followed.estimate(s)
-            return
-        got = self.intake.accept(s, kind, may_switch=self.fixes == 0)
-        if got is None:
-            return
-        if got.restart is not None:
-            self._new_segment(got.restart)
-        if self.segment is None:
-            self._new_segment("start")
-        seg, stream, t = self.segment, got.stream, got.t
-        if stream in ("baro", "gps"):
-            self.flight.height(t, s.alt, stream)
-            self._advance()
-        if stream == "imu":
-            self._imu(seg, t, s.x, t_in)
-        elif stream != "attitude" and not seg.fusable(stream, t):
-            self.dropped[f"{stream}_without_imu"] += 1       # could never be fused; would only queue
-        else:
-            seg.feed(stream, t, s, self.followed.enu(s) if stream == "gps" else None)
-
-    def _imu(self, seg: Segment, t: float, x: np.ndarray, t_in: float) -> None:
-        try:
-            rows = seg.imu(t, x)
-        except GapError as e:              # "imu: gap of X s before t = Y s (more than Z s); ..."
-            rows = self._new_segment("IMU " + str(e).split(";")[0].removeprefix("imu: ")).imu(t, x)
-        if rows:
-            self._rows(rows, t_in)
-
-    # -- rows: score, decide, act ----------------------------------------------------------
-    def _rows(self, rows: list[dict], t_in: float) -> None:
-        seg = self.segment
-        for row in rows:
-            t = float(row["t"])
-            self._labelled(seg, self.flight.feed(seg.step, t))
-            before = seg.state
-            try:
-                out = seg.score(t, row)
-            except ValueError as e:          # non-finite residues: not scored
-                self.dropped["rows_not_scored"] += 1
-                self.last_error = str(e)
-                continue
-            dec, after = out.decision, seg.state
-            score, alarm = seg.last_score, bool(out.alarm[0])
-            kind = out.attack_type[0] if out.attack_type is not None else None
-            latency = time.perf_counter() - t_in
-            self.latency.add(latency)
-            self.fixes += 1
-            self.alerting.events(out.events, seg.index, score, after,
-                                 exclusion=after == EXCLUDED and before != EXCLUDED)
-            self._admission(t, before, after, int(dec.readmit[0]), int(dec.exclude[0]))
-            cols = {c: float(v[0]) for c, v in out.columns.items()}
-            phase = self.flight.phase.update(t)
-            rec = FixRecord(seg.index, t, score, alarm, kind, STATES[after], phase, float(dec.std_scale[0]),
-                            cols["res_gps_nis"], row["gps_pos"][0].copy(), row["est_pos"][0].copy(),
-                            self.followed.position.copy(), latency, cols)
-            if self.records is not None:
-                self.records.fix((seg.index, t, score, int(alarm), kind or "", STATES[after], phase, rec.nis,
-                                  *map(float, rec.gps_pos), *map(float, rec.est_pos), *map(float, rec.ap_pos),
-                                  latency * 1e3))
-            if self.on_fix is not None:
-                self.on_fix(rec)
-
-    def _admission(self, t: float, before: int, after: int, readmit: int = 0, exclude: int = 0) -> None:
-        """The admission messages and actions of one fix (``Alerting.admission``)."""
-        self.alerting.admission(t, before, after, readmit, exclude)
-
-    # -- segments ---------------------------------------------------------------------------
-    def _end_segment(self, why: str) -> None:
-        seg = self.segment
-        if seg is None:
-            return
-        self._labelled(seg, self.flight.feed(seg.step, math.inf))
-        self.alerting.events(seg.step.finish(), seg.index, seg.last_score, seg.state)
-        self.segments.append(seg.describe(why))
-
-    def _new_segment(self, reason: str) -> Segment:
-        excluded = False
-        if self.segment is not None:
-            self._end_segment(reason)
-            excluded = self.segment.state != FUSING
-            self._note(f"segment {self.n_segments}: {reason}")
-        self.segment = Segment(self.n_segments, reason, self.detector, self.filter_config, self.sensors,
-                               self.config.admission, self.typer, excluded, phase=self.flight.phase)
-        self.n_segments += 1
-        return self.segment
 
     # -- periodic: heartbeat, status, acks ---------------------------------------------------
     def _tick(self, now: float) -> None:
