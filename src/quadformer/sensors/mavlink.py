@@ -1,6 +1,7 @@
 """MAVLink's sensor messages: pure conversions between MAVLink messages and the timestamped
-samples every source of flights produces (a live link, a telemetry log), in SI units, world
-ENU, body FLU (``geometry.frames`` does the frame changes).
+samples every source of flights produces (a live link, a telemetry log; ``sensors.samples``,
+importable from here too), in SI units, world ENU, body FLU (``geometry.frames`` does the frame
+changes).
 
 Decoding (``decode(msg) -> list of samples``; one message may carry several):
 
@@ -29,22 +30,8 @@ Decoding (``decode(msg) -> list of samples``; one message may carry several):
 ``GPS2_RAW`` as ``GpsStatus`` whether or not it holds a position: a receiver without a fix still
 says so (fix_type 0/1), which ``Gps`` samples, needing a position, cannot.
 
-The vehicle's events (``VehicleEvents``: one vocabulary with ``logs.flightlog.EVENTS``), from
-the messages of the vehicle's autopilot (``vehicle_heartbeat``: a HEARTBEAT neither of a ground
-station, an onboard controller or a gimbal, nor of a component without an autopilot), as a
-telemetry log and the live link both read them:
-
-* ``HEARTBEAT``: armed / disarmed where ``base_mode`` & 128 (MAV_MODE_FLAG_SAFETY_ARMED) changes,
-  mode where the mode (``custom_mode``, named by pymavlink) changes;
-* ``EXTENDED_SYS_STATE.landed_state`` (1 on ground, 2 in air, 3 taking off, 4 landing): takeoff
-  where it leaves 1 for 2, 3 or 4, landed where it comes back to 1 (0, undefined, is skipped);
-* a vehicle first heard armed (in the air) begins with armed (takeoff) at its first report;
-* ``STATUSTEXT``, case-insensitive (``TEXT_EVENTS``, ``text_event``): ArduPilot's "GPS Glitch"
-  and, since 3.6, "GPS Glitch or Compass error" -> gps_glitch; "GPS Glitch cleared" / "Glitch
-  cleared" -> gps_glitch_cleared; "GPS failsafe" or ArduCopter 3.1's "Lost GPS!" -> gps_failsafe
-  (a text with "cleared" or "resolved" -> gps_failsafe_cleared); "EKF variance" -> ekf_variance
-  (sent at most every 30 s; it has no clearing text). Pre-arm check texts ("PreArm: ...", "Arm:
-  ...") repeat a state while disarmed and give no event.
+The vehicle's events (``VehicleEvents``, ``vehicle_heartbeat``, ``text_event``, ``TEXT_EVENTS``)
+are ``sensors.vehicle_events``'s, importable from here too.
 
 Times are the vehicle's own stamps in seconds: ``time_usec * 1e-6`` or ``time_boot_ms * 1e-3``.
 Sentinels (UINT16_MAX ground speed or course, INT32_MAX latitude, NaN quaternion, ...) give no
@@ -57,11 +44,8 @@ the same quantisation a vehicle applies (1e-7 deg, mm, cm/s, cdeg, float32).
 from __future__ import annotations
 
 import math
-import re
-from dataclasses import dataclass
 
 import numpy as np
-from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from quadformer.geometry.frames import (
@@ -73,6 +57,9 @@ from quadformer.geometry.frames import (
     wxyz_to_xyzw,
     xyzw_to_wxyz,
 )
+from quadformer.sensors.samples import Attitude, Baro, Estimate, Gps, GpsStatus, Imu, Mag, Odometry, Origin, SystemTime
+from quadformer.sensors.vehicle_events import (  # noqa: F401 (re-exported)
+    ARMED, NOT_VEHICLES, ON_GROUND, TEXT_EVENTS, VehicleEvents, text_event, vehicle_heartbeat)
 
 __all__ = ["ARMED", "Attitude", "Baro", "Estimate", "Gps", "GpsStatus", "Imu", "Mag", "Odometry", "Origin",
            "SystemTime", "TEXT_EVENTS", "VehicleEvents", "decode", "gps_status", "text_event", "vehicle_heartbeat",
@@ -98,90 +85,6 @@ BODY_FRD, BODY_FLU = 12, 13      # MAV_FRAME_BODY_FRD; 13: legacy MAV_FRAME_BODY
 
 GPS_MESSAGES = {"GPS_RAW_INT": 0, "GPS2_RAW": 1}
 IMU_MESSAGES = ("HIGHRES_IMU", "RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")   # preference order
-
-
-# -- samples ------------------------------------------------------------------------------
-@dataclass(frozen=True, slots=True)
-class Imu:
-    t: float
-    x: np.ndarray            # (6,) specific force m/s^2 and body rate rad/s, FLU
-    source: str              # e.g. "HIGHRES_IMU#0"
-
-
-@dataclass(frozen=True, slots=True)
-class Mag:
-    t: float
-    field: np.ndarray        # (3,) gauss, FLU
-    source: str
-
-
-@dataclass(frozen=True, slots=True)
-class Baro:
-    t: float
-    alt: float               # m, barometric altitude
-    source: str
-
-
-@dataclass(frozen=True, slots=True)
-class Gps:
-    t: float
-    instance: int            # receiver: 0 GPS_RAW_INT, 1 GPS2_RAW
-    fix_type: int            # GPS_FIX_TYPE (3: 3D fix)
-    lat: float               # deg
-    lon: float               # deg
-    alt: float               # m, MSL
-    vel: np.ndarray          # (3,) ENU m/s; NaN where not given (vertical always)
-    eph: float               # m, horizontal accuracy (NaN: none)
-    epv: float               # m, vertical accuracy (NaN: none)
-    speed_acc: float         # m/s (NaN: none)
-    satellites: float        # NaN when unknown
-
-
-@dataclass(frozen=True, slots=True)
-class GpsStatus:
-    t: float
-    instance: int            # receiver: 0 GPS_RAW_INT, 1 GPS2_RAW
-    fix_type: int            # GPS_FIX_TYPE: 0/1 no fix, 2 2D, 3 3D, 4+ augmented
-    satellites: float        # NaN when unknown
-    eph: float               # m, horizontal accuracy (NaN: none)
-    epv: float               # m, vertical accuracy (NaN: none)
-    speed_acc: float         # m/s (NaN: none)
-
-
-@dataclass(frozen=True, slots=True)
-class Odometry:
-    t: float
-    pos: np.ndarray          # (3,) ENU, the odometry's own origin
-    vel: np.ndarray          # (3,) ENU m/s
-    q: np.ndarray            # (4,) xyzw, body FLU -> world ENU
-
-
-@dataclass(frozen=True, slots=True)
-class Attitude:
-    t: float
-    q: np.ndarray            # (4,) xyzw, body FLU -> world ENU
-
-
-@dataclass(frozen=True, slots=True)
-class Estimate:
-    t: float
-    kind: str                # "global" (lat, lon, alt) or "local" (the autopilot's local frame)
-    pos: np.ndarray          # (3,) lat deg, lon deg, alt m (global) or ENU m (local)
-    vel: np.ndarray          # (3,) ENU m/s
-
-
-@dataclass(frozen=True, slots=True)
-class Origin:
-    lat: float
-    lon: float
-    alt: float
-    source: str              # "GPS_GLOBAL_ORIGIN" or "HOME_POSITION"
-
-
-@dataclass(frozen=True, slots=True)
-class SystemTime:
-    unix_s: float            # s since 1970
-    boot_s: float            # s since boot, at the same instant
 
 
 # -- units ----------------------------------------------------------------------------------
@@ -345,84 +248,6 @@ def decode(msg) -> list:
     it holds no usable value)."""
     f = _DECODERS.get(msg.get_type())
     return f(msg) if f is not None else []
-
-
-# -- the vehicle's events ---------------------------------------------------------------------
-ARMED = mavlink2.MAV_MODE_FLAG_SAFETY_ARMED          # 128, HEARTBEAT.base_mode
-ON_GROUND = mavlink2.MAV_LANDED_STATE_ON_GROUND      # 1 (0 undefined; 2, 3, 4 in the air)
-NOT_VEHICLES = (mavlink2.MAV_TYPE_GCS, mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_TYPE_GIMBAL)
-
-#: STATUSTEXT -> event: the first pattern that matches (case-insensitive) wins
-TEXT_EVENTS = ((re.compile(r"^(pre)?arm\b", re.I), None),
-               (re.compile(r"glitch cleared", re.I), "gps_glitch_cleared"),
-               (re.compile(r"gps glitch", re.I), "gps_glitch"),
-               (re.compile(r"gps failsafe.*(cleared|resolved)", re.I), "gps_failsafe_cleared"),
-               (re.compile(r"gps failsafe|lost gps", re.I), "gps_failsafe"),
-               (re.compile(r"^ekf variance", re.I), "ekf_variance"))
-
-
-def vehicle_heartbeat(m) -> bool:
-    """Whether a HEARTBEAT is a vehicle's autopilot's: not a ground station's, an onboard
-    controller's or a gimbal's, nor a component's without an autopilot (a camera)."""
-    return m.autopilot != mavlink2.MAV_AUTOPILOT_INVALID and m.type not in NOT_VEHICLES
-
-
-def text_event(text: str) -> str | None:
-    """The event a STATUSTEXT says (``TEXT_EVENTS``), None for any other text."""
-    return next((e for pattern, e in TEXT_EVENTS if pattern.search(text)), None)
-
-
-class VehicleEvents:
-    """The vehicle's events as its messages arrive, each method given the message's time t and
-    returning the (t, event, detail) rows it gives (see the module text). Feed it the vehicle's
-    messages only (``vehicle_heartbeat``); ``start`` words the detail of a state the vehicle
-    was first heard in (a log's start, the link's first report)."""
-
-    def __init__(self, start: str = "at the log's start") -> None:
-        self.start = start
-        self.armed: bool | None = None
-        self.mode: str | None = None
-        self.airborne: bool | None = None
-
-    def heartbeat(self, t: float, m) -> list[tuple[float, str, str]]:
-        rows = []
-        armed = bool(m.base_mode & ARMED)
-        if armed != self.armed and (armed or self.armed is not None):
-            first = f" {self.start}" if self.armed is None else ""
-            rows.append((t, "armed" if armed else "disarmed", f"HEARTBEAT base_mode {m.base_mode}{first}"))
-        self.armed = armed
-        mode = mavutil.mode_string_v10(m)
-        if mode != self.mode:
-            rows.append((t, "mode", f"HEARTBEAT mode {mode}"))
-            self.mode = mode
-        return rows
-
-    def landed_state(self, t: float, state: int) -> list[tuple[float, str, str]]:
-        if state == 0:
-            return []
-        rows = []
-        airborne = state != ON_GROUND
-        if airborne != self.airborne and (airborne or self.airborne is not None):
-            first = f" {self.start}" if self.airborne is None else ""
-            rows.append((t, "takeoff" if airborne else "landed", f"EXTENDED_SYS_STATE landed_state {state}{first}"))
-        self.airborne = airborne
-        return rows
-
-    def text(self, t: float, text: str) -> list[tuple[float, str, str]]:
-        event = text_event(text)
-        return [] if event is None else [(t, event, f"STATUSTEXT {text!r}")]
-
-    def message(self, t: float, m) -> list[tuple[float, str, str]]:
-        """Any message of the vehicle: the rows of a vehicle HEARTBEAT, an EXTENDED_SYS_STATE or
-        a STATUSTEXT, none for others."""
-        kind = m.get_type()
-        if kind == "HEARTBEAT":
-            return self.heartbeat(t, m) if vehicle_heartbeat(m) else []
-        if kind == "EXTENDED_SYS_STATE":
-            return self.landed_state(t, int(m.landed_state))
-        if kind == "STATUSTEXT":
-            return self.text(t, str(m.text))
-        return []
 
 
 # -- encoding (test senders) ----------------------------------------------------------------
