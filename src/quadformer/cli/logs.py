@@ -34,6 +34,8 @@ def detect(
     receiver_accuracy: bool = typer.Option(True, help=RECEIVER_HELP),
     typing: str = typer.Option("shape", help=TYPING_HELP),
     quiet: bool = typer.Option(False, help="No progress bar."),
+    workers: int = typer.Option(0, help="Processes scoring one log each at a time (0: one per core, at most one "
+                                "per log; 1: one after the other, here)."),
 ) -> None:
     """Detect GPS spoofing in flight logs: per-step scores, alerts (printed and CSV) and a report per log."""
     import sys
@@ -47,7 +49,9 @@ def detect(
     check_typing(typing)
     config = replay_config(sensors, imu_rate, gps_rate, min_segment, filter, det, gps_delay, receiver_accuracy)
     paths = log_paths(logs, format)
-    if residues == "ekf" or "torch" in sys.modules:   # the replayed filter, a network detector: torch runs
+    if workers < 0:
+        fail(f"--workers must be 0 (one per core) or more, got {workers}")
+    if "torch" in sys.modules:                       # a network detector: one thread per log
         set_threads(1)
     bar = None
     if not quiet and len(paths) > 1:
@@ -74,8 +78,10 @@ def detect(
                           if n["alerts_total"] > n["alerts"] else ""))
             print_alerts(res.alerts)
 
+    import os
+
     run = detect_logs(paths, det, out, residues, config, format=format, typing=typing, model=str(model),
-                      on_log=done)
+                      on_log=done, workers=workers or os.cpu_count() or 1)
     if bar is not None:
         bar.close()
     skipped, failed = run.of("skipped"), run.of("failed")

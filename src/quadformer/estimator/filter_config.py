@@ -110,20 +110,52 @@ class FilterConfig:
                                  f"baro with '+' (unknown: {', '.join(sorted(unknown)) or 'none'})")
 
 
-def noise_model_for(config: FilterConfig, dt: float, mag_field: np.ndarray | None = None) -> NoiseModel:
+@dataclass(frozen=True)
+class Noise:
+    """The filter's noise as numpy arrays (the fields of ``eskf.NoiseModel``): per-step process
+    noise stds, measurement noise stds, and the Earth field the magnetometer heading is
+    measured against (None until known)."""
+    accel_std: float
+    gyro_std: float
+    accel_walk: float
+    gyro_walk: float
+    gps_std: np.ndarray       # (6,) position m, velocity m/s
+    vio_std: np.ndarray       # (6,) velocity m/s, attitude rad
+    mag_std: np.ndarray       # (1,) heading, rad
+    baro_std: np.ndarray      # (1,) height, m
+    mag_field: np.ndarray | None = None   # (3,) world frame (ENU), gauss
+
+    @classmethod
+    def of(cls, nm: NoiseModel) -> "Noise":
+        """The arrays of a torch ``eskf.NoiseModel`` (absent measurement stds: 1)."""
+        a = lambda t, k: np.ones(k) if t is None else t.detach().cpu().numpy().astype(float)  # noqa: E731
+        return cls(float(nm.accel_std), float(nm.gyro_std), float(nm.accel_walk), float(nm.gyro_walk),
+                   a(nm.gps_std, 6), a(nm.vio_std, 6), a(nm.mag_std, 1), a(nm.baro_std, 1),
+                   None if nm.mag_field is None else a(nm.mag_field, 3))
+
+
+def noise_for(config: FilterConfig, dt: float, mag_field: np.ndarray | None = None) -> Noise:
     """The filter's noise for IMU steps of dt seconds: the configured per-step noise at
     ``imu_rate_hz``, scaled to the same density at dt."""
+    c = config
+    density = math.sqrt(1.0 / (c.imu_rate_hz * dt))      # per-step std ~ 1/sqrt(dt)
+    return Noise(
+        accel_std=c.accel_noise * density, gyro_std=c.gyro_noise * density,
+        accel_walk=c.accel_bias_walk * dt, gyro_walk=c.gyro_bias_walk * dt,
+        gps_std=np.array([c.gps_pos_noise, c.gps_pos_noise, c.gps_alt_noise] + [c.gps_vel_noise] * 3),
+        vio_std=np.array([c.vio_vel_noise] * 3 + [np.deg2rad(c.vio_att_noise_deg)] * 3),
+        mag_std=np.array([c.heading_noise]), baro_std=np.array([c.baro_noise]),
+        mag_field=None if mag_field is None else np.asarray(mag_field, dtype=float))
+
+
+def noise_model_for(config: FilterConfig, dt: float, mag_field: np.ndarray | None = None) -> NoiseModel:
+    """``noise_for`` as the torch filter's ``eskf.NoiseModel``."""
     import torch
 
     from quadformer.estimator.eskf import NoiseModel
 
-    f64 = lambda v: torch.tensor(v, dtype=torch.float64)   # noqa: E731
-    c = config
-    density = math.sqrt(1.0 / (c.imu_rate_hz * dt))      # per-step std ~ 1/sqrt(dt)
-    return NoiseModel(
-        accel_std=c.accel_noise * density, gyro_std=c.gyro_noise * density,
-        accel_walk=c.accel_bias_walk * dt, gyro_walk=c.gyro_bias_walk * dt,
-        gps_std=f64([c.gps_pos_noise, c.gps_pos_noise, c.gps_alt_noise] + [c.gps_vel_noise] * 3),
-        vio_std=f64([c.vio_vel_noise] * 3 + [np.deg2rad(c.vio_att_noise_deg)] * 3),
-        mag_std=f64([c.heading_noise]), baro_std=f64([c.baro_noise]),
-        mag_field=None if mag_field is None else f64(mag_field))
+    f64 = lambda v: None if v is None else torch.tensor(v, dtype=torch.float64)   # noqa: E731
+    n = noise_for(config, dt, mag_field)
+    return NoiseModel(accel_std=n.accel_std, gyro_std=n.gyro_std, accel_walk=n.accel_walk, gyro_walk=n.gyro_walk,
+                      gps_std=f64(n.gps_std), vio_std=f64(n.vio_std), mag_std=f64(n.mag_std),
+                      baro_std=f64(n.baro_std), mag_field=f64(n.mag_field))

@@ -34,20 +34,33 @@ from collections import deque
 from typing import Any
 
 import numpy as np
-import torch
 
 from quadformer.config import SENSOR_NAMES
-from quadformer.estimator.eskf import init_state
-from quadformer.estimator.filter_config import FilterConfig, noise_model_for
-from quadformer.estimator.online_filter import AIDING, EPS, OnlineFilter
+from quadformer.estimator.feed import AIDING, EPS
+from quadformer.estimator.filter_config import FilterConfig, noise_for, noise_model_for
 
 #: the order in which a source calls ``ResidueStream`` for samples with equal stamps (the log
 #: replay sorts its events by (stamp, this order); a live link's sender streams in it)
 CALL_ORDER = ("attitude", "mag", "baro", "vio", "gps", "imu")
 
 
-def as_numpy(row: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
-    return {k: v.numpy() for k, v in row.items()}
+#: the arithmetic a ``ResidueStream`` runs its filter with: ``numeric`` (``numeric.NumericFilter``,
+#: compiled, the default) or ``torch`` (``online_filter.OnlineFilter``, the reference implementation)
+BACKENDS = ("numeric", "torch")
+
+
+def as_numpy(row: dict) -> dict[str, np.ndarray]:
+    return {k: np.asarray(v) for k, v in row.items()}
+
+
+def per_flight(x, n: int, k: int) -> np.ndarray:
+    """A sample (n, k), or (k,) for every flight, as an (n, k) float array (a view where it can)."""
+    x = np.asarray(x, dtype=float)
+    if x.shape == (n, k):
+        return x
+    if x.shape == (k,):
+        return x.reshape(1, k) if n == 1 else np.broadcast_to(x, (n, k))
+    raise ValueError(f"a sample shaped {x.shape}, expected ({n}, {k}) or ({k},)")
 
 
 def spaced(dt: float, rate_hz: float) -> bool:
@@ -99,13 +112,15 @@ class ResidueStream:
     BARO_SETTLE = 5.0     # s after the start over which the barometer's offset to the filter's height is
                           # averaged before it is fused (one fix's vertical error would bias it for good)
 
-    def __init__(self, config: FilterConfig, sensors: str, n: int = 1):
+    def __init__(self, config: FilterConfig, sensors: str, n: int = 1, backend: str = "numeric"):
         parts = sensors.split("+")
         if not {"gps", "imu"} <= set(parts) or set(parts) - set(SENSOR_NAMES):
             raise ValueError(f"sensors: {sensors!r} must join gps, imu and any of vio, mag, baro with '+'")
-        self.config, self.sensors, self.n = config, sensors, n
+        if backend not in BACKENDS:
+            raise ValueError(f"backend: {backend!r} is not one of {', '.join(BACKENDS)}")
+        self.config, self.sensors, self.n, self.backend = config, sensors, n, backend
         self.aiding = tuple(s for s in AIDING if s in parts)
-        self.filter: OnlineFilter | None = None
+        self.filter = None                       # the filter (``NumericFilter`` or ``OnlineFilter``) once started
         self.t0: float | None = None
         self._bin: list[tuple[float, np.ndarray]] = []       # IMU samples of the current bin
         self._bin_id: int | None = None
@@ -129,7 +144,7 @@ class ResidueStream:
 
     def imu(self, t: float, x: np.ndarray) -> list[dict[str, Any]]:
         """Specific force and body rate (n, 6) or (6,), FLU."""
-        x = np.broadcast_to(np.asarray(x, dtype=float), (self.n, 6))
+        x = per_flight(x, self.n, 6)
         if self.delay <= 0.0:
             return self._imu(t, x)
         self._held.append((t, x))
@@ -191,20 +206,19 @@ class ResidueStream:
                 self._unready += 1
         else:
             self._fused[measured] = (fix, t)
-            self.filter.push("gps", measured, torch.as_tensor(fix),
-                             torch.as_tensor(std).expand(self.n, 6) if std_n is None else torch.as_tensor(std_n))
+            self.filter.push("gps", measured, fix, np.broadcast_to(std, (self.n, 6)) if std_n is None else std_n)
 
     def mag(self, t: float, x: np.ndarray) -> None:
         """Magnetic field (n, 3) or (3,), gauss, FLU."""
         if "mag" not in self.aiding:
             return
-        x = np.broadcast_to(np.asarray(x, dtype=float), (self.n, 3))
+        x = per_flight(x, self.n, 3)
         if self.filter is None:
             self._keep("mag", t, x[0])
-        elif self.filter.nm.mag_field is None:               # no field yet: the first sample sets it
-            self._set_field(x[0])
+        elif self.filter.mag_field is None:                  # no field yet: the first sample sets it
+            self.filter.set_mag_field(rotation(self._q0) @ x[0])
         else:
-            self.filter.push("mag", t, torch.as_tensor(np.array(x)))
+            self.filter.push("mag", t, np.array(x))
 
     def baro(self, t: float, alt: float) -> None:
         """Barometric altitude (m)."""
@@ -214,17 +228,17 @@ class ResidueStream:
             self._keep("baro", t, np.array([float(alt)]))
             return
         if self._baro_offset is None:                          # settling: the offset, GPS carries height
-            self._baro_diffs.append(float(alt) - self.filter.ekf.p[:, 2].numpy())
+            self._baro_diffs.append(float(alt) - self.filter.position[:, 2])
             if t - self.t0 >= self.BARO_SETTLE:
                 self._baro_offset = np.mean(self._baro_diffs, axis=0)
             return
         h = float(alt) - self._baro_offset                      # height in the filter's frame, per flight
-        self.filter.push("baro", t, torch.as_tensor(h.reshape(self.n, 1)))
+        self.filter.push("baro", t, h.reshape(self.n, 1))
 
     def vio(self, t: float, x: np.ndarray) -> None:
         """Visual odometry: ENU velocity and attitude quaternion (n, 7) or (7,)."""
         if "vio" in self.aiding and self.filter is not None:
-            self.filter.push("vio", t, torch.as_tensor(np.array(np.broadcast_to(np.asarray(x, float), (self.n, 7)))))
+            self.filter.push("vio", t, np.array(np.broadcast_to(np.asarray(x, float), (self.n, 7))))
 
     @property
     def waiting(self) -> float:
@@ -249,12 +263,12 @@ class ResidueStream:
     def _step(self) -> list[dict[str, Any]]:
         """Hand the completed IMU bin (its mean, stamped at its last sample) to the filter."""
         t = self._bin[-1][0]
-        x = np.mean([v for _, v in self._bin], axis=0)
+        x = self._bin[0][1] if len(self._bin) == 1 else np.mean([v for _, v in self._bin], axis=0)
         self._bin = []
         if self.filter is None or t <= self.filter.t:
             return []
         out = []
-        for stamp, row in self.filter.imu(t, torch.as_tensor(np.array(x))):
+        for stamp, row in self.filter.imu(t, x):
             fix, t_fix = self._fused.pop(stamp)
             out.append({"t": t_fix, "gps_pos": fix[:, :3], "gps_vel": fix[:, 3:], **as_numpy(row)})
         return out
@@ -294,9 +308,8 @@ class ResidueStream:
         std0 = np.r_[std[:3], [c.init_vel_std] * 3, np.deg2rad([c.init_att_std_deg] * 2 + [yaw_std]),
                      [c.accel_bias_std] * 3, [c.gyro_bias_std] * 3]
         n = self.n
-        ekf0 = init_state(torch.as_tensor(fix[:, :3]), torch.as_tensor(fix[:, 3:]),
-                          torch.as_tensor(q0).expand(n, 4), torch.zeros(n, 3), torch.zeros(n, 3),
-                          torch.diag(torch.as_tensor(std0 ** 2)).expand(n, 15, 15))
+        p0, v0 = fix[:, :3], fix[:, 3:]
+        q0n, P0 = np.broadcast_to(q0, (n, 4)), np.broadcast_to(np.diag(std0 ** 2), (n, 15, 15))
         imu_t = [s for s, _ in self._recent["imu"]]
         dt = float(np.median(np.diff(imu_t))) if len(imu_t) > 2 else 1.0 / c.imu_rate_hz
         dt = max(dt, 1.0 / c.imu_rate_hz)               # the filter's step after averaging
@@ -305,14 +318,21 @@ class ResidueStream:
         if "mag" in self.aiding and self._recent["mag"]:
             field = rotation(q0) @ np.mean([v for _, v in self._recent["mag"]], axis=0)
         self._baro_offset, self._baro_diffs = None, []
-        nm = noise_model_for(c, dt, field)
-        self.filter = OnlineFilter(ekf0, nm, dt, t0, c.gps_rate_hz, self.aiding, c.max_gap_s)
+        if self.backend == "numeric":
+            from quadformer.estimator.numeric.filter import NumericFilter
+
+            self.filter = NumericFilter(p0, v0, q0n, P0, noise_for(c, dt, field), dt, t0, c.gps_rate_hz,
+                                        self.aiding, c.max_gap_s)
+        else:
+            import torch
+
+            from quadformer.estimator.eskf import init_state
+            from quadformer.estimator.online_filter import OnlineFilter
+
+            z = np.zeros((n, 3))
+            ekf0 = init_state(*(torch.as_tensor(np.array(a)) for a in (p0, v0, q0n, z, z, P0)))
+            self.filter = OnlineFilter(ekf0, noise_model_for(c, dt, field), dt, t0, c.gps_rate_hz, self.aiding,
+                                       c.max_gap_s)
         self.t0 = t0
         self._fused: dict[float, tuple[np.ndarray, float]] = {}   # measurement time -> (fix, stamp)
         self._recent = {k: deque() for k in self._recent}
-
-    def _set_field(self, body: np.ndarray) -> None:
-        from dataclasses import replace
-
-        self.filter.nm = replace(self.filter.nm, mag_field=torch.tensor(rotation(self._q0) @ body,
-                                                                        dtype=torch.float64))

@@ -5,7 +5,9 @@ one row of residues; ``GapError`` where the IMU has a gap the filter cannot prop
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import replace
 
+import numpy as np
 import torch
 
 from quadformer.estimator.eskf import (
@@ -17,20 +19,16 @@ from quadformer.estimator.eskf import (
     predict,
     vio_update,
 )
+from quadformer.estimator.feed import AIDING, EPS, GapError, StreamError
 from quadformer.estimator.reference import GpsFreeReference
 from quadformer.estimator.residues import ResidueTracker
 
-
-AIDING = ("vio", "mag", "baro")     # applied in this order, then GPS
-EPS = 1e-9                           # s, stamps this close count as simultaneous
+__all__ = ["AIDING", "EPS", "GapError", "OnlineFilter", "StreamError"]
 
 
-class StreamError(ValueError):
-    """A sensor stream the filter cannot process; the message names the stream."""
-
-
-class GapError(StreamError):
-    """An IMU sample too long after the previous one for the filter to propagate across."""
+def _tensor(x) -> torch.Tensor:
+    """A sample as a float64 tensor: a tensor as given, an array copied (the caller keeps it)."""
+    return x if isinstance(x, torch.Tensor) else torch.from_numpy(np.array(x, dtype=np.float64))
 
 
 class OnlineFilter:
@@ -51,18 +49,33 @@ class OnlineFilter:
         self._refer = {"vio": lambda x: self.reference.vio(x[:, 0:3]), "mag": lambda x: None,
                        "baro": self.reference.baro}
 
+    # -- what the stream around it reads and sets ------------------------------------------
+    @property
+    def position(self):
+        """The estimated position (n,3), ENU m, as numpy."""
+        return self.ekf.p.numpy().copy()
+
+    @property
+    def mag_field(self):
+        return None if self.nm.mag_field is None else self.nm.mag_field.numpy()
+
+    def set_mag_field(self, field) -> None:
+        """The Earth field (3,) (world, ENU) the magnetometer heading is measured against."""
+        self.nm = replace(self.nm, mag_field=torch.as_tensor(field, dtype=torch.float64))
+
     # -- samples ------------------------------------------------------------------------
-    def push(self, stream: str, t: float, x: torch.Tensor, std: torch.Tensor | None = None) -> None:
-        """Queue an aiding or GPS sample (n, k) stamped t, applied at the first IMU step at or
-        after t. ``std``: GPS only, the receiver's own std per flight (n, 6)."""
+    def push(self, stream: str, t: float, x, std=None) -> None:
+        """Queue an aiding or GPS sample (n, k) stamped t (a tensor or an array), applied at the
+        first IMU step at or after t. ``std``: GPS only, the receiver's own std per flight (n, 6)."""
         if stream not in self.queues:
             raise ValueError(f"{stream}: not a stream of this filter (it fuses {', '.join(self.queues)})")
-        self.queues[stream].append((float(t), x, std))
+        self.queues[stream].append((float(t), _tensor(x), None if std is None else _tensor(std)))
 
-    def imu(self, t: float, x: torch.Tensor) -> list[tuple[float, dict[str, torch.Tensor]]]:
+    def imu(self, t: float, x) -> list[tuple[float, dict[str, torch.Tensor]]]:
         """Propagate to t with the IMU sample x (n, 6), then apply the queued samples stamped
         at or before t. Returns (stamp, residue row) per GPS fix applied; a row holds the
         residue groups and ``est_pos``, ``est_vel``, each (n, k)."""
+        x = _tensor(x)
         step = t - self.t
         if step > self.max_gap:
             raise GapError(f"imu: gap of {step:.3f} s before t = {t:.3f} s (more than {self.max_gap} s); "

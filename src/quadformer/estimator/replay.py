@@ -52,7 +52,8 @@ def _check_samples(name: str, t: np.ndarray, x: torch.Tensor, flights: int) -> N
 def run_ekf(ekf0: EKFState, nm: NoiseModel, dt: float, imu_t, imu: torch.Tensor, gps_t, gps: torch.Tensor, *,
             vio_t=None, vio: torch.Tensor | None = None, mag_t=None, mag: torch.Tensor | None = None,
             baro_t=None, baro: torch.Tensor | None = None, gps_std: torch.Tensor | None = None,
-            t0: float = 0.0, gps_rate_hz: float = 10.0, max_gap: float = 0.1) -> dict[str, np.ndarray]:
+            t0: float = 0.0, gps_rate_hz: float = 10.0, max_gap: float = 0.1,
+            backend: str = "torch") -> dict[str, np.ndarray]:
     """Residues and estimates at every GPS sample.
 
     imu: (B, N, 6) specific force and body rate (FLU); gps: (B, K, 6) position and velocity
@@ -63,7 +64,9 @@ def run_ekf(ekf0: EKFState, nm: NoiseModel, dt: float, imu_t, imu: torch.Tensor,
     place of the noise model's. Times in seconds, ``ekf0`` the filter state at ``t0``.
 
     Returns arrays (B, K, k): the residue groups of the streams given (dataset column groups)
-    and ``est_pos``, ``est_vel``.
+    and ``est_pos``, ``est_vel``. ``backend``: ``torch`` (``OnlineFilter``, the closed loop's
+    own arithmetic: its residues bit for bit) or ``numeric`` (``numeric.NumericFilter``, the
+    compiled twin: the same to rounding).
     """
     B, K = gps.shape[0], gps.shape[1]
     aiding: dict[str, tuple[np.ndarray, torch.Tensor]] = {}
@@ -90,7 +93,17 @@ def run_ekf(ekf0: EKFState, nm: NoiseModel, dt: float, imu_t, imu: torch.Tensor,
         i = int(np.argmax(steps))
         raise StreamError(f"imu: gap of {steps[i]:.3f} s before t = {imu_t[i]:.3f} s (more than {max_gap} s); "
                           f"split the log there")
-    filt = OnlineFilter(ekf0, nm, dt, t0, gps_rate_hz, aiding=tuple(aiding), max_gap=max_gap)
+    if backend == "torch":
+        filt = OnlineFilter(ekf0, nm, dt, t0, gps_rate_hz, aiding=tuple(aiding), max_gap=max_gap)
+    elif backend == "numeric":
+        from quadformer.estimator.filter_config import Noise
+        from quadformer.estimator.numeric.filter import NumericFilter
+
+        e = {k: getattr(ekf0, k).numpy() for k in ("p", "v", "q", "P", "ba", "bg")}
+        filt = NumericFilter(e["p"], e["v"], e["q"], e["P"], Noise.of(nm), dt, t0, gps_rate_hz, tuple(aiding),
+                             max_gap, ba=e["ba"], bg=e["bg"])
+    else:
+        raise ValueError(f"backend: {backend!r} is not one of torch, numeric")
     out: dict[str, np.ndarray] = {}
     at = {name: 0 for name in aiding}
     ig = queued = 0
@@ -105,7 +118,7 @@ def run_ekf(ekf0: EKFState, nm: NoiseModel, dt: float, imu_t, imu: torch.Tensor,
             queued += 1
         for _, row in filt.imu(t, imu[:, i]):
             for k, v in row.items():
-                out.setdefault(k, np.zeros((B, K, v.shape[-1])))[:, ig] = v.numpy()
+                out.setdefault(k, np.zeros((B, K, v.shape[-1])))[:, ig] = np.asarray(v)
             ig += 1
     if ig < K:
         raise StreamError(f"gps: {K - ig} samples after the last IMU sample (t = {imu_t[-1] if len(imu_t) else t0})")

@@ -21,10 +21,8 @@ import numpy as np
 import torch
 
 from quadformer.estimator.eskf import Innovation
-
-CORR_TAU = 20.0   # s
-CORR_TAUS = {"res_gps_corr5": 5.0, "res_gps_corr120": 120.0}   # s, the further correction integrals
-AIDING = ("vio", "mag", "baro")
+from quadformer.estimator.feed import AIDING
+from quadformer.estimator.schema import CORR_TAU, CORR_TAUS
 
 
 class ResidueTracker:

@@ -19,6 +19,11 @@ XYZ = ("x", "y", "z")
 GPS_AXES = ("px", "py", "pz", "vx", "vy", "vz")      # GPS innovation: position then velocity
 VIO_AXES = ("vx", "vy", "vz", "thx", "thy", "thz")   # VIO innovation: velocity then attitude
 
+#: s, time constants of the leaky integrals of GPS position corrections (``res_gps_corr`` and the
+#: further groups)
+CORR_TAU = 20.0
+CORR_TAUS = {"res_gps_corr5": 5.0, "res_gps_corr120": 120.0}
+
 #: attack types a flight's ``attack_type`` column may hold besides "none" (the label vocabulary)
 ATTACK_TYPES = tuple(k for k in ATTACK_KINDS if k != "none")
 

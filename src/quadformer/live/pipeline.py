@@ -17,7 +17,7 @@ import numpy as np
 
 from quadformer.detectors.attack_types import ShapeTyper
 from quadformer.estimator.online import FilterConfig
-from quadformer.estimator.online_filter import GapError
+from quadformer.estimator.feed import GapError
 from quadformer.live.actions import Records, VehicleLink, autopilot_name
 from quadformer.live.alerts import Alerting
 from quadformer.live.config import FixRecord, MonitorConfig

@@ -208,19 +208,20 @@ def autopilot_rows(log: FlightLog, seg: int = 0) -> pd.DataFrame:
 
 # --------------------------------------------------------------------------- ekf
 def ekf_rows(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfig(),
-             attack=None) -> LogFlight:
+             attack=None, backend: str = "numeric") -> LogFlight:
     """Replay the project's filter over segment ``seg`` of ``log``. ``attack``: an
-    ``attacks.AttackBatch`` of one flight whose times count from the segment's first fix."""
-    return ekf_flights(log, seg, config, [attack])[0]
+    ``attacks.AttackBatch`` of one flight whose times count from the segment's first fix.
+    ``backend``: the filter's arithmetic (``estimator.online.BACKENDS``)."""
+    return ekf_flights(log, seg, config, [attack], backend)[0]
 
 
 def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfig(),
-                attacks: list = (None,)) -> list[LogFlight]:
+                attacks: list = (None,), backend: str = "numeric") -> list[LogFlight]:
     """``ekf_rows`` for several injections into the same segment (None: none), replayed
     together as one batch of flights sharing the log's timestamps: the segment's samples go,
     in time order, through the same ``ResidueStream`` a live link feeds."""
     from quadformer.estimator.online import CALL_ORDER, ResidueStream
-    from quadformer.estimator.online_filter import GapError
+    from quadformer.estimator.feed import GapError
 
     part = log.segment(seg) if len(log.segments) > 1 else log
     sensors = _sensors_of(part, config)
@@ -266,7 +267,7 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
     B = len(fixes)
     P = np.stack([f[0] for f in fixes], axis=1)          # (fixes, B, 3)
     V = np.stack([f[1] for f in fixes], axis=1)
-    stream = ResidueStream(config, sensors, n=B)
+    stream = ResidueStream(config, sensors, n=B, backend=backend)
     acc = gps[["eph", "epv", "speed_acc"]].to_numpy()
     events: list[tuple[float, int, Any]] = []          # (time, order on ties, call)
     add = events.extend

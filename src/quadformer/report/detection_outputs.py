@@ -101,29 +101,45 @@ class LogsDetection:
 
 def detect_logs(paths: list[str | Path], detector, out: str | Path, residues: str = "ekf",
                 config: FilterConfig = FilterConfig(), format: str | None = None, typing: str = "shape",
-                model: str = "", on_log: Callable[[LogOutcome], None] | None = None) -> LogsDetection:
+                model: str = "", on_log: Callable[[LogOutcome], None] | None = None,
+                workers: int = 1) -> LogsDetection:
     """``logs.detect.detect_log`` on each log of ``paths``, the outputs written under ``out``:
     a folder per log (``folder_names``), and summary.csv and alerts.csv over the logs scored
     (none when no log was). A log that cannot be read or scored (LogError, a detector that
     reads residues the log does not provide, ValueError) is a ``failed`` outcome with no
-    folder; the others go on. ``on_log`` is called with each log's outcome as it is done."""
+    folder; the others go on. ``on_log`` is called with each log's outcome as it is done (in
+    the order they finish); the outcomes are returned in the order of ``paths``.
+
+    ``workers``: processes scoring one log each at a time (spawned interpreters, one thread
+    each, the detector sent to each once); 1 scores them here, one after the other. The
+    outputs are the same either way."""
     out, paths = Path(out), [Path(p) for p in paths]
-    outcomes, frames = [], []
-    for path, name in zip(paths, folder_names(paths)):
-        try:
-            res = detect_log(path, detector, residues, config, format=format, typing=typing)
-        except NothingToScore as e:                      # readable, but no GPS or too short: say so
-            info = write_unscored(e, out / name, path)
-            outcome = LogOutcome(path, "skipped", out / name, reason=str(e), summary=info)
-        except (LogError, DetectorInputError, ValueError) as e:
-            outcome = LogOutcome(path, "failed", reason=str(e))
-        else:
-            info = write_detection(res, out / name, path, model)
-            frames.append(alerts_frame(res.alerts).assign(log=str(path)))
-            outcome = LogOutcome(path, "scored", out / name, res, summary=info)
-        outcomes.append(outcome)
+    if not (isinstance(workers, int) and workers >= 1):
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    jobs = [(path, out / name, residues, config, format, typing, model)
+            for path, name in zip(paths, folder_names(paths))]
+    done: list[tuple[LogOutcome, pd.DataFrame | None] | None] = [None] * len(jobs)
+
+    def finish(i: int, result: tuple[LogOutcome, pd.DataFrame | None]) -> None:
+        done[i] = result
         if on_log is not None:
-            on_log(outcome)
+            on_log(result[0])
+
+    workers = min(workers, len(jobs))
+    if workers <= 1:
+        for i, job in enumerate(jobs):
+            finish(i, _detect_one(detector, *job))
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=_start_worker, initargs=(detector,)) as pool:
+            futures = {pool.submit(_detect_in_worker, *job): i for i, job in enumerate(jobs)}
+            for f in as_completed(futures):
+                finish(futures[f], f.result())
+    outcomes = [d[0] for d in done]
+    frames = [d[1] for d in done if d[1] is not None]
     run = LogsDetection(out, outcomes)
     scored = run.of("scored")
     if scored:
@@ -132,3 +148,35 @@ def detect_logs(paths: list[str | Path], detector, out: str | Path, residues: st
         with atomic_path(out / "alerts.csv") as tmp:
             pd.concat(frames, ignore_index=True).to_csv(tmp, index=False)
     return run
+
+
+def _detect_one(detector, path: Path, folder: Path, residues: str, config: FilterConfig, format: str | None,
+                typing: str, model: str) -> tuple[LogOutcome, pd.DataFrame | None]:
+    """One log detected and written: its outcome and, scored, its alerts with their ``log``."""
+    try:
+        res = detect_log(path, detector, residues, config, format=format, typing=typing)
+    except NothingToScore as e:                      # readable, but no GPS or too short: say so
+        info = write_unscored(e, folder, path)
+        return LogOutcome(path, "skipped", folder, reason=str(e), summary=info), None
+    except (LogError, DetectorInputError, ValueError) as e:
+        return LogOutcome(path, "failed", reason=str(e)), None
+    info = write_detection(res, folder, path, model)
+    return LogOutcome(path, "scored", folder, res, summary=info), alerts_frame(res.alerts).assign(log=str(path))
+
+
+_WORKER_DETECTOR = None     # the detector of a worker process of ``detect_logs``
+
+
+def _start_worker(detector) -> None:
+    import sys
+
+    global _WORKER_DETECTOR
+    if "torch" in sys.modules:                    # a network detector (the log replay needs no torch)
+        from quadformer.io import set_threads
+
+        set_threads(1)
+    _WORKER_DETECTOR = detector
+
+
+def _detect_in_worker(*job) -> tuple[LogOutcome, pd.DataFrame | None]:
+    return _detect_one(_WORKER_DETECTOR, *job)
