@@ -75,7 +75,11 @@ class _GuardedReader(DFReader.DFReader_binary):
         super().init_arrays(progress_callback)
 
 
-def collect_messages(path: Path) -> tuple[dict[str, list[dict]], int, int]:
+def collect_messages(path: Path, indexed: bool = True) -> tuple[dict[str, list[dict]], int, int]:
+    """The wanted messages of a DataFlash log as rows per type (each with ``TimeUS``: its own
+    stamp, or for an untimed message the last timed one before it), the first stamp, and the
+    number of damage reports. ``indexed``: decode from DFReader's index, a message type at a
+    time (the same rows; files with damage fall back to reading message by message)."""
     if not path.is_file():
         raise LogError(f"{path}: no such file")
     size = path.stat().st_size
@@ -85,6 +89,9 @@ def collect_messages(path: Path) -> tuple[dict[str, list[dict]], int, int]:
         if fh.read(2) != _HEADER:
             raise LogError(f"{path}: does not start with the DataFlash message header 0xA3 0x95; "
                            "not an ArduPilot .bin log (text .log files are not supported)")
+    fast = _indexed_messages(path, size) if indexed else None
+    if fast is not None:
+        return fast
     rows: dict[str, list[dict]] = {k: [] for k in WANTED}
     first_us = None
     last_us = None          # the last timed message's stamp: the time of untimed ones (EV, ERR)
@@ -142,6 +149,124 @@ def collect_messages(path: Path) -> tuple[dict[str, list[dict]], int, int]:
     if clocks["TimeMS"]:
         rows["time"] = [{"TimeUS": first_us, "clock": "TimeMS" if not clocks["TimeUS"] else "mixed"}]
     return rows, first_us, reports
+
+
+#: numpy types of the DataFlash format characters (pymavlink's FORMAT_TO_STRUCT, little endian)
+_NUMPY = {"b": "i1", "B": "u1", "g": "<f2", "h": "<i2", "H": "<u2", "i": "<i4", "I": "<u4", "f": "<f4",
+          "n": "S4", "N": "S16", "Z": "S64", "a": "V64", "c": "<i2", "C": "<u2", "e": "<i4", "E": "<u4",
+          "L": "<i4", "d": "<f8", "M": "i1", "q": "<i8", "Q": "<u8"}
+_FMT = 0x80
+
+
+def _stamp_field(fmt) -> tuple[str, int] | None:
+    """The field a message's time is read from and its factor to microseconds (``message_us``)."""
+    if "TimeUS" in fmt.colhash:
+        return "TimeUS", 1
+    if fmt.name.startswith("GPS") and "T" in fmt.colhash:
+        return "T", 1000
+    if "TimeMS" in fmt.colhash:
+        return "TimeMS", 1000
+    return None
+
+
+def _records(data: np.ndarray, offsets: np.ndarray, fmt) -> np.ndarray:
+    """The messages of format ``fmt`` starting at ``offsets``, as a structured array."""
+    dtype = np.dtype([(c, _NUMPY[ch]) for c, ch in zip(fmt.columns, fmt.format)])
+    if dtype.itemsize != fmt.len - 3:
+        raise ValueError(f"{fmt.name}: format of {dtype.itemsize} bytes, messages of {fmt.len - 3}")
+    body = data[offsets[:, None] + (3 + np.arange(fmt.len - 3))]
+    return np.ascontiguousarray(body).view(dtype).ravel()
+
+
+def _values(rec: np.ndarray, fmt, field: str) -> list:
+    """A field's values as ``DFReader``'s messages give them: multipliers applied (divided by
+    their inverse, as it does), strings decoded and cut at their first NUL."""
+    i = fmt.colhash[field]
+    ch, mult = fmt.format[i], fmt.msg_mults[i]
+    v = rec[field]
+    if v.dtype.kind == "S":
+        out = []
+        for b in v.tolist():
+            try:
+                text = b.decode("utf-8")
+            except UnicodeDecodeError:
+                text = b.decode("ISO-8859-1")
+            out.append(DFReader.null_term(text))
+        return out
+    if mult is not None:
+        v = v.astype(np.float64)
+        return (v / (1 / mult) if 0.0 < mult < 1.0 else v * mult).tolist()
+    if ch in "fgd":
+        return v.astype(np.float64).tolist()
+    return v.tolist()
+
+
+def _indexed_messages(path: Path, size: int):
+    """``collect_messages``'s result from DFReader's index of the file, each wanted message type
+    decoded at once with numpy; None where the file needs the message-by-message reader (any
+    damage the indexer reported, a format redefined or inconsistent). A message cut short by
+    the end of the file is left out, as the message-by-message reader stops there."""
+    out, err = io.StringIO(), io.StringIO()
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            reader = _GuardedReader(str(path), zero_time_base=True)
+            reader.filehandle.close()
+    except _CorruptFormat as exc:
+        raise LogError(f"{path}: corrupt DataFlash log: {exc}; the file is damaged") from exc
+    except Exception:       # noqa: BLE001  (the message-by-message reader names the damage)
+        return None
+    if out.getvalue() or err.getvalue():
+        return None
+    data = np.frombuffer(reader.data_map, dtype=np.uint8)
+    try:
+        offsets, formats = {}, {}
+        for tid in range(256):
+            k = reader.counts[tid]
+            if not k:
+                continue
+            fmt = reader.formats.get(tid)
+            if fmt is None:
+                return None
+            ofs = np.asarray(reader.offsets[tid][:k], dtype=np.int64)
+            ofs = ofs[ofs + fmt.len <= size]            # the last message, cut short at the end, is not read
+            if len(ofs):
+                offsets[tid], formats[tid] = ofs, fmt
+        if _FMT in offsets:
+            defined = _records(data, offsets[_FMT], formats[_FMT])["Type"]
+            if len(np.unique(defined)) != len(defined):
+                return None                            # a format redefined on the way
+        # every timed message's stamp, in file order
+        t_ofs, t_us, clocks = [], [], {"TimeUS": 0, "TimeMS": 0}
+        for tid, fmt in formats.items():
+            field = _stamp_field(fmt)
+            if field is None:
+                continue
+            name, factor = field
+            us = _records(data, offsets[tid], fmt)[name].astype(np.uint64) * np.uint64(factor)
+            t_ofs.append(offsets[tid])
+            t_us.append(us)
+            clocks["TimeUS" if name == "TimeUS" else "TimeMS"] += len(us)
+        if not t_ofs:
+            return None
+        t_ofs, t_us = np.concatenate(t_ofs), np.concatenate(t_us)
+        order = np.argsort(t_ofs, kind="stable")
+        t_ofs, t_us = t_ofs[order], t_us[order]
+        first_us = int(t_us[0])
+        rows: dict[str, list[dict]] = {k: [] for k in WANTED}
+        for tid, fmt in formats.items():
+            if fmt.name not in rows:
+                continue
+            rec = _records(data, offsets[tid], fmt)
+            before = np.searchsorted(t_ofs, offsets[tid], side="right") - 1    # the last timed one at or before
+            stamps = [first_us if i < 0 else v for i, v in zip(before.tolist(), t_us[np.maximum(before, 0)].tolist())]
+            keys = ["TimeUS"] + [f for f in WANTED[fmt.name] if f in fmt.colhash]
+            cols = [stamps] + [_values(rec, fmt, f) for f in keys[1:]]
+            rows[fmt.name] = [dict(zip(keys, vals)) for vals in zip(*cols)]
+    except (ValueError, KeyError, IndexError, TypeError):
+        return None
+    if clocks["TimeMS"]:
+        rows["time"] = [{"TimeUS": first_us, "clock": "TimeMS" if not clocks["TimeUS"] else "mixed"}]
+    return rows, first_us, 0
 
 
 def message_us(m, colhash, name: str) -> int | None:
