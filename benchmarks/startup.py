@@ -1,6 +1,8 @@
 """Start-up time of the command line: what a user waits before a command does its work.
 
-Each command runs in a fresh interpreter (``python -m quadformer.cli``, what the ``quadformer``
+Commands: ``--help``, ``logs info`` and ``detect`` (a classical detector, the project's filter
+replayed) on a small PX4 log, and the imports of the package and of the live monitor. Each
+command runs in a fresh interpreter (``python -m quadformer.cli``, what the ``quadformer``
 console script runs), three times; the best wall time counts (a warm file cache, the least
 disturbed run). Also printed: whether the command's imports load torch (a second run with
 ``-X importtime``, whose log names every module imported). Prints one line per command; the last
@@ -15,6 +17,7 @@ import argparse
 import json
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -22,11 +25,29 @@ ROOT = Path(__file__).resolve().parents[1]
 SMALL_LOG = ROOT / "tests" / "fixtures" / "logs" / "sample_log_small.ulg"
 
 
-def commands(log: Path) -> dict[str, list[str]]:
+def chi2_model(folder: Path) -> Path:
+    """A calibrated chi2 detector saved in ``folder`` (fitted on chi-square NIS samples: its
+    numbers do not matter here, only what loading and scoring it costs)."""
+    import numpy as np
+    import pandas as pd
+
+    from quadformer.detectors import make
+    from quadformer.estimator.schema import NIS
+
+    rng = np.random.default_rng(5)
+    X = pd.DataFrame({"flight_id": 0, "t": np.arange(200) * 0.1, NIS: rng.chisquare(6, 200)})
+    det = make("chi2").fit(X)
+    det.calibrate(30.0)
+    return det.save(folder / "chi2.json")
+
+
+def commands(log: Path, model: Path, out: Path) -> dict[str, list[str]]:
     """The timed commands by name: the arguments after the Python executable."""
     cli = ["-m", "quadformer.cli"]
     return {"quadformer --help": [*cli, "--help"],
             "quadformer logs info": [*cli, "logs", "info", str(log)],
+            "quadformer detect (chi2)": [*cli, "detect", str(log), "--model", str(model), "--out", str(out)],
+            "import the live monitor": ["-c", "import quadformer.live.monitor"],
             "import quadformer": ["-c", "import quadformer"]}
 
 
@@ -53,7 +74,8 @@ def main() -> None:
     ap.add_argument("--log", type=Path, default=SMALL_LOG, help="the log of `logs info`")
     args = ap.parse_args()
     seconds, torch_loaded = {}, {}
-    for name, argv in commands(args.log).items():
+    tmp = Path(tempfile.mkdtemp(prefix="startup-"))
+    for name, argv in commands(args.log, chi2_model(tmp), tmp / "detect").items():
         seconds[name] = round(best_wall(argv, args.repeat), 3)
         torch_loaded[name] = loads_torch(argv)
         print(f"{name:24s} {seconds[name]:6.2f} s (best of {args.repeat})"

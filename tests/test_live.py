@@ -417,8 +417,7 @@ def test_d_console_names_the_readmission_rule(detector):
     nis[70] = 80.0
     for k in range(80):
         before = seg.state
-        dec = seg.step.admission.decide(torch.tensor([nis[k]]), torch.zeros(1, 6), torch.tensor([True]),
-                                        torch.tensor([False]))
+        dec = seg.step.admission.decide(np.array([nis[k]]), np.zeros((1, 6)), np.array([True]), np.array([False]))
         mon._admission(k / 10.0, before, seg.state, int(dec.readmit[0]), int(dec.exclude[0]))
     text = "\n".join(lines)
     assert "[t 0.0 s] GPS excluded (detector alarm)" in text

@@ -28,14 +28,13 @@ def _drive(policy, alarm, nis=None, w=None, attacked=None, cfg=None, corrections
     adm = Admission([policy], 10.0, cfg)
     out = {"fused": [], "scale": [], "reset": [], "rollback": []}
     for k in range(n):
-        d = adm.decide(torch.tensor([nis[k]]), torch.tensor(w[k][None]), torch.tensor([bool(alarm[k])]),
-                       torch.tensor([bool(attacked[k])]))
+        d = adm.decide(np.array([nis[k]]), w[k][None], np.array([bool(alarm[k])]), np.array([bool(attacked[k])]))
         out["fused"].append(bool(d.fuse[0]))
         out["scale"].append(float(d.std_scale[0]))
         out["reset"].append(bool(d.reset[0]))
-        out["rollback"].append(d.rollback[0].numpy())
+        out["rollback"].append(d.rollback[0].copy())
         dpos = corrections[k] if corrections is not None and d.fuse[0] else np.zeros(3)
-        adm.record(torch.tensor(dpos)[None])
+        adm.record(np.asarray(dpos)[None])
     return {k: np.array(v) for k, v in out.items()}
 
 
@@ -110,13 +109,20 @@ def _drive_rules(alarm, nis, cfg=None):
     adm = Admission(["resilient"], 10.0, cfg)
     fused, readmit, exclude = [], [], []
     for k in range(len(alarm)):
-        d = adm.decide(torch.tensor([nis[k]]), torch.zeros(1, 6), torch.tensor([bool(alarm[k])]),
-                       torch.tensor([False]))
+        d = adm.decide(np.array([nis[k]]), np.zeros((1, 6)), np.array([bool(alarm[k])]), np.array([False]))
         fused.append(bool(d.fuse[0]))
         readmit.append(int(d.readmit[0]))
         exclude.append(int(d.exclude[0]))
-        adm.record(torch.zeros(1, 3))
+        adm.record(np.zeros((1, 3)))
     return np.array(fused), np.array(readmit), np.array(exclude)
+
+
+def test_the_default_agreement_gate_is_the_chi_square_quantile():
+    from scipy.stats import chi2
+
+    from quadformer.resilience.admission import CHI2_6_999
+
+    assert AdmissionConfig().readmit_nis == CHI2_6_999 == float(chi2.ppf(0.999, 6))
 
 
 def test_an_admission_group_decides_each_slice_as_its_admission_alone():
@@ -136,14 +142,14 @@ def test_an_admission_group_decides_each_slice_as_its_admission_alone():
     bounds = np.cumsum([0] + [len(p) for p in policies])
     fields = ("fuse", "std_scale", "reset", "rollback", "readmit", "exclude")
     for k in range(n):
-        args = [torch.from_numpy(a[k]) for a in (nis, w, alarm, attacked)]
+        args = [a[k] for a in (nis, w, alarm, attacked)]
         joined = group.decide(*args)
-        group.record(torch.from_numpy(dpos[k]) * joined.fuse[:, None])
+        group.record(dpos[k] * joined.fuse[:, None])
         for adm, a, b in zip(alone, bounds[:-1], bounds[1:]):
             d = adm.decide(*(x[a:b] for x in args))
-            adm.record(torch.from_numpy(dpos[k, a:b]) * d.fuse[:, None])
+            adm.record(dpos[k, a:b] * d.fuse[:, None])
             for f in fields:
-                assert torch.equal(getattr(joined, f)[a:b], getattr(d, f)), (k, f)
+                assert np.array_equal(getattr(joined, f)[a:b], getattr(d, f)), (k, f)
     with pytest.raises(ValueError, match="at least one admission"):
         AdmissionGroup([])
 

@@ -48,8 +48,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import torch
-from scipy.stats import chi2
 
 POLICIES = ("naive", "px4", "resilient", "oracle")
 
@@ -58,13 +56,16 @@ FUSING, EXCLUDED, BLENDING = 0, 1, 2
 READMIT_CLEAR, READMIT_STALE = 1, 2
 # Decision.exclude: why GPS was excluded at this step (0: not excluded at this step)
 EXCLUDE_ALARM, EXCLUDE_NIS = 1, 2
+#: the 99.9% quantile of the chi-square distribution with 6 degrees of freedom, scipy's
+#: ``chi2.ppf(0.999, 6)`` (tests/test_resilience.py checks it; scipy.stats is not loaded for it)
+CHI2_6_999 = 22.457744484825323
 
 
 @dataclass(frozen=True)
 class AdmissionConfig:
     hold_s: float = 2.0            # clear and in agreement for this long before re-admission
     stale_hold_s: float = 5.0      # resilient: in agreement this long under a standing alarm (inf: off)
-    readmit_nis: float = float(chi2.ppf(0.999, 6))   # agreement gate on the 6-dof GPS NIS
+    readmit_nis: float = CHI2_6_999  # agreement gate on the 6-dof GPS NIS
     blend_s: float = 2.0           # inflation decays to nominal over this time
     blend_inflation: float = 10.0  # initial GPS noise std factor at re-admission
     rollback_s: float = 1.0        # GPS position corrections undone at exclusion
@@ -86,16 +87,17 @@ class AdmissionConfig:
 
 @dataclass
 class Decision:
-    fuse: torch.Tensor          # (B,) bool: fuse this fix
-    std_scale: torch.Tensor     # (B,) GPS noise std factor for the fused ones
-    reset: torch.Tensor         # (B,) bool: reset position/velocity to this fix (px4)
-    rollback: torch.Tensor      # (B,3) position correction to add (undo of recent GPS corrections)
-    readmit: torch.Tensor | None = None   # (B,) int64: READMIT_CLEAR / READMIT_STALE at this step, else 0
-    exclude: torch.Tensor | None = None   # (B,) int64: EXCLUDE_ALARM / EXCLUDE_NIS at this step, else 0
+    fuse: np.ndarray            # (B,) bool: fuse this fix
+    std_scale: np.ndarray       # (B,) GPS noise std factor for the fused ones
+    reset: np.ndarray           # (B,) bool: reset position/velocity to this fix (px4)
+    rollback: np.ndarray        # (B,3) position correction to add (undo of recent GPS corrections)
+    readmit: np.ndarray | None = None   # (B,) int64: READMIT_CLEAR / READMIT_STALE at this step, else 0
+    exclude: np.ndarray | None = None   # (B,) int64: EXCLUDE_ALARM / EXCLUDE_NIS at this step, else 0
 
 
 class Admission:
-    """Per-flight admission state for a batch whose flights each follow one policy.
+    """Per-flight admission state for a batch whose flights each follow one policy (numpy
+    arrays in and out: the closed loop's torch tensors are read as arrays).
 
     ``policies``: (B,) names from ``POLICIES``. Call ``decide`` once per GPS step, then
     ``record`` with the correction actually applied."""
@@ -108,40 +110,41 @@ class Admission:
         self.cfg = cfg or AdmissionConfig()
         self.dt = 1.0 / gps_rate_hz
         self.policies = policies
-        self.is_ = {p: torch.from_numpy(policies == p) for p in POLICIES}
+        self.is_ = {p: policies == p for p in POLICIES}
         B = len(policies)
-        self.state = torch.full((B,), FUSING, dtype=torch.int64)
-        self.clear_time = torch.zeros(B, dtype=torch.float64)     # resilient: clear + agreeing
-        self.agree_time = torch.zeros(B, dtype=torch.float64)     # resilient: agreeing since the last onset
-        self.stale = torch.zeros(B, dtype=torch.bool)             # re-admitted under the standing alarm
-        self.prev_alarm = torch.zeros(B, dtype=torch.bool)
-        self.blend_time = torch.zeros(B, dtype=torch.float64)
-        self.reject_time = torch.zeros(B, dtype=torch.float64)    # px4: consecutive rejections
+        self.state = np.full(B, FUSING, dtype=np.int64)
+        self.clear_time = np.zeros(B)              # resilient: clear + agreeing
+        self.agree_time = np.zeros(B)              # resilient: agreeing since the last onset
+        self.stale = np.zeros(B, dtype=bool)       # re-admitted under the standing alarm
+        self.prev_alarm = np.zeros(B, dtype=bool)
+        self.blend_time = np.zeros(B)
+        self.reject_time = np.zeros(B)             # px4: consecutive rejections
         n_roll = int(round(self.cfg.rollback_s * gps_rate_hz))     # 0: no rollback
-        self.recent = torch.zeros(B, n_roll, 3, dtype=torch.float64)   # last applied position corrections
+        self.recent = np.zeros((B, n_roll, 3))     # last applied position corrections
 
-    def decide(self, nis: torch.Tensor, w_component: torch.Tensor, alarm: torch.Tensor,
-               attacked: torch.Tensor) -> Decision:
+    def decide(self, nis, w_component, alarm, attacked) -> Decision:
         """nis (B,): 6-dof GPS NIS; w_component (B,6): innovation / its predicted std;
         alarm (B,) bool: the detector's alarm at this step; attacked (B,) bool: this fix is
-        spoofed (used by the oracle only)."""
+        spoofed (used by the oracle only). Arrays or CPU tensors."""
         c = self.cfg
         B = len(self.state)
-        alarm = alarm.to(torch.bool)
-        attacked = attacked.to(torch.bool)
-        fuse = torch.ones(B, dtype=torch.bool)
-        scale = torch.ones(B, dtype=torch.float64)
-        reset = torch.zeros(B, dtype=torch.bool)
-        rollback = torch.zeros(B, 3, dtype=torch.float64)
+        nis = np.asarray(nis, dtype=np.float64)
+        w_component = np.asarray(w_component, dtype=np.float64)
+        alarm = np.asarray(alarm).astype(bool)
+        attacked = np.asarray(attacked).astype(bool)
+        fuse = np.ones(B, dtype=bool)
+        scale = np.ones(B)
+        reset = np.zeros(B, dtype=bool)
+        rollback = np.zeros((B, 3))
 
         # px4: gate, and reset after too long rejecting
         px4 = self.is_["px4"]
-        reject = (w_component.abs() > c.gate_sigma).any(-1)
-        self.reject_time = torch.where(px4 & reject, self.reject_time + self.dt, torch.zeros_like(self.reject_time))
+        reject = (np.abs(w_component) > c.gate_sigma).any(-1)
+        self.reject_time = np.where(px4 & reject, self.reject_time + self.dt, 0.0)
         do_reset = px4 & (self.reject_time >= c.reset_after_s - 1e-9)
         reset |= do_reset
-        self.reject_time = torch.where(do_reset, torch.zeros_like(self.reject_time), self.reject_time)
-        fuse = torch.where(px4, ~reject | do_reset, fuse)
+        self.reject_time = np.where(do_reset, 0.0, self.reject_time)
+        fuse = np.where(px4, ~reject | do_reset, fuse)
 
         # resilient and oracle: the same state machine, different triggers
         res, orc = self.is_["resilient"], self.is_["oracle"]
@@ -151,54 +154,52 @@ class Admission:
         # a stale re-admission holds while its alarm stands; a clear step ends it (the next
         # alarm then excludes as usual)
         self.stale = self.stale & res & alarm
-        detector_bad = torch.where(orc, attacked, alarm)
+        detector_bad = np.where(orc, attacked, alarm)
         managed = res | orc
         st = self.state
         # the stale alarm excludes again only together with a fix outside the agreement gate
         trigger = detector_bad & ~(self.stale & agree_nis)
         enter = managed & (st != EXCLUDED) & trigger
-        rollback = torch.where((enter & res)[:, None], -self.recent.sum(1), rollback)
-        self.recent = torch.where(enter[:, None, None], torch.zeros_like(self.recent), self.recent)
-        exclude = torch.where(enter & self.stale, EXCLUDE_NIS, torch.where(enter, EXCLUDE_ALARM, 0))
+        rollback = np.where((enter & res)[:, None], -self.recent.sum(1), rollback)
+        self.recent = np.where(enter[:, None, None], 0.0, self.recent)
+        exclude = np.where(enter & self.stale, EXCLUDE_NIS, np.where(enter, EXCLUDE_ALARM, 0)).astype(np.int64)
         self.stale = self.stale & ~enter
-        st = torch.where(enter, torch.full_like(st, EXCLUDED), st)
-        self.clear_time = torch.where(enter, torch.zeros_like(self.clear_time), self.clear_time)
-        self.agree_time = torch.where(enter, torch.zeros_like(self.agree_time), self.agree_time)
+        st = np.where(enter, EXCLUDED, st)
+        self.clear_time = np.where(enter, 0.0, self.clear_time)
+        self.agree_time = np.where(enter, 0.0, self.agree_time)
         # excluded: count time clear (oracle: not attacked) and, for the detector, agreeing
-        agree = torch.where(orc, torch.ones_like(detector_bad), agree_nis)
+        agree = np.where(orc, True, agree_nis)
         ok = ~detector_bad & agree
         excl = managed & (st == EXCLUDED) & ~enter
-        self.clear_time = torch.where(excl & ok, self.clear_time + self.dt,
-                                      torch.where(excl, torch.zeros_like(self.clear_time), self.clear_time))
-        hold = torch.where(orc, torch.zeros_like(self.clear_time), torch.full_like(self.clear_time, c.hold_s))
+        self.clear_time = np.where(excl & ok, self.clear_time + self.dt, np.where(excl, 0.0, self.clear_time))
+        hold = np.where(orc, 0.0, c.hold_s)
         readmit = excl & ok & (self.clear_time >= hold - 1e-9)
         # resilient, excluded: time the fixes have agreed since the last alarm onset, whatever
         # the alarm; under a standing alarm it re-admits after stale_hold_s
         counting = excl & res & agree_nis & ~onset
-        self.agree_time = torch.where(counting, self.agree_time + self.dt,
-                                      torch.where(excl & res, torch.zeros_like(self.agree_time), self.agree_time))
+        self.agree_time = np.where(counting, self.agree_time + self.dt, np.where(excl & res, 0.0, self.agree_time))
         stale_readmit = (excl & res & alarm & counting & ~readmit
                          & (self.agree_time >= c.stale_hold_s - 1e-9))
         self.stale = self.stale | stale_readmit
-        readmit_rule = torch.where(readmit, READMIT_CLEAR, torch.where(stale_readmit, READMIT_STALE, 0))
+        readmit_rule = np.where(readmit, READMIT_CLEAR, np.where(stale_readmit, READMIT_STALE, 0)).astype(np.int64)
         readmit = readmit | stale_readmit
-        st = torch.where(readmit, torch.full_like(st, BLENDING), st)
-        self.blend_time = torch.where(readmit, torch.zeros_like(self.blend_time), self.blend_time)
+        st = np.where(readmit, BLENDING, st)
+        self.blend_time = np.where(readmit, 0.0, self.blend_time)
         blending = managed & (st == BLENDING)
         if c.blend_s > 0:
-            frac = (self.blend_time / c.blend_s).clamp(max=1.0)
-            scale = torch.where(blending, c.blend_inflation ** (1.0 - frac), scale)
+            frac = np.minimum(self.blend_time / c.blend_s, 1.0)
+            scale = np.where(blending, c.blend_inflation ** (1.0 - frac), scale)
         done = blending & (self.blend_time + self.dt >= c.blend_s - 1e-9)
-        self.blend_time = torch.where(blending, self.blend_time + self.dt, self.blend_time)
-        st = torch.where(done, torch.full_like(st, FUSING), st)
+        self.blend_time = np.where(blending, self.blend_time + self.dt, self.blend_time)
+        st = np.where(done, FUSING, st).astype(np.int64)
         self.state = st
-        fuse = torch.where(managed, st != EXCLUDED, fuse)
+        fuse = np.where(managed, st != EXCLUDED, fuse)
         return Decision(fuse, scale, reset, rollback, readmit_rule, exclude)
 
-    def record(self, applied_dpos: torch.Tensor) -> None:
+    def record(self, applied_dpos) -> None:
         """The position correction this GPS step applied per flight (zero where not fused)."""
         if self.recent.shape[1]:
-            self.recent = torch.cat([self.recent[:, 1:], applied_dpos[:, None].to(torch.float64)], 1)
+            self.recent = np.concatenate([self.recent[:, 1:], np.asarray(applied_dpos, dtype=np.float64)[:, None]], 1)
 
 
 class AdmissionGroup:
@@ -218,17 +219,17 @@ class AdmissionGroup:
         return zip(self.parts, self._bounds[:-1], self._bounds[1:])
 
     @property
-    def state(self) -> torch.Tensor:
+    def state(self) -> np.ndarray:
         """(B,) the admission state of every flight (``FUSING``, ``EXCLUDED``, ``BLENDING``)."""
-        return torch.cat([p.state for p in self.parts])
+        return np.concatenate([p.state for p in self.parts])
 
-    def decide(self, nis: torch.Tensor, w_component: torch.Tensor, alarm: torch.Tensor,
-               attacked: torch.Tensor) -> Decision:
+    def decide(self, nis, w_component, alarm, attacked) -> Decision:
         """``Admission.decide`` of each part on its slice, joined."""
+        nis, w_component, alarm, attacked = (np.asarray(v) for v in (nis, w_component, alarm, attacked))
         decs = [p.decide(nis[a:b], w_component[a:b], alarm[a:b], attacked[a:b]) for p, a, b in self._slices()]
-        return Decision(*(torch.cat([getattr(d, f) for d in decs]) for f in
+        return Decision(*(np.concatenate([getattr(d, f) for d in decs]) for f in
                           ("fuse", "std_scale", "reset", "rollback", "readmit", "exclude")))
 
-    def record(self, applied_dpos: torch.Tensor) -> None:
+    def record(self, applied_dpos) -> None:
         for p, a, b in self._slices():
             p.record(applied_dpos[a:b])

@@ -113,17 +113,14 @@ class OnlineStep:
             score, alarm, types, above = self._zeros, self._quiet, None, None
         dec = before = after = None
         if self.admission is not None:
-            import torch    # loaded with the admission's module
-
-            before = self.admission.state.numpy().copy()
-            nis = torch.as_tensor(np.asarray(cols[NIS]))
-            r = torch.as_tensor(np.stack([np.asarray(cols[c]) for c in GPS_R], axis=-1))
-            s = torch.as_tensor(np.stack([np.asarray(cols[c]) for c in GPS_S], axis=-1))
-            w = r / torch.where(s > 0, s, torch.ones_like(s))
-            hit = torch.zeros(self.n, dtype=torch.bool) if attacked is None else torch.as_tensor(
-                np.asarray(attacked, dtype=bool))
-            dec = self.admission.decide(nis, w, torch.from_numpy(alarm), hit)
-            after = self.admission.state.numpy().copy()
+            before = np.array(self.admission.state)
+            nis = np.asarray(cols[NIS], dtype=np.float64)
+            r = np.stack([np.asarray(cols[c], dtype=np.float64) for c in GPS_R], axis=-1)
+            s = np.stack([np.asarray(cols[c], dtype=np.float64) for c in GPS_S], axis=-1)
+            w = r / np.where(s > 0, s, 1.0)
+            hit = np.zeros(self.n, dtype=bool) if attacked is None else np.asarray(attacked, dtype=bool)
+            dec = self.admission.decide(nis, w, alarm, hit)
+            after = np.array(self.admission.state)
         events: list[AlertEvent] = []
         raised, label = alarm, {}
         if self.phase is not None or self.health is not None:

@@ -326,28 +326,30 @@ def _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, attacked, step, t, residue
     """One GPS step under admission control: the online step scores and decides per flight; apply."""
     out = step.update(t, res, attacked)
     score, alarm, dec, admission = out.score, out.alarm, out.decision, step.admission
+    fuse = torch.from_numpy(dec.fuse)
     scaled = dec.fuse & (dec.std_scale != 1.0)
     if bool(dec.fuse.all()) and not bool(scaled.any()):
         new, dx = proposed, inn.dx
     else:
-        new, inn_applied = gps_update(ekf, pos_g, vel_g, nm, mask=dec.fuse, std_scale=dec.std_scale)
+        new, inn_applied = gps_update(ekf, pos_g, vel_g, nm, mask=fuse, std_scale=torch.from_numpy(dec.std_scale))
         dx = inn_applied.dx
     applied = dx[:, 0:3]
     if bool(dec.reset.any()):
-        jumped = reset_to_gps(new, pos_g, vel_g, nm, dec.reset)
+        jumped = reset_to_gps(new, pos_g, vel_g, nm, torch.from_numpy(dec.reset))
         applied = applied + (jumped.p - new.p)
         new = jumped
-    admission.record(applied)          # what GPS did to the estimate (a later rollback undoes it)
+    admission.record(applied.numpy())  # what GPS did to the estimate (a later rollback undoes it)
     if bool(dec.rollback.any()):
-        new = replace(new, p=new.p + dec.rollback)
-        applied = applied + dec.rollback
+        rollback = torch.from_numpy(dec.rollback)
+        new = replace(new, p=new.p + rollback)
+        applied = applied + rollback
     residues.applied(inn.dx[:, 0:3], applied)
-    rec["fused"][:, j] = dec.fuse.numpy()
-    rec["std_scale"][:, j] = dec.std_scale.numpy()
-    rec["reset"][:, j] = dec.reset.numpy()
+    rec["fused"][:, j] = dec.fuse
+    rec["std_scale"][:, j] = dec.std_scale
+    rec["reset"][:, j] = dec.reset
     rec["score"][:, j] = score
     rec["alarm"][:, j] = alarm
     rec["correction"][:, j] = applied.numpy()
-    rec["readmit"][:, j] = dec.readmit.numpy()
-    rec["exclude"][:, j] = dec.exclude.numpy()
+    rec["readmit"][:, j] = dec.readmit
+    rec["exclude"][:, j] = dec.exclude
     return new
