@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -280,6 +281,25 @@ def test_detect_with_the_replayed_filter_on_px4_and_ardupilot_logs(models, tmp_p
     # a detector fit with VIO residues refuses a log without a camera, and says what would help
     res = runner.invoke(app, ["detect", str(COPTER), "--model", str(models["svm"]), "--out", str(tmp_path / "x")])
     assert res.exit_code == 2 and "res_vio_r" in res.output and "--sensors gps+imu+mag+baro" in res.output
+
+
+def test_detect_on_several_cores_writes_what_one_core_writes(models, tmp_path):
+    """Two worker processes (spawned, one log each at a time) against one after the other in
+    this process: the same scores, alerts and summaries, in the order of the logs given."""
+    logs = [str(EVENTS), str(COPTER), str(FIX / "sample_log_small.ulg")]
+    for workers in (1, 2):
+        res = runner.invoke(app, ["detect", *logs, "--model", str(models["chi2"]), "--out",
+                                  str(tmp_path / f"w{workers}"), "--quiet", "--workers", str(workers)])
+        assert res.exit_code == 0, res.output
+    one, two = tmp_path / "w1", tmp_path / "w2"
+    pd.testing.assert_frame_equal(pd.read_csv(one / "summary.csv"), pd.read_csv(two / "summary.csv"))
+    assert pd.read_csv(two / "summary.csv")["log"].tolist() == logs
+    pd.testing.assert_frame_equal(pd.read_csv(one / "alerts.csv"), pd.read_csv(two / "alerts.csv"))
+    for log in logs:
+        name = Path(log).name
+        pd.testing.assert_frame_equal(pd.read_csv(one / name / "scores.csv"), pd.read_csv(two / name / "scores.csv"))
+    res = runner.invoke(app, ["detect", str(EVENTS), "--model", str(models["chi2"]), "--workers", "-1"])
+    assert res.exit_code == 2 and "--workers must be 0" in res.output
 
 
 def test_log_alerts_are_raised_by_the_online_step_as_by_the_batch_tracker():
