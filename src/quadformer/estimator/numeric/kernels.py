@@ -96,6 +96,24 @@ def rotate_by(q, dphi0, dphi1, dphi2):
 
 
 @jit
+def sandwich(F, P, tmp):
+    """P <- F P F^T in place (square matrices of one size), ``tmp`` a scratch matrix of it."""
+    n = P.shape[0]
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(n):
+                s += F[i, k] * P[k, j]
+            tmp[i, j] = s
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(n):
+                s += tmp[i, k] * F[j, k]
+            P[i, j] = s
+
+
+@jit
 def imu_step(p, v, q, ba, bg, P, rx, rC, imu, dt, qdiag, accel_std, q_b, with_reference):
     """One IMU sample imu (n,6) (specific force, body rate; FLU) over dt seconds: the reference
     (``rx``, ``rC``; when ``with_reference``) propagated through the state before its own
@@ -129,18 +147,7 @@ def imu_step(p, v, q, ba, bg, P, rx, rC, imu, dt, qdiag, accel_std, q_b, with_re
                 rx[b, ax, 0] = x0 + x1 * dt + 0.5 * acc * dt * dt
                 rx[b, ax, 1] = x1 + acc * dt
                 C = rC[b, ax]
-                for i in range(3):
-                    for j in range(3):
-                        s = 0.0
-                        for k in range(3):
-                            s += Fr[i, k] * C[k, j]
-                        tmp3[i, j] = s
-                for i in range(3):
-                    for j in range(3):
-                        s = 0.0
-                        for k in range(3):
-                            s += tmp3[i, k] * Fr[j, k]
-                        C[i, j] = s
+                sandwich(Fr, C, tmp3)
                 C[1, 1] += (accel_std * dt) ** 2
                 C[2, 2] += q_b[ax]
         # nominal state
@@ -176,18 +183,7 @@ def imu_step(p, v, q, ba, bg, P, rx, rC, imu, dt, qdiag, accel_std, q_b, with_re
         F[8, 12], F[8, 13], F[8, 14] = -(0.5 * wy) * dt, -(-0.5 * wx) * dt, -dt
         rotate_by(q[b], w0 * dt, w1 * dt, w2 * dt)
         Pb = P[b]
-        for i in range(15):
-            for j in range(15):
-                s = 0.0
-                for k in range(15):
-                    s += F[i, k] * Pb[k, j]
-                FP[i, j] = s
-        for i in range(15):
-            for j in range(15):
-                s = 0.0
-                for k in range(15):
-                    s += FP[i, k] * F[j, k]
-                Pb[i, j] = s
+        sandwich(F, Pb, FP)
         for d in range(12):
             Pb[3 + d, 3 + d] += qdiag[d]
 
@@ -273,21 +269,13 @@ def update(p, v, q, ba, bg, P, H, r, var, w_out, nis_out, s_out, dx_out):
                 for k in range(m):
                     s += Kt[k, i] * Hb[k, j]
                 A[i, j] = (1.0 if i == j else 0.0) - s
+        sandwich(A, Pb, AP)
         for i in range(15):
             for j in range(15):
-                s = 0.0
-                for k in range(15):
-                    s += A[i, k] * Pb[k, j]
-                AP[i, j] = s
-        for i in range(15):
-            for j in range(15):
-                s = 0.0
-                for k in range(15):
-                    s += AP[i, k] * A[j, k]
                 t = 0.0
                 for k in range(m):
                     t += Kt[k, i] * var[b, k] * Kt[k, j]
-                Pn[i, j] = s + t
+                Pn[i, j] = Pb[i, j] + t
         for i in range(15):
             for j in range(15):
                 Pb[i, j] = 0.5 * (Pn[i, j] + Pn[j, i])
