@@ -47,12 +47,21 @@ class TwoBranchAttention(nn.Module):
         pos = torch.as_tensor(positions, dtype=torch.float32)
         self.register_buffer("dist2", (pos[:, None] - pos[None, :]) ** 2, persistent=False)
 
-    def forward(self, x: torch.Tensor, last_query: bool = False, last_row: bool = False):
+    def forward(self, x: torch.Tensor, last_query: bool = False, last_row: bool = False,
+                qkv: torch.Tensor | None = None):
         """last_row: return the associations of the last position only (B,H,1,W), all a causal
         score needs; last_query (with last_row: the final layer at scoring time): output only
-        the last position, whose queries are then the only ones computed."""
+        the last position, whose queries are then the only ones computed. qkv: x's queries,
+        keys and values (B,W,3D) where the caller has them already, ``self.qkv(x)`` up to float
+        rounding (the first layer scored from per-step projections: ``quadformer_steps``)."""
         B, W, D = x.shape
-        if last_query:
+        if qkv is not None:
+            if last_query:
+                q = qkv[:, -1:, :D].reshape(B, 1, self.h, self.dk).transpose(1, 2)
+                k, v = qkv[..., D:].view(B, W, 2, self.h, self.dk).permute(2, 0, 3, 1, 4)
+            else:
+                q, k, v = qkv.view(B, W, 3, self.h, self.dk).permute(2, 0, 3, 1, 4)
+        elif last_query:
             q = nn.functional.linear(x[:, -1:], self.qkv.weight[:D], self.qkv.bias[:D])
             q = q.view(B, 1, self.h, self.dk).transpose(1, 2)
             k, v = nn.functional.linear(x, self.qkv.weight[D:], self.qkv.bias[D:]).view(
@@ -92,8 +101,8 @@ class Layer(nn.Module):
         self.n2 = nn.LayerNorm(d_model)
         self.drop = nn.Dropout(dropout)
 
-    def forward(self, x, last_query: bool = False, last_row: bool = False):
-        a, series, prior = self.attn(x, last_query, last_row)
+    def forward(self, x, last_query: bool = False, last_row: bool = False, qkv: torch.Tensor | None = None):
+        a, series, prior = self.attn(x, last_query, last_row, qkv)
         if last_query:
             x = x[:, -1:]
         x = self.n1(x + self.drop(a))
@@ -138,6 +147,17 @@ class QUADFormerNet(nn.Module):
             priors.append(p)
         return {"tokens": tok, "recon": self.recon(h), "logits": self.classify(h), "series": series,
                 "priors": priors}
+
+
+def last_parts(out: dict[str, torch.Tensor], last_token: torch.Tensor, disc: bool) -> dict[str, torch.Tensor]:
+    """Score ingredients of the last position from the network's outputs (``forward(...,
+    last_only=True)``) and the window's last token (B, F), as float32 tensors (type: int64):
+    reconstruction error, association discrepancy (zero without it), attack probability and
+    the most likely attack class."""
+    err = ((out["recon"][:, -1] - last_token) ** 2).mean(-1)
+    d = discrepancy(out["series"], out["priors"])[:, -1] if disc else torch.zeros_like(err)
+    prob = torch.softmax(out["logits"][:, -1], dim=-1)
+    return {"err": err, "dis": d, "p_attack": 1 - prob[:, 0], "type": prob[:, 1:].argmax(-1) + 1}
 
 
 class _ReverseGrad(torch.autograd.Function):

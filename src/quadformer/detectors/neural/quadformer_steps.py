@@ -1,0 +1,217 @@
+"""QUADFormer scored from per-step projections: the network's numbers without recomputing
+each window's linear start.
+
+The network begins linearly. A token is the mean of its steps (a patch mean, or one step),
+embedded by a linear map ``E x + b`` plus the positional encoding ``pe`` of its position, and
+the first layer's queries, keys and values are a linear map ``W (.) + c`` of that embedding.
+So each normalised step x is projected once, ``u = x P`` with ``P = [E; W E]^T`` (features ->
+d_model + 3 d_model), and a token's embedding and first-layer q, k, v are the mean of its
+steps' projections plus a constant of its position, ``C = [b + pe, W (b + pe) + c]``. This is
+the network's own arithmetic reassociated: equal up to float32 rounding (the sums run in
+another order), and the model itself is unchanged.
+
+Everything after that depends on the whole window and is computed per window: the first layer
+attends over all tokens (bidirectionally), and every token's content changes as the window
+slides (the patches shift by one step, a fine step moves to another position and encoding), so
+no later quantity carries over from one window to the next. The first layer runs over all T
+tokens and the final layer for the last query only, as ``QUADFormerNet.forward(...,
+last_only=True)``; what a window saves is the embedding and the first layer's q, k, v
+projections (a third of the multiply-adds of a scored step), and online the window's tokens.
+
+- Offline (``projected_batches``): the steps a chunk of windows covers are projected once and
+  their sliding patch means taken from float64 cumulative sums; a batch of windows reads its
+  tokens from them through strided views (consecutive windows share their steps), and the
+  network runs on the batch.
+- Online (``StepNet.forward``): the window's tokens before the new step come from the stream's
+  state (``detectors.context.StepTokens``: the last window's step projections and their prefix
+  sums), the new step is projected and appended, and its projection returned to be kept. The
+  exported streaming graph (``detectors.export``) is this module with the normalisation in
+  front: the state is passed in and out, the graph holds none.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from quadformer.detectors.context import Context
+from quadformer.detectors.neural.quadformer_net import QUADFormerNet, last_parts
+from quadformer.detectors.windows import Windows
+
+#: windows per network call offline (one thread): large enough for the matrix products to run
+#: near the core's speed, small enough for a batch's intermediate tensors to stay in cache
+BATCH = 128
+#: steps projected at a time offline (the chunk's windows, plus the window's length before them)
+CHUNK_ROWS = 8192
+
+
+class StepNet(nn.Module):
+    """A fitted ``QUADFormerNet`` (its parameters shared, not copied) scored from step
+    projections: see the module text. ``proj`` (features, 4 d_model) and ``const`` (tokens,
+    4 d_model) are derived from the network's weights in float64 and kept in float32.
+
+    ``score`` is the network's forward with ``last_only=True`` written out in functional form
+    for inference (eval mode: no dropout), with the weights it slices prepared once (the final
+    layer's query and key/value halves, the last row of each prior's distances): the same
+    operations on the same numbers, fewer calls (one step online costs a few hundred small
+    calls, whose overhead is most of its time). In the final layer the last position's series
+    association, which the score needs anyway, also weighs the values; the other layers take
+    their output from PyTorch's fused attention kernel (``fused_attention``, the faster on
+    batches of windows) or, with ``fused_attention = False`` (one window, an exported graph:
+    fewer operations), from the full series association, whose last row is then the one the
+    score reads. The discrepancy's mean over layers and heads is one mean over both. Equal to
+    the network's forward to float32 rounding (tested against ``QUADFormer.score_windows``)."""
+
+    def __init__(self, net: QUADFormerNet, disc: bool):
+        super().__init__()
+        self.net = net
+        self.disc = disc
+        self.d = net.embed.out_features
+        first = net.layers[0].attn
+        with torch.no_grad():
+            e, b = net.embed.weight.double(), net.embed.bias.double()
+            w, c = first.qkv.weight.double(), first.qkv.bias.double()
+            base = b + net.pe.double()                                   # (T, D)
+            proj = torch.cat([e.T, e.T @ w.T], dim=1)                    # (F, 4D)
+            const = torch.cat([base, base @ w.T + c], dim=1)             # (T, 4D)
+        self.register_buffer("proj", proj.float(), persistent=False)
+        self.register_buffer("const", const.float(), persistent=False)
+        last = net.layers[-1].attn
+        d = self.d
+        self.register_buffer("q_weight", last.qkv.weight.detach()[:d].clone(), persistent=False)
+        self.register_buffer("q_bias", last.qkv.bias.detach()[:d].clone(), persistent=False)
+        self.register_buffer("kv_weight", last.qkv.weight.detach()[d:].clone(), persistent=False)
+        self.register_buffer("kv_bias", last.qkv.bias.detach()[d:].clone(), persistent=False)
+        t = len(net.pe)
+        # -dist2 / 2 of the last position (the prior is softmax(-dist2 / (2 sigma^2)): halving
+        # is exact in floating point, so the quotient is the same number)
+        self.register_buffer("half_dist2", -first.dist2[t - 1, :t] / 2, persistent=False)
+        self.fused_attention = True
+
+    @property
+    def width(self) -> int:
+        """Length of a step's projection (4 d_model)."""
+        return self.proj.shape[1]
+
+    def project(self, x: torch.Tensor) -> torch.Tensor:
+        """Projections of normalised steps (..., features) -> (..., 4 d_model)."""
+        return x @ self.proj
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor) -> dict[str, torch.Tensor]:
+        """One step of each window: its normalised last step x (B, features) and the token means
+        of the window's earlier steps, ``context`` (B, T-1, 4 d_model) -> the score ingredients
+        (``score``) and ``projection``, the step's projection (B, 4 d_model) to keep."""
+        u = self.project(x)
+        parts = self.score(torch.cat([context, u[:, None]], dim=1) + self.const, x)
+        parts["projection"] = u
+        return parts
+
+    def _prior(self, attn, x: torch.Tensor) -> torch.Tensor | None:
+        """The last position's prior association (B, H, 1, T) from its layer input x (B, D)."""
+        if not attn.use_prior:
+            return None
+        if attn.sigma is None:       # a fixed width, the same for every window and head
+            sigma = x.new_full((x.shape[0], attn.h), float(attn.prior_sigma))
+        else:
+            sigma = F.softplus(F.linear(x, attn.sigma.weight, attn.sigma.bias)) + 0.5
+        return torch.softmax(self.half_dist2 / sigma[..., None] ** 2, dim=-1)[:, :, None]
+
+    def score(self, tokens: torch.Tensor, last: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Score ingredients (``quadformer_net.last_parts``) of windows given by their embedded
+        tokens, the token means of step projections plus ``const`` (B, T, 4 d_model), and their
+        normalised last steps (B, features)."""
+        B, T = tokens.shape[:2]
+        d = self.d
+        h, qkv = tokens[..., :d], tokens[..., d:]
+        series, priors = [], []
+        layers = self.net.layers
+        for i, layer in enumerate(layers):
+            a = layer.attn
+            heads, dk = a.h, a.dk
+            scale = 1.0 / math.sqrt(dk)
+            if i == len(layers) - 1:                  # the final layer: the last query only
+                if qkv is None:
+                    q = F.linear(h[:, -1], self.q_weight, self.q_bias)
+                    kv = F.linear(h, self.kv_weight, self.kv_bias)
+                else:
+                    q, kv = qkv[:, -1, :d], qkv[..., d:]
+                k, v = kv.view(B, T, 2, heads, dk).permute(2, 0, 3, 1, 4)
+                s = torch.softmax((q.view(B, heads, 1, dk) * scale) @ k.transpose(-1, -2), dim=-1)
+                z = (s @ v).reshape(B, d)
+                x = h[:, -1]
+            else:
+                if qkv is None:
+                    qkv = F.linear(h, a.qkv.weight, a.qkv.bias)
+                q, k, v = qkv.view(B, T, 3, heads, dk).permute(2, 0, 3, 1, 4)
+                if self.fused_attention:
+                    z = F.scaled_dot_product_attention(q, k, v)
+                    s = torch.softmax((q[:, :, -1:] * scale) @ k.transpose(-1, -2), dim=-1)
+                else:
+                    weights = torch.softmax((q * scale) @ k.transpose(-1, -2), dim=-1)
+                    z, s = weights @ v, weights[:, :, -1:]
+                z = z.transpose(1, 2).reshape(B, T, d)
+                x = h
+            series.append(s)
+            priors.append(self._prior(a, x[:, -1] if x.dim() == 3 else x))
+            ff1, ff2 = layer.ff[0], layer.ff[3]
+            x = F.layer_norm(x + F.linear(z, a.out.weight, a.out.bias), (d,), layer.n1.weight, layer.n1.bias,
+                             layer.n1.eps)
+            f = F.linear(F.gelu(F.linear(x, ff1.weight, ff1.bias)), ff2.weight, ff2.bias)
+            h = F.layer_norm(x + f, (d,), layer.n2.weight, layer.n2.bias, layer.n2.eps)
+            qkv = None
+        h = h[:, None]
+        if self.disc:     # every layer's associations at once: the mean over layers and heads
+            series, priors = [torch.cat(series, dim=1)], [torch.cat(priors, dim=1)]
+        out = {"recon": self.net.recon(h), "logits": self.net.classify(h), "series": series, "priors": priors}
+        return last_parts(out, last, self.disc)
+
+
+def patch_means(u: torch.Tensor, patch: int) -> torch.Tensor:
+    """Means of every ``patch`` consecutive rows of u (S, D) -> (S - patch + 1, D): row i is the
+    mean of rows i .. i + patch - 1, from float64 cumulative sums, rounded to float32."""
+    c = torch.cumsum(u.double(), dim=0)
+    c = torch.cat([c.new_zeros(1, u.shape[1]), c])
+    return ((c[patch:] - c[:-patch]) / patch).float()
+
+
+def embedded_tokens(step_net: StepNet, u: torch.Tensor, means: torch.Tensor, starts: np.ndarray,
+                    context: Context) -> torch.Tensor:
+    """The embedded tokens (``StepNet.score``) of the windows beginning at rows ``starts`` of
+    the step projections u (S, 4 d_model), ``means`` their ``patch_means``: (len(starts), T,
+    4 d_model). Windows of consecutive starts read u and means through strided views, the
+    constants added in the same pass; nothing is gathered."""
+    n, width = len(starts), u.shape[1]
+    out = torch.empty(n, context.n_tokens, width, dtype=u.dtype, device=u.device)
+    npatch, split = context.n_patches, context.n_patches * context.patch
+    const = step_net.const
+    cuts = [0, *(np.flatnonzero(np.diff(starts) != 1) + 1).tolist(), n]
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        s = int(starts[a])
+        if npatch:
+            coarse = means.as_strided((b - a, npatch, width), (width, context.patch * width, 1),
+                                       means.storage_offset() + s * width)
+            torch.add(coarse, const[:npatch], out=out[a:b, :npatch])
+        fine = u.as_strided((b - a, context.fine, width), (width, width, 1), u.storage_offset() + (s + split) * width)
+        torch.add(fine, const[npatch:], out=out[a:b, npatch:])
+    return out
+
+
+def projected_batches(step_net: StepNet, win: Windows, idx: np.ndarray, context: Context, batch: int = BATCH
+                      ) -> Iterator[tuple[np.ndarray, torch.Tensor, torch.Tensor]]:
+    """(positions in idx, embedded tokens (B, T, 4 d_model), last normalised steps (B,
+    features)) of batches of the windows idx (in any order), the steps of each chunk of windows
+    (``Windows.spans``) projected once."""
+    dev = step_net.proj.device
+    for pos, rows, starts in win.spans(idx, CHUNK_ROWS):
+        x = torch.from_numpy(rows).to(dev)
+        u = step_net.project(x)
+        means = patch_means(u, context.patch) if context.n_patches else u
+        for i in range(0, len(pos), batch):
+            s = starts[i:i + batch]
+            yield (pos[i:i + batch], embedded_tokens(step_net, u, means, s, context),
+                   x[torch.from_numpy(s + win.width - 1).to(dev)])
