@@ -113,7 +113,7 @@ def test_stream_of_several_flights_equals_offline(exported):
 
 def test_streaming_graph_equals_the_network_on_whole_windows(exported, tmp_path):
     """QUADFormer's streaming graph (format 2: one step plus the window's state in, the step's
-    projection out) gives the scores and types of the PyTorch network run on each step's whole
+    embedding out) gives the scores and types of the PyTorch network run on each step's whole
     window, to 1e-4 relative and absolute (float32, sums in another order); an export of format
     1 (no streaming graph) still loads and streams over whole windows. CNN and LSTM have no
     streaming graph."""

@@ -99,7 +99,7 @@ def test_step_projections_score_as_the_network(layers, use_prior, prior_sigma, c
                     online = StepTokens(context, 1, steps.width)
                 x = torch.from_numpy(win[[i]][:, -1])
                 step = steps(x, torch.from_numpy(online.context()))
-                online.push(step.pop("projection").numpy())
+                online.push(step.pop("embedding").numpy())
                 for k in ref:
                     torch.testing.assert_close(step[k], ref[k][i:i + 1], rtol=1e-5, atol=1e-5)
             for k in ref:

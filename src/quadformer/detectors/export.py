@@ -13,16 +13,17 @@
   reference, ``QUADFormer._raw``, in float64) and ``attack_class`` the index of the most
   likely attack class in ``classes``.
 - for QUADFormer, ``model.stream.onnx``, the streaming graph (format version 2): one GPS step
-  at a time without recomputing the window. Inputs ``residues`` (batch, features), the raw
-  residues of the window's last step, and ``context`` (batch, T-1, width) float32, the token
-  means of the projections of the window's earlier steps; outputs ``score`` and
-  ``attack_class`` as above and ``projection`` (batch, width) float32, the new step's
-  projection (``detectors.neural.quadformer_steps``: a token's embedding and first-layer
-  queries, keys and values are linear in its steps, so each step is projected once). The
-  state, kept by the runtime per flight (``context.StepTokens``): the last ``fine``
-  projections and the float64 prefix sums of the last ``window``; a coarse token is the
-  difference of two prefix sums over ``patch`` steps (float64, then float32), a fine token one
-  step's projection; zero before the flight's first step (the padding projects to zero).
+  at a time without recomputing the window's start. Inputs ``residues`` (batch, features), the
+  raw residues of the window's last step, and ``context`` (batch, T-1, d_model) float32, the
+  token means of the embeddings of the window's earlier steps; outputs ``score`` and
+  ``attack_class`` as above and ``embedding`` (batch, d_model) float32, the new step's
+  embedding (``detectors.neural.quadformer_steps``: a token's embedding is linear in its
+  steps, so each step is embedded once, without the bias and positional encoding, which the
+  graph adds per token). The state, kept by the runtime per flight (``context.StepTokens``):
+  the last ``fine`` embeddings and the float64 prefix sums of the last ``window``; a coarse
+  token is the difference of two prefix sums over ``patch`` steps (float64, then float32), a
+  fine token one step's embedding; zero before the flight's first step (the padding embeds to
+  zero).
 - ``model.onnx.json`` (the graph's name plus ``.json``, so that it never replaces a saved
   model's ``model.json``): what a runtime needs beside the graphs (``_metadata``), with each
   graph's SHA-256.
@@ -106,7 +107,7 @@ def export_onnx(detector: Detector, path: str | Path, *, opset: int = OPSET) -> 
         example = (torch.from_numpy(np.tile(pad, (2, 1))), torch.zeros(2, ctx.n_tokens - 1, step.steps.width))
         spath = _stream_path(path)
         stream = {"graph": spath.name, "sha256": _export(step, example, spath, [INPUT, CONTEXT],
-                                                         [*outputs, "projection"], opset),
+                                                         [*outputs, "embedding"], opset),
                   "width": int(step.steps.width)}
     write_json(_meta_path(path), _metadata(detector, digest, opset, stream))
     return path
@@ -140,7 +141,7 @@ def _export(graph, example: tuple, path: Path, inputs: list[str], outputs: list[
 def _metadata(detector: Detector, graph_sha256: str, opset: int = OPSET,
               stream: dict[str, Any] | None = None) -> dict[str, Any]:
     """The JSON document beside an exported graph (``stream``: the streaming graph's file
-    name, SHA-256 and projection width, QUADFormer only)."""
+    name, SHA-256 and state width, QUADFormer only)."""
     from quadformer.detectors.neural.graph import centre as graph_centre
     from quadformer.detectors.neural.quadformer import FLOOR, QUADFormer
 
@@ -186,14 +187,14 @@ def _metadata(detector: Detector, graph_sha256: str, opset: int = OPSET,
                                "values": "raw residues of the window's last step, columns in the order of features"},
                        CONTEXT: {"shape": ["batch", ctx.n_tokens - 1, width], "dtype": "float32",
                                  "values": "the window's tokens before its last step, each the mean of the "
-                                           "projections of its steps (the coarse tokens first, oldest first)"}},
+                                           "embeddings of its steps (the coarse tokens first, oldest first)"}},
             "outputs": {"score": doc["outputs"]["score"], "attack_class": doc["outputs"]["attack_class"],
-                        "projection": {"shape": ["batch", width], "dtype": "float32",
-                                       "values": "the projection of the last step, to be kept in the state"}},
-            "state": "per flight: the projections of the last fine steps and the float64 prefix sums of the "
-                     "projections over the last window steps, zero before the flight's first step (the "
-                     "padding projects to zero); a coarse token is (S[b] - S[a]) / patch over its patch "
-                     "steps, in float64 rounded to float32, a fine token one step's projection",
+                        "embedding": {"shape": ["batch", width], "dtype": "float32",
+                                      "values": "the embedding of the last step, to be kept in the state"}},
+            "state": "per flight: the embeddings of the last fine steps and the float64 prefix sums of the "
+                     "embeddings over the last window steps, zero before the flight's first step (the "
+                     "padding embeds to zero); a coarse token is (S[b] - S[a]) / patch over its patch "
+                     "steps, in float64 rounded to float32, a fine token one step's embedding",
         }
         doc["w_anomaly"] = float(detector.w_anomaly) if detector.supervised else 1.0
         doc["onset_level"] = detector._lower()
@@ -263,7 +264,7 @@ class OnnxDetector(Detector):
             try:
                 spath = graph.with_name(str(stream["graph"]))
                 expected = stream["graph_sha256"]
-                self.stream_width_ = int(stream["outputs"]["projection"]["shape"][1])
+                self.stream_width_ = int(stream["outputs"]["embedding"]["shape"][1])
             except (KeyError, TypeError, ValueError, IndexError) as e:
                 raise ValueError(f"{meta}: incomplete metadata ({type(e).__name__}: {e})") from None
             self._stream = _session(_graph_bytes(spath, meta, expected), spath, self.threads)
@@ -298,7 +299,7 @@ class OnnxDetector(Detector):
             n_ctx = self.context.n_tokens - 1
             if ([i.name for i in inp] != [INPUT, CONTEXT] or list(inp[0].shape[1:]) != [len(self.features_)]
                     or list(inp[1].shape[1:]) != [n_ctx, self.stream_width_]
-                    or not {*outputs, "projection"} <= set(names)):
+                    or not {*outputs, "embedding"} <= set(names)):
                 raise ValueError(f"{graph.with_name(doc['stream']['graph'])}: its inputs or outputs do not match "
                                  f"{meta.name}")
         self._outputs = outputs
@@ -377,11 +378,11 @@ class OnnxDetector(Detector):
 
     def score_step(self, x: np.ndarray, context: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The streaming graph on one step of windows: raw residues x (n, features) and the
-        token means of the windows' earlier step projections (n, T-1, width) -> raw scores,
-        attack type names and the steps' projections (QUADFormer exported in format 2)."""
+        token means of the embeddings of the windows' earlier steps (n, T-1, width) -> raw
+        scores, attack type names and the steps' embeddings (QUADFormer exported in format 2)."""
         if self._stream is None:
             raise AttributeError(f"{self.name}: no streaming graph (exported in format version 1, or not QUADFormer)")
-        out = self._stream.run([*self._outputs, "projection"], {INPUT: np.ascontiguousarray(x, dtype=np.float32),
+        out = self._stream.run([*self._outputs, "embedding"], {INPUT: np.ascontiguousarray(x, dtype=np.float32),
                                                                  CONTEXT: context})
         return out[0], self._names[out[1]], out[2]
 
@@ -422,7 +423,11 @@ def _session(data: bytes, graph: Path, threads: int):
     opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     try:
-        return ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
+        # onnxruntime's fusion of an Add and a LayerNormalization into SkipLayerNormalization
+        # costs time on these small tensors (about 25 of 170 us of a streaming step; offline
+        # windows score as fast either way)
+        return ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"],
+                                    disabled_optimizers=["SkipLayerNormFusion"])
     except Exception as e:    # onnxruntime raises its own types (InvalidProtobuf, Fail, ...)
         msg = str(e).splitlines()[0] if str(e) else ""
         raise ValueError(f"{graph}: not a loadable ONNX graph ({type(e).__name__}: {msg})") from None

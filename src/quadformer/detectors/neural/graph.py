@@ -99,10 +99,10 @@ class QUADFormerGraph(nn.Module):
 
 class QUADFormerStepGraph(QUADFormerGraph):
     """QUADFormer's streaming graph: (raw residues of a window's last step (batch, features),
-    the token means of the window's earlier step projections (batch, T-1, 4 d_model)) -> (its
-    raw score (float64), attack class index, the step's projection (batch, 4 d_model)), the
-    network scored from per-step projections (``quadformer_steps.StepNet``). The state a
-    window needs from its earlier steps is passed in, the new step's part of it passed out."""
+    the token means of the embeddings of the window's earlier steps (batch, T-1, d_model)) ->
+    (its raw score (float64), attack class index, the step's embedding (batch, d_model)), the
+    network scored from per-step embeddings (``quadformer_steps.StepNet``). The state a window
+    needs from its earlier steps is passed in, the new step's part of it passed out."""
 
     def __init__(self, det: QUADFormer):
         super().__init__(det)
@@ -111,7 +111,7 @@ class QUADFormerStepGraph(QUADFormerGraph):
 
     def forward(self, x: torch.Tensor, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         parts = self.steps(self.norm(x), context)
-        return self.raw(parts), parts["type"], parts["projection"]
+        return self.raw(parts), parts["type"], parts["embedding"]
 
 
 def centre(normalizer: Normalizer) -> np.ndarray:

@@ -256,15 +256,15 @@ class QUADFormer(TorchCheckpoint, Detector):
 
     def score_step(self, x: np.ndarray, context: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One step of windows scored incrementally: normalised last steps x (n, features) and the
-        token means of the windows' earlier step projections (n, T-1, 4 d_model) -> raw scores,
-        attack type names and the steps' projections (n, 4 d_model) float32 (``StepStream``)."""
+        token means of the embeddings of the windows' earlier steps (n, T-1, d_model) -> raw
+        scores, attack type names and the steps' embeddings (n, d_model) float32 (``StepStream``)."""
         net = self._steps()
         dev = torch.device(self.device)
         with torch.inference_mode():
             p = net(torch.from_numpy(x).to(dev), torch.from_numpy(context).to(dev))
             parts = {k: v.cpu().numpy() for k, v in p.items()}
         raw = self._raw({k: parts[k].astype(np.float64) for k in ("err", "dis", "p_attack")})
-        return raw, np.array(self.classes_, dtype=object)[parts["type"]], parts["projection"]
+        return raw, np.array(self.classes_, dtype=object)[parts["type"]], parts["embedding"]
 
     def _anomaly(self, parts: dict[str, np.ndarray]) -> np.ndarray:
         """Log of the discrepancy-weighted reconstruction error, err * exp(-Dis / tau), tau the
@@ -336,7 +336,7 @@ class QUADFormer(TorchCheckpoint, Detector):
 
     def stream(self, n_flights: int = 1) -> "StepStream":
         """Online scoring, one network call per GPS step for all flights, from per-step
-        projections (``StepStream``); equal to ``decision_function`` to float32 rounding."""
+        embeddings (``StepStream``); equal to ``decision_function`` to float32 rounding."""
         return StepStream(self, n_flights, self.score_step, self.normalizer_, self._steps().width)
 
 
@@ -347,7 +347,8 @@ def last_step_parts(model: nn.Module, xb: torch.Tensor, disc: bool, tokens: bool
     without it), attack probability and the most likely attack class. Shared by scoring and
     the exported graph (``detectors.export``)."""
     o = model(xb, last_only=True, tokens=tokens)
-    return last_parts(o, o["tokens"][:, -1], disc)
+    dis = discrepancy(o["series"], o["priors"])[:, -1] if disc else None
+    return last_parts(o["recon"][:, -1], o["logits"][:, -1], o["tokens"][:, -1], dis)
 
 
 def onset_times(X: pd.DataFrame, alarms: np.ndarray, raw: np.ndarray, lower: float
@@ -411,9 +412,9 @@ class KofNStream(WindowStream):
 
 class StepStream(DetectorStream):
     """QUADFormer online, one step at a time (``quadformer_steps``): the state per flight is the
-    window's step projections (``context.StepTokens``, zero before the flight's start, as the
+    window's step embeddings (``context.StepTokens``, zero before the flight's start, as the
     padding); each step, ``score_step(inputs (n, features), context (n, T-1, width))`` gives the
-    raw scores, attack types and the new steps' projections, which join the state; then the
+    raw scores, attack types and the new steps' embeddings, which join the state; then the
     k-of-n rule (``KofN``). ``score_step`` is the detector's own (PyTorch) or an exported
     streaming graph's (onnxruntime, ``detectors.export``); ``inputs`` maps residues to its
     inputs (the normaliser, or ``RawInputs`` for a graph that normalises). The detector gives
@@ -428,8 +429,8 @@ class StepStream(DetectorStream):
         self.onset_level = getattr(detector, "onset_level_", None)
 
     def _score(self, x):
-        raw, types, projection = self.score_step(self.inputs.transform(x), self.tokens.context())
-        self.tokens.push(projection)
+        raw, types, embedding = self.score_step(self.inputs.transform(x), self.tokens.context())
+        self.tokens.push(embedding)
         if self.onset_level is not None:
             self.above = raw > self.onset_level
         return self.rule.push(raw), types

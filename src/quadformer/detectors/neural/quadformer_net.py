@@ -149,15 +149,16 @@ class QUADFormerNet(nn.Module):
                 "priors": priors}
 
 
-def last_parts(out: dict[str, torch.Tensor], last_token: torch.Tensor, disc: bool) -> dict[str, torch.Tensor]:
-    """Score ingredients of the last position from the network's outputs (``forward(...,
-    last_only=True)``) and the window's last token (B, F), as float32 tensors (type: int64):
-    reconstruction error, association discrepancy (zero without it), attack probability and
-    the most likely attack class."""
-    err = ((out["recon"][:, -1] - last_token) ** 2).mean(-1)
-    d = discrepancy(out["series"], out["priors"])[:, -1] if disc else torch.zeros_like(err)
-    prob = torch.softmax(out["logits"][:, -1], dim=-1)
-    return {"err": err, "dis": d, "p_attack": 1 - prob[:, 0], "type": prob[:, 1:].argmax(-1) + 1}
+def last_parts(recon: torch.Tensor, logits: torch.Tensor, last_token: torch.Tensor, dis: torch.Tensor | None
+               ) -> dict[str, torch.Tensor]:
+    """Score ingredients of the last position of windows from its reconstruction (B, F), class
+    logits (B, C) and association discrepancy (B,) (None without one), and the window's last
+    token (B, F), as float32 tensors (type: int64): reconstruction error, discrepancy (zero
+    without it), attack probability and the most likely attack class."""
+    err = ((recon - last_token) ** 2).mean(-1)
+    prob = torch.softmax(logits, dim=-1)
+    return {"err": err, "dis": torch.zeros_like(err) if dis is None else dis, "p_attack": 1 - prob[:, 0],
+            "type": prob[:, 1:].argmax(-1) + 1}
 
 
 class _ReverseGrad(torch.autograd.Function):

@@ -15,18 +15,22 @@ attends over all tokens (bidirectionally), and every token's content changes as 
 slides (the patches shift by one step, a fine step moves to another position and encoding), so
 no later quantity carries over from one window to the next. The first layer runs over all T
 tokens and the final layer for the last query only, as ``QUADFormerNet.forward(...,
-last_only=True)``; what a window saves is the embedding and the first layer's q, k, v
-projections (a third of the multiply-adds of a scored step), and online the window's tokens.
+last_only=True)``; what a window saves is the embedding and, offline, the first layer's q, k, v
+projections (together about a third of the multiply-adds of a scored step), and online the
+gathering of the window.
 
 - Offline (``projected_batches``): the steps a chunk of windows covers are projected once and
   their sliding patch means taken from float64 cumulative sums; a batch of windows reads its
   tokens from them through strided views (consecutive windows share their steps), and the
-  network runs on the batch.
-- Online (``StepNet.forward``): the window's tokens before the new step come from the stream's
-  state (``detectors.context.StepTokens``: the last window's step projections and their prefix
-  sums), the new step is projected and appended, and its projection returned to be kept. The
-  exported streaming graph (``detectors.export``) is this module with the normalisation in
-  front: the state is passed in and out, the graph holds none.
+  network runs on the batch (``StepNet.score``).
+- Online (``StepNet.forward``): the state is the steps' embeddings ``x E^T`` only (d_model
+  wide, a quarter of the projection: each step reads a quarter of the state, which is most of
+  the cost of keeping it, and the first layer's q, k, v of the window's 50 tokens are one
+  product). The token means of the embeddings before the new step come from the stream's state
+  (``detectors.context.StepTokens``: the last embeddings and their prefix sums), the new step
+  is embedded and appended, and its embedding returned to be kept. The exported streaming
+  graph (``detectors.export``) is this with the normalisation in front: the state is passed in
+  and out, the graph holds none.
 """
 
 from __future__ import annotations
@@ -40,14 +44,14 @@ from torch import nn
 from torch.nn import functional as F
 
 from quadformer.detectors.context import Context
-from quadformer.detectors.neural.quadformer_net import QUADFormerNet, last_parts
+from quadformer.detectors.neural.quadformer_net import QUADFormerNet, last_parts, symmetric_kl
 from quadformer.detectors.windows import Windows
 
 #: windows per network call offline (one thread): large enough for the matrix products to run
 #: near the core's speed, small enough for a batch's intermediate tensors to stay in cache
 BATCH = 128
 #: steps projected at a time offline (the chunk's windows, plus the window's length before them)
-CHUNK_ROWS = 8192
+CHUNK_ROWS = 4096
 
 
 class StepNet(nn.Module):
@@ -56,119 +60,137 @@ class StepNet(nn.Module):
     4 d_model) are derived from the network's weights in float64 and kept in float32.
 
     ``score`` is the network's forward with ``last_only=True`` written out in functional form
-    for inference (eval mode: no dropout), with the weights it slices prepared once (the final
-    layer's query and key/value halves, the last row of each prior's distances): the same
-    operations on the same numbers, fewer calls (one step online costs a few hundred small
-    calls, whose overhead is most of its time). In the final layer the last position's series
-    association, which the score needs anyway, also weighs the values; the other layers take
-    their output from PyTorch's fused attention kernel (``fused_attention``, the faster on
-    batches of windows) or, with ``fused_attention = False`` (one window, an exported graph:
-    fewer operations), from the full series association, whose last row is then the one the
-    score reads. The discrepancy's mean over layers and heads is one mean over both. Equal to
-    the network's forward to float32 rounding (tested against ``QUADFormer.score_windows``)."""
+    for inference (eval mode: no dropout) with fewer, larger operations: one step online is a
+    hundred small calls whose fixed cost is most of its time. What is prepared once from the
+    weights: the queries' scale 1/sqrt(d_head) folded into the query weights (a power of two
+    for the default 16-wide heads, so the same numbers); the final layer's query and key/value
+    halves; every layer's prior width weights side by side, so that the priors of all layers
+    are one batched product and one softmax; the last row of the distances. The final layer's
+    last-position series association, which the score needs anyway, also weighs its values;
+    the other layers take their output from PyTorch's fused attention kernel
+    (``fused_attention``, the faster on batches of windows) or, with ``fused_attention =
+    False`` (an exported graph: fewer operations), from the full series association, whose
+    last row is then the one the score reads. The discrepancy's mean over layers and heads is
+    one mean over both. Equal to the network's forward to float32 rounding (tested against
+    ``QUADFormer.score_windows``)."""
 
     def __init__(self, net: QUADFormerNet, disc: bool):
         super().__init__()
         self.net = net
         self.disc = disc
-        self.d = net.embed.out_features
-        first = net.layers[0].attn
+        d = self.d = net.embed.out_features
+        layers = net.layers
+        first = layers[0].attn
+        self.heads, self.dk = first.h, first.dk
+        scale = torch.ones(4 * d, dtype=torch.float64, device=net.embed.weight.device)
+        scale[d:2 * d] = 1.0 / math.sqrt(first.dk)           # the query columns
         with torch.no_grad():
             e, b = net.embed.weight.double(), net.embed.bias.double()
             w, c = first.qkv.weight.double(), first.qkv.bias.double()
             base = b + net.pe.double()                                   # (T, D)
-            proj = torch.cat([e.T, e.T @ w.T], dim=1)                    # (F, 4D)
-            const = torch.cat([base, base @ w.T + c], dim=1)             # (T, 4D)
-        self.register_buffer("proj", proj.float(), persistent=False)
-        self.register_buffer("const", const.float(), persistent=False)
-        last = net.layers[-1].attn
-        d = self.d
-        self.register_buffer("q_weight", last.qkv.weight.detach()[:d].clone(), persistent=False)
-        self.register_buffer("q_bias", last.qkv.bias.detach()[:d].clone(), persistent=False)
-        self.register_buffer("kv_weight", last.qkv.weight.detach()[d:].clone(), persistent=False)
-        self.register_buffer("kv_bias", last.qkv.bias.detach()[d:].clone(), persistent=False)
-        t = len(net.pe)
-        # -dist2 / 2 of the last position (the prior is softmax(-dist2 / (2 sigma^2)): halving
-        # is exact in floating point, so the quotient is the same number)
-        self.register_buffer("half_dist2", -first.dist2[t - 1, :t] / 2, persistent=False)
+            proj = torch.cat([e.T, e.T @ w.T], dim=1) * scale            # (F, 4D)
+            const = torch.cat([base, base @ w.T + c], dim=1) * scale     # (T, 4D)
+            self.register_buffer("proj", proj.float(), persistent=False)
+            self.register_buffer("const", const.float(), persistent=False)
+            self.register_buffer("embed_proj", proj[:, :d].float().contiguous(), persistent=False)
+            self.register_buffer("embed_const", const[:, :d].float().contiguous(), persistent=False)
+            for i, layer in enumerate(layers):                           # scaled q, k, v weights
+                self.register_buffer(f"qkv_weight{i}", layer.attn.qkv.weight * scale[d:, None].float(),
+                                     persistent=False)
+                self.register_buffer(f"qkv_bias{i}", layer.attn.qkv.bias * scale[d:].float(), persistent=False)
+            t = len(net.pe)
+            # -dist2 / 2 of the last position (the prior is softmax(-dist2 / (2 sigma^2)):
+            # halving is exact in floating point, so the quotient is the same number)
+            half = -first.dist2[t - 1, :t] / 2
+            self.register_buffer("half_dist2", half, persistent=False)
+            self.learned_prior = first.use_prior and first.sigma is not None
+            if self.learned_prior:
+                self.register_buffer("sigma_weight", torch.stack([la.attn.sigma.weight.T for la in layers]),
+                                     persistent=False)                   # (L, D, H)
+                self.register_buffer("sigma_bias", torch.stack([la.attn.sigma.bias[None] for la in layers]),
+                                     persistent=False)                   # (L, 1, H)
+            elif first.use_prior:                                        # one fixed width
+                sigma = torch.full((1,), float(first.prior_sigma), dtype=half.dtype, device=half.device)
+                self.register_buffer("fixed_prior", torch.softmax(half / sigma ** 2, dim=-1), persistent=False)
         self.fused_attention = True
 
     @property
     def width(self) -> int:
-        """Length of a step's projection (4 d_model)."""
-        return self.proj.shape[1]
+        """Length of a step's embedding, the state kept online per step (d_model)."""
+        return self.d
 
     def project(self, x: torch.Tensor) -> torch.Tensor:
-        """Projections of normalised steps (..., features) -> (..., 4 d_model)."""
+        """Projections of normalised steps (..., features) -> (..., 4 d_model): embedding and
+        first-layer q, k, v, without the constants of the token positions."""
         return x @ self.proj
 
     def forward(self, x: torch.Tensor, context: torch.Tensor) -> dict[str, torch.Tensor]:
         """One step of each window: its normalised last step x (B, features) and the token means
-        of the window's earlier steps, ``context`` (B, T-1, 4 d_model) -> the score ingredients
-        (``score``) and ``projection``, the step's projection (B, 4 d_model) to keep."""
-        u = self.project(x)
-        parts = self.score(torch.cat([context, u[:, None]], dim=1) + self.const, x)
-        parts["projection"] = u
+        of the embeddings of the window's earlier steps, ``context`` (B, T-1, d_model) -> the
+        score ingredients (``score``) and ``embedding``, the step's embedding (B, d_model) to
+        keep. Online the state is the steps' embeddings (a quarter of their projections: a step
+        reads less of it) and the first layer's q, k, v are computed from the tokens."""
+        e = x @ self.embed_proj
+        parts = self._score(torch.cat([context, e[:, None]], dim=1) + self.embed_const, None, x)
+        parts["embedding"] = e
         return parts
 
-    def _prior(self, attn, x: torch.Tensor) -> torch.Tensor | None:
-        """The last position's prior association (B, H, 1, T) from its layer input x (B, D)."""
-        if not attn.use_prior:
-            return None
-        if attn.sigma is None:       # a fixed width, the same for every window and head
-            sigma = x.new_full((x.shape[0], attn.h), float(attn.prior_sigma))
-        else:
-            sigma = F.softplus(F.linear(x, attn.sigma.weight, attn.sigma.bias)) + 0.5
-        return torch.softmax(self.half_dist2 / sigma[..., None] ** 2, dim=-1)[:, :, None]
-
     def score(self, tokens: torch.Tensor, last: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Score ingredients (``quadformer_net.last_parts``) of windows given by their embedded
-        tokens, the token means of step projections plus ``const`` (B, T, 4 d_model), and their
-        normalised last steps (B, features)."""
-        B, T = tokens.shape[:2]
-        d = self.d
-        h, qkv = tokens[..., :d], tokens[..., d:]
-        series, priors = [], []
+        """Score ingredients (``quadformer_net.last_parts``) of windows given by their tokens, the
+        token means of step projections plus ``const`` (B, T, 4 d_model), and their normalised
+        last steps (B, features)."""
+        return self._score(tokens[..., :self.d], tokens[..., self.d:], last)
+
+    def _score(self, h: torch.Tensor, qkv: torch.Tensor | None, last: torch.Tensor) -> dict[str, torch.Tensor]:
+        """``score`` from the tokens' embeddings h (B, T, d_model) and first-layer q, k, v (B, T,
+        3 d_model; None: computed here from h)."""
+        B, T = h.shape[:2]
+        d, heads, dk = self.d, self.heads, self.dk
+        series, inputs = [], []
         layers = self.net.layers
         for i, layer in enumerate(layers):
             a = layer.attn
-            heads, dk = a.h, a.dk
-            scale = 1.0 / math.sqrt(dk)
+            w, b = getattr(self, f"qkv_weight{i}"), getattr(self, f"qkv_bias{i}")
             if i == len(layers) - 1:                  # the final layer: the last query only
+                x = h[:, -1]
                 if qkv is None:
-                    q = F.linear(h[:, -1], self.q_weight, self.q_bias)
-                    kv = F.linear(h, self.kv_weight, self.kv_bias)
+                    q, kv = F.linear(x, w[:d], b[:d]), F.linear(h, w[d:], b[d:])
                 else:
                     q, kv = qkv[:, -1, :d], qkv[..., d:]
                 k, v = kv.view(B, T, 2, heads, dk).permute(2, 0, 3, 1, 4)
-                s = torch.softmax((q.view(B, heads, 1, dk) * scale) @ k.transpose(-1, -2), dim=-1)
+                s = torch.softmax(q.view(B, heads, 1, dk) @ k.transpose(-1, -2), dim=-1)
                 z = (s @ v).reshape(B, d)
-                x = h[:, -1]
+                inputs.append(x)
             else:
+                x = h
                 if qkv is None:
-                    qkv = F.linear(h, a.qkv.weight, a.qkv.bias)
+                    qkv = F.linear(h, w, b)
                 q, k, v = qkv.view(B, T, 3, heads, dk).permute(2, 0, 3, 1, 4)
                 if self.fused_attention:
-                    z = F.scaled_dot_product_attention(q, k, v)
-                    s = torch.softmax((q[:, :, -1:] * scale) @ k.transpose(-1, -2), dim=-1)
+                    z = F.scaled_dot_product_attention(q, k, v, scale=1.0)
+                    s = torch.softmax(q[:, :, -1:] @ k.transpose(-1, -2), dim=-1)
                 else:
-                    weights = torch.softmax((q * scale) @ k.transpose(-1, -2), dim=-1)
+                    weights = torch.softmax(q @ k.transpose(-1, -2), dim=-1)
                     z, s = weights @ v, weights[:, :, -1:]
                 z = z.transpose(1, 2).reshape(B, T, d)
-                x = h
+                inputs.append(x[:, -1])
             series.append(s)
-            priors.append(self._prior(a, x[:, -1] if x.dim() == 3 else x))
             ff1, ff2 = layer.ff[0], layer.ff[3]
             x = F.layer_norm(x + F.linear(z, a.out.weight, a.out.bias), (d,), layer.n1.weight, layer.n1.bias,
                              layer.n1.eps)
             f = F.linear(F.gelu(F.linear(x, ff1.weight, ff1.bias)), ff2.weight, ff2.bias)
             h = F.layer_norm(x + f, (d,), layer.n2.weight, layer.n2.bias, layer.n2.eps)
             qkv = None
-        h = h[:, None]
-        if self.disc:     # every layer's associations at once: the mean over layers and heads
-            series, priors = [torch.cat(series, dim=1)], [torch.cat(priors, dim=1)]
-        out = {"recon": self.net.recon(h), "logits": self.net.classify(h), "series": series, "priors": priors}
-        return last_parts(out, last, self.disc)
+        dis = None
+        if self.disc:     # all layers at once: (L, B, H, T) associations, the mean over layers and heads
+            s = torch.stack(series).view(len(layers), B, heads, T)
+            if self.learned_prior:
+                sigma = F.softplus(torch.baddbmm(self.sigma_bias, torch.stack(inputs), self.sigma_weight)) + 0.5
+                p = torch.softmax(self.half_dist2 / sigma[..., None] ** 2, dim=-1)
+            else:
+                p = self.fixed_prior
+            dis = symmetric_kl(p, s).mean((0, 2))
+        return last_parts(self.net.recon(h), self.net.classify(h), last, dis)
 
 
 def patch_means(u: torch.Tensor, patch: int) -> torch.Tensor:
