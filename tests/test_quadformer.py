@@ -69,41 +69,39 @@ def test_step_projections_score_as_the_network(layers, use_prior, prior_sigma, c
     """``StepNet`` (the network from per-step projections: embedding and first-layer q, k, v of
     each step computed once, tokens as means of them) gives the score ingredients of the
     network's own forward on whole windows, in every configuration (depth, learned, fixed or
-    no prior, with or without patches), fused attention or not, offline and one step at a
-    time. Tolerance 1e-5 relative and absolute (float32, sums in another order)."""
+    no prior, with or without patches), offline (batches of windows in any order, the fused
+    attention kernel) and one step at a time (the window's state of step embeddings, the
+    explicit attention). Tolerance 1e-5 relative and absolute (float32, sums in another
+    order)."""
     from quadformer.detectors.context import StepTokens
     from quadformer.detectors.neural.quadformer import last_step_parts
     from quadformer.detectors.neural.quadformer_steps import StepNet, projected_batches
+    from quadformer.detectors.windows import Normalizer
 
     torch.manual_seed(layers)
     net = QUADFormerNet(5, len(CLASSES), context, d_model=16, heads=2, layers=layers, use_prior=use_prior,
                         prior_sigma=prior_sigma).eval()
     X = pd.DataFrame(np.random.default_rng(0).normal(size=(70, 5)), columns=[f"res_{i}" for i in range(5)])
     X.insert(0, "flight_id", np.repeat([0, 1], [30, 40]))
-    from quadformer.detectors.windows import Normalizer
-
     win = Windows(X, list(X.columns[1:]), Normalizer().fit(X.iloc[:, 1:].to_numpy()), context.window)
     idx = np.arange(len(win))
     with torch.no_grad():
         ref = last_step_parts(net, torch.from_numpy(win[idx]), use_prior)
-        for fused in (True, False):
-            steps = StepNet(net, use_prior)
-            steps.fused_attention = fused
-            got = {k: torch.empty_like(v) for k, v in ref.items()}
-            for pos, tokens, last in projected_batches(steps, win, idx[::-1], context, batch=16):
-                for k, v in steps.score(tokens, last).items():
-                    got[k][torch.from_numpy(idx[::-1][pos].copy())] = v
-            online = StepTokens(context, 1, steps.width)
-            for i in range(len(idx)):
-                if i == 30:                              # the second flight starts from padding
-                    online = StepTokens(context, 1, steps.width)
-                x = torch.from_numpy(win[[i]][:, -1])
-                step = steps(x, torch.from_numpy(online.context()))
-                online.push(step.pop("embedding").numpy())
-                for k in ref:
-                    torch.testing.assert_close(step[k], ref[k][i:i + 1], rtol=1e-5, atol=1e-5)
+        steps = StepNet(net, use_prior)
+        got = {k: torch.empty_like(v) for k, v in ref.items()}
+        for pos, tokens, last in projected_batches(steps, win, idx[::-1], context, batch=16):
+            for k, v in steps.score(tokens, last).items():
+                got[k][torch.from_numpy(idx[::-1][pos].copy())] = v
+        for k in ref:
+            torch.testing.assert_close(got[k], ref[k], rtol=1e-5, atol=1e-5)
+        online = StepTokens(context, 1, steps.width)
+        for i in range(len(idx)):
+            if i == 30:                              # the second flight starts from padding
+                online = StepTokens(context, 1, steps.width)
+            step = steps(torch.from_numpy(win[[i]][:, -1]), torch.from_numpy(online.context()))
+            online.push(step.pop("embedding").numpy())
             for k in ref:
-                torch.testing.assert_close(got[k], ref[k], rtol=1e-5, atol=1e-5)
+                torch.testing.assert_close(step[k], ref[k][i:i + 1], rtol=1e-5, atol=1e-5)
 
 
 def test_k_of_n_rule():

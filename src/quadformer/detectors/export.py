@@ -205,6 +205,13 @@ def _metadata(detector: Detector, graph_sha256: str, opset: int = OPSET,
     return doc
 
 
+def export_files(path: str | Path) -> list[Path]:
+    """The files of the export at ``path`` (``NAME.onnx``) that exist: the graph, its metadata
+    and, for QUADFormer, the streaming graph: what to copy together."""
+    path = Path(path)
+    return [p for p in (path, _meta_path(path), _stream_path(path)) if p.exists()]
+
+
 def _meta_path(graph: Path) -> Path:
     return graph.with_name(graph.name + ".json")
 

@@ -107,7 +107,6 @@ class QUADFormerStepGraph(QUADFormerGraph):
     def __init__(self, det: QUADFormer):
         super().__init__(det)
         self.steps = StepNet(self.net, self.disc)
-        self.steps.fused_attention = False      # fewer graph operations (MatMul, Softmax, MatMul)
 
     def forward(self, x: torch.Tensor, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         parts = self.steps(self.norm(x), context)

@@ -32,11 +32,16 @@ plus ``w_anomaly`` times the log of the discrepancy-weighted reconstruction erro
 ``err[k] * exp(-Dis[k] / tau)`` (tau: training median of Dis), relative to its training
 median. ``w_anomaly`` (0, 0.5 or 1) is chosen on validation flights with the alarm rule: the
 unsupervised statistic helps where labels are scarce and adds noise where the classifier
-already separates the classes, and which holds depends on the configuration. Only the last position of a window is needed, which scoring exploits. Alarm rule (onset
-criterion): at least ``k`` of the last ``n`` scores above the threshold; the decision
-function is the k-th largest of the last n scores, so ``score > threshold`` is exactly
-that rule. The onset is estimated by going back from the alarm to where the score last rose
-above ``lower_`` (the 90th percentile of training scores on normal steps).
+already separates the classes, and which holds depends on the configuration. Only the last
+position of a window is needed, which scoring exploits; and each step is embedded (offline
+also projected to the first layer's queries, keys and values) once, not once per window it
+belongs to (``quadformer_steps``): offline scoring runs on batches of windows whose tokens are
+read from the steps' projections, the stream (``StepStream``) keeps the window's step
+embeddings as its state. Alarm rule (onset criterion): at least ``k`` of the last ``n``
+scores above the threshold; the decision function is the k-th largest of the last n scores,
+so ``score > threshold`` is exactly that rule. The onset is estimated by going back from
+the alarm to where the score last rose above ``lower_`` (the 90th percentile of training
+scores on normal steps).
 """
 
 from __future__ import annotations
@@ -342,10 +347,10 @@ class QUADFormer(TorchCheckpoint, Detector):
 
 def last_step_parts(model: nn.Module, xb: torch.Tensor, disc: bool, tokens: bool = False) -> dict[str, torch.Tensor]:
     """Score ingredients of the last position of normalised windows xb (n, W, features) (or of
-    their tokens, ``tokens=True``), as
-    float32 tensors (type: int64): reconstruction error, association discrepancy (zero
-    without it), attack probability and the most likely attack class. Shared by scoring and
-    the exported graph (``detectors.export``)."""
+    their tokens, ``tokens=True``), the network run on each whole window, as float32 tensors
+    (type: int64): reconstruction error, association discrepancy (zero without it), attack
+    probability and the most likely attack class (``quadformer_net.last_parts``). Shared by
+    ``score_windows`` and the exported graph of whole windows (``detectors.export``)."""
     o = model(xb, last_only=True, tokens=tokens)
     dis = discrepancy(o["series"], o["priors"])[:, -1] if disc else None
     return last_parts(o["recon"][:, -1], o["logits"][:, -1], o["tokens"][:, -1], dis)

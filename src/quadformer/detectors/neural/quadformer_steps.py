@@ -59,19 +59,19 @@ class StepNet(nn.Module):
     projections: see the module text. ``proj`` (features, 4 d_model) and ``const`` (tokens,
     4 d_model) are derived from the network's weights in float64 and kept in float32.
 
-    ``score`` is the network's forward with ``last_only=True`` written out in functional form
-    for inference (eval mode: no dropout) with fewer, larger operations: one step online is a
-    hundred small calls whose fixed cost is most of its time. What is prepared once from the
-    weights: the queries' scale 1/sqrt(d_head) folded into the query weights (a power of two
-    for the default 16-wide heads, so the same numbers); the final layer's query and key/value
-    halves; every layer's prior width weights side by side, so that the priors of all layers
-    are one batched product and one softmax; the last row of the distances. The final layer's
-    last-position series association, which the score needs anyway, also weighs its values;
-    the other layers take their output from PyTorch's fused attention kernel
-    (``fused_attention``, the faster on batches of windows) or, with ``fused_attention =
-    False`` (an exported graph: fewer operations), from the full series association, whose
-    last row is then the one the score reads. The discrepancy's mean over layers and heads is
-    one mean over both. Equal to the network's forward to float32 rounding (tested against
+    ``score`` and ``forward`` are the network's forward with ``last_only=True`` written out in
+    functional form for inference (eval mode: no dropout) with fewer, larger operations: one step
+    online is a hundred small calls whose fixed cost is most of its time. Prepared once from the
+    weights (plain tensors, derived, never saved): the queries' scale 1/sqrt(d_head) folded
+    into the query weights (a power of two for the default 16-wide heads, so the same numbers);
+    every layer's prior width weights side by side, so that the priors of all layers are one
+    batched product and one softmax; the last row of the distances. The final layer's
+    last-position series association, which the score needs anyway, also weighs its values.
+    The other layers take their output, on batches of windows (``score``), from PyTorch's fused
+    attention kernel, the faster there, and on one step of a few windows (``forward``, and the
+    exported streaming graph) from the full series association, whose last row is then the one
+    the score reads (fewer operations). The discrepancy's mean over layers and heads is one mean
+    over both. Equal to the network's forward to float32 rounding (tested against
     ``QUADFormer.score_windows``)."""
 
     def __init__(self, net: QUADFormerNet, disc: bool):
@@ -90,29 +90,26 @@ class StepNet(nn.Module):
             base = b + net.pe.double()                                   # (T, D)
             proj = torch.cat([e.T, e.T @ w.T], dim=1) * scale            # (F, 4D)
             const = torch.cat([base, base @ w.T + c], dim=1) * scale     # (T, 4D)
-            self.register_buffer("proj", proj.float(), persistent=False)
-            self.register_buffer("const", const.float(), persistent=False)
-            self.register_buffer("embed_proj", proj[:, :d].float().contiguous(), persistent=False)
-            self.register_buffer("embed_const", const[:, :d].float().contiguous(), persistent=False)
-            for i, layer in enumerate(layers):                           # scaled q, k, v weights
-                self.register_buffer(f"qkv_weight{i}", layer.attn.qkv.weight * scale[d:, None].float(),
-                                     persistent=False)
-                self.register_buffer(f"qkv_bias{i}", layer.attn.qkv.bias * scale[d:].float(), persistent=False)
+            self.proj, self.const = proj.float(), const.float()
+            self.embed_proj, self.embed_const = self.proj[:, :d].contiguous(), self.const[:, :d].contiguous()
+            # per layer: scaled q, k, v weights, then those of the output, the norms and the MLP
+            self.layer_weights = [
+                (la.attn.qkv.weight * scale[d:, None].float(), la.attn.qkv.bias * scale[d:].float(),
+                 la.attn.out.weight, la.attn.out.bias, la.n1.weight, la.n1.bias, la.n1.eps,
+                 la.ff[0].weight, la.ff[0].bias, la.ff[3].weight, la.ff[3].bias, la.n2.weight, la.n2.bias, la.n2.eps)
+                for la in layers]
+            self.heads_weights = (net.recon.weight, net.recon.bias, net.classify.weight, net.classify.bias)
             t = len(net.pe)
             # -dist2 / 2 of the last position (the prior is softmax(-dist2 / (2 sigma^2)):
             # halving is exact in floating point, so the quotient is the same number)
-            half = -first.dist2[t - 1, :t] / 2
-            self.register_buffer("half_dist2", half, persistent=False)
+            self.half_dist2 = -first.dist2[t - 1, :t] / 2
             self.learned_prior = first.use_prior and first.sigma is not None
             if self.learned_prior:
-                self.register_buffer("sigma_weight", torch.stack([la.attn.sigma.weight.T for la in layers]),
-                                     persistent=False)                   # (L, D, H)
-                self.register_buffer("sigma_bias", torch.stack([la.attn.sigma.bias[None] for la in layers]),
-                                     persistent=False)                   # (L, 1, H)
+                self.sigma_weight = torch.stack([la.attn.sigma.weight.T for la in layers])       # (L, D, H)
+                self.sigma_bias = torch.stack([la.attn.sigma.bias[None] for la in layers])       # (L, 1, H)
             elif first.use_prior:                                        # one fixed width
-                sigma = torch.full((1,), float(first.prior_sigma), dtype=half.dtype, device=half.device)
-                self.register_buffer("fixed_prior", torch.softmax(half / sigma ** 2, dim=-1), persistent=False)
-        self.fused_attention = True
+                sigma = torch.full((1,), float(first.prior_sigma), dtype=torch.float32, device=scale.device)
+                self.fixed_prior = torch.softmax(self.half_dist2 / sigma ** 2, dim=-1)
 
     @property
     def width(self) -> int:
@@ -131,7 +128,7 @@ class StepNet(nn.Module):
         keep. Online the state is the steps' embeddings (a quarter of their projections: a step
         reads less of it) and the first layer's q, k, v are computed from the tokens."""
         e = x @ self.embed_proj
-        parts = self._score(torch.cat([context, e[:, None]], dim=1) + self.embed_const, None, x)
+        parts = self._score(torch.cat([context, e[:, None]], dim=1) + self.embed_const, None, x, fused=False)
         parts["embedding"] = e
         return parts
 
@@ -139,19 +136,18 @@ class StepNet(nn.Module):
         """Score ingredients (``quadformer_net.last_parts``) of windows given by their tokens, the
         token means of step projections plus ``const`` (B, T, 4 d_model), and their normalised
         last steps (B, features)."""
-        return self._score(tokens[..., :self.d], tokens[..., self.d:], last)
+        return self._score(tokens[..., :self.d], tokens[..., self.d:], last, fused=True)
 
-    def _score(self, h: torch.Tensor, qkv: torch.Tensor | None, last: torch.Tensor) -> dict[str, torch.Tensor]:
+    def _score(self, h: torch.Tensor, qkv: torch.Tensor | None, last: torch.Tensor, fused: bool
+               ) -> dict[str, torch.Tensor]:
         """``score`` from the tokens' embeddings h (B, T, d_model) and first-layer q, k, v (B, T,
-        3 d_model; None: computed here from h)."""
+        3 d_model; None: computed here from h); ``fused``: the fused attention kernel."""
         B, T = h.shape[:2]
         d, heads, dk = self.d, self.heads, self.dk
         series, inputs = [], []
-        layers = self.net.layers
-        for i, layer in enumerate(layers):
-            a = layer.attn
-            w, b = getattr(self, f"qkv_weight{i}"), getattr(self, f"qkv_bias{i}")
-            if i == len(layers) - 1:                  # the final layer: the last query only
+        n = len(self.layer_weights)
+        for i, (w, b, wo, bo, g1, b1, e1, wf1, bf1, wf2, bf2, g2, b2, e2) in enumerate(self.layer_weights):
+            if i == n - 1:                            # the final layer: the last query only
                 x = h[:, -1]
                 if qkv is None:
                     q, kv = F.linear(x, w[:d], b[:d]), F.linear(h, w[d:], b[d:])
@@ -166,7 +162,7 @@ class StepNet(nn.Module):
                 if qkv is None:
                     qkv = F.linear(h, w, b)
                 q, k, v = qkv.view(B, T, 3, heads, dk).permute(2, 0, 3, 1, 4)
-                if self.fused_attention:
+                if fused:
                     z = F.scaled_dot_product_attention(q, k, v, scale=1.0)
                     s = torch.softmax(q[:, :, -1:] @ k.transpose(-1, -2), dim=-1)
                 else:
@@ -175,22 +171,20 @@ class StepNet(nn.Module):
                 z = z.transpose(1, 2).reshape(B, T, d)
                 inputs.append(x[:, -1])
             series.append(s)
-            ff1, ff2 = layer.ff[0], layer.ff[3]
-            x = F.layer_norm(x + F.linear(z, a.out.weight, a.out.bias), (d,), layer.n1.weight, layer.n1.bias,
-                             layer.n1.eps)
-            f = F.linear(F.gelu(F.linear(x, ff1.weight, ff1.bias)), ff2.weight, ff2.bias)
-            h = F.layer_norm(x + f, (d,), layer.n2.weight, layer.n2.bias, layer.n2.eps)
+            x = F.layer_norm(x + F.linear(z, wo, bo), (d,), g1, b1, e1)
+            h = F.layer_norm(x + F.linear(F.gelu(F.linear(x, wf1, bf1)), wf2, bf2), (d,), g2, b2, e2)
             qkv = None
         dis = None
         if self.disc:     # all layers at once: (L, B, H, T) associations, the mean over layers and heads
-            s = torch.stack(series).view(len(layers), B, heads, T)
+            s = torch.cat(series, dim=2).permute(2, 0, 1, 3)
             if self.learned_prior:
                 sigma = F.softplus(torch.baddbmm(self.sigma_bias, torch.stack(inputs), self.sigma_weight)) + 0.5
                 p = torch.softmax(self.half_dist2 / sigma[..., None] ** 2, dim=-1)
             else:
                 p = self.fixed_prior
             dis = symmetric_kl(p, s).mean((0, 2))
-        return last_parts(self.net.recon(h), self.net.classify(h), last, dis)
+        wr, br, wc, bc = self.heads_weights
+        return last_parts(F.linear(h, wr, br), F.linear(h, wc, bc), last, dis)
 
 
 def patch_means(u: torch.Tensor, patch: int) -> torch.Tensor:
