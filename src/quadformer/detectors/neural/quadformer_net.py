@@ -14,6 +14,10 @@ steps concentrate it on their neighbours (close to it). The per-step association
 discrepancy, the symmetric KL between P and S averaged over heads and layers, is the
 statistic that separates them. Heads: reconstruction of the (normalised) residues and a
 per-step classification into normal and attack types.
+
+This module is the model as trained and saved. Scoring runs its forward (``last_only``) written
+out for inference from per-step projections (``quadformer_steps.StepNet``, the same numbers to
+float32 rounding); ``forward`` on whole windows stays the reference it is tested against.
 """
 
 from __future__ import annotations
@@ -47,21 +51,12 @@ class TwoBranchAttention(nn.Module):
         pos = torch.as_tensor(positions, dtype=torch.float32)
         self.register_buffer("dist2", (pos[:, None] - pos[None, :]) ** 2, persistent=False)
 
-    def forward(self, x: torch.Tensor, last_query: bool = False, last_row: bool = False,
-                qkv: torch.Tensor | None = None):
+    def forward(self, x: torch.Tensor, last_query: bool = False, last_row: bool = False):
         """last_row: return the associations of the last position only (B,H,1,W), all a causal
         score needs; last_query (with last_row: the final layer at scoring time): output only
-        the last position, whose queries are then the only ones computed. qkv: x's queries,
-        keys and values (B,W,3D) where the caller has them already, ``self.qkv(x)`` up to float
-        rounding (the first layer scored from per-step projections: ``quadformer_steps``)."""
+        the last position, whose queries are then the only ones computed."""
         B, W, D = x.shape
-        if qkv is not None:
-            if last_query:
-                q = qkv[:, -1:, :D].reshape(B, 1, self.h, self.dk).transpose(1, 2)
-                k, v = qkv[..., D:].view(B, W, 2, self.h, self.dk).permute(2, 0, 3, 1, 4)
-            else:
-                q, k, v = qkv.view(B, W, 3, self.h, self.dk).permute(2, 0, 3, 1, 4)
-        elif last_query:
+        if last_query:
             q = nn.functional.linear(x[:, -1:], self.qkv.weight[:D], self.qkv.bias[:D])
             q = q.view(B, 1, self.h, self.dk).transpose(1, 2)
             k, v = nn.functional.linear(x, self.qkv.weight[D:], self.qkv.bias[D:]).view(
@@ -101,8 +96,8 @@ class Layer(nn.Module):
         self.n2 = nn.LayerNorm(d_model)
         self.drop = nn.Dropout(dropout)
 
-    def forward(self, x, last_query: bool = False, last_row: bool = False, qkv: torch.Tensor | None = None):
-        a, series, prior = self.attn(x, last_query, last_row, qkv)
+    def forward(self, x, last_query: bool = False, last_row: bool = False):
+        a, series, prior = self.attn(x, last_query, last_row)
         if last_query:
             x = x[:, -1:]
         x = self.n1(x + self.drop(a))
