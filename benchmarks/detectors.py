@@ -9,8 +9,11 @@ bias), then
   waits for a core that other processes hold).
 Network detectors run under each ``--runtime``: ``torch`` (the detector itself) and ``onnx``
 (its exported graph scored by onnxruntime, ``detectors.export``), side by side; the other
-detectors have one implementation (reported as ``torch``). The last line printed is one
-JSON object.
+detectors have one implementation (reported as ``torch``); QUADFormer's stream is the
+step-wise one in both (``detectors.neural.quadformer_steps``: the window's step embeddings as
+its state, the exported streaming graph with onnxruntime). The last line printed is one JSON
+object, with the machine's load averages (1, 5, 15 min) before and after: the timings of a
+shared machine say little without them.
 
     python benchmarks/detectors.py [--methods chi2,cusum,sprt,bht,quadformer] [--flights 40]
                                    [--runtime torch,onnx]
@@ -20,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -39,6 +43,7 @@ def main() -> None:
                     help="runtimes of the network detectors, comma-separated: torch, onnx")
     args = ap.parse_args()
     torch.set_num_threads(1)
+    load_before = [round(v, 2) for v in os.getloadavg()]
 
     from quadformer import load_dataset, simulate
     from quadformer.config import AttackConfig, SimConfig
@@ -76,7 +81,8 @@ def main() -> None:
                       f"p99 {r['online_p99_us']} us (CPU time p50 {r['online_cpu_p50_us']} us, "
                       f"p99 {r['online_cpu_p99_us']} us)", flush=True)
                 out.append(r)
-    print(json.dumps({"benchmark": "detectors", "steps": len(f), "results": out}))
+    print(json.dumps({"benchmark": "detectors", "steps": len(f), "results": out,
+                      "load_avg": {"before": load_before, "after": [round(v, 2) for v in os.getloadavg()]}}))
 
 
 def _time(det, f, flight) -> dict:

@@ -114,3 +114,39 @@ def test_tokens_of_indexed_windows_equal_the_tokens_of_gathered_windows():
         np.testing.assert_array_equal(win.tokens(idx, c), c.tokens(win[idx]))
     with pytest.raises(ValueError, match="a context of 320 steps for windows of 48"):
         win.tokens(idx, Context(320))
+
+
+def test_step_tokens_one_step_at_a_time_equal_the_tokens_of_whole_windows():
+    """``StepTokens`` (the last ``fine`` vectors and the float64 prefix sums of the last
+    ``window``) gives, before each step, the tokens of the window ending at that step less its
+    last one: those of the gathered window, zero padding before the flight's start included,
+    for several flights at once, long past the first wrap of its rings (float32 rounding of the
+    float64 means: to 1e-6)."""
+    from quadformer.detectors.context import StepTokens
+
+    rng = np.random.default_rng(4)
+    for c in (Context(48, fine=16, patch=8), Context(48, fine=48), Context(48, fine=1, patch=1), Context(320)):
+        v = rng.normal(size=(2, 400, 3)).astype(np.float32) * 10
+        padded = np.concatenate([np.zeros((2, c.window - 1, 3), np.float32), v], axis=1)
+        st = StepTokens(c, 2, 3)
+        for k in range(v.shape[1]):
+            want = c.tokens(padded[:, k:k + c.window])
+            np.testing.assert_allclose(st.context(), want[:, :-1], rtol=1e-6, atol=1e-6)
+            st.push(v[:, k])
+
+
+def test_window_spans_cover_each_window_once_in_short_runs_of_rows():
+    from quadformer.detectors.windows import Normalizer, Windows
+
+    rng = np.random.default_rng(6)
+    X = pd.concat([_residues(rng, 1, n).assign(flight_id=i) for i, n in enumerate((30, 70, 5))], ignore_index=True)
+    feats = list(DETECTOR_FEATURES)
+    win = Windows(X, feats, Normalizer().fit(X[feats].to_numpy()), 16)
+    idx = rng.permutation(len(win))[:60]
+    seen = []
+    for pos, rows, starts in win.spans(idx, 40):
+        assert len(rows) <= 40 and np.all(np.diff(starts) >= 0)
+        for p, s in zip(pos, starts):
+            np.testing.assert_array_equal(rows[s:s + 16], win[idx[[p]]][0])
+        seen += list(pos)
+    assert sorted(seen) == list(range(len(idx)))

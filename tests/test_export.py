@@ -111,12 +111,45 @@ def test_stream_of_several_flights_equals_offline(exported):
         onx.stream(1).update(np.full(len(onx.features_), np.nan))
 
 
+def test_streaming_graph_equals_the_network_on_whole_windows(exported, tmp_path):
+    """QUADFormer's streaming graph (format 2: one step plus the window's state in, the step's
+    embedding out) gives the scores and types of the PyTorch network run on each step's whole
+    window, to 1e-4 relative and absolute (float32, sums in another order); an export of format
+    1 (no streaming graph) still loads and streams over whole windows. CNN and LSTM have no
+    streaming graph."""
+    from quadformer.detectors.neural.quadformer import KofNStream, StepStream, kth_of_last_n
+    from quadformer.detectors.windows import Windows, WindowStream
+
+    det, onx, test, path = exported
+    if not hasattr(det, "predict_type"):
+        assert type(onx.stream(1)) is WindowStream
+        return
+    win = Windows(test, det.features_, det.normalizer_, det.window)
+    full_raw, full_types = det.score_windows(win[np.arange(len(win))])
+    full = kth_of_last_n(full_raw, test, det.k, det.n)
+    ids = test.flight_id.unique()
+    n_steps = len(test) // len(ids)
+    cols = {c: test[c].to_numpy().reshape(len(ids), n_steps) for c in det.features_}
+    old = tmp_path / "v1.onnx"
+    shutil.copy(path, old)
+    doc = json.loads(path.with_name("model.onnx.json").read_text())
+    doc["format_version"] = 1
+    del doc["stream"]
+    old.with_name("v1.onnx.json").write_text(json.dumps(doc))
+    for scorer, kind in ((onx, StepStream), (OnnxDetector(old), KofNStream)):
+        stream = scorer.stream(len(ids))
+        assert type(stream) is kind
+        steps = [stream.update({c: v[:, j] for c, v in cols.items()}) for j in range(n_steps)]
+        np.testing.assert_allclose(np.stack([s.score for s in steps], 1).reshape(-1), full, rtol=1e-4, atol=1e-4)
+        assert list(np.stack([s.attack_type for s in steps], 1).reshape(-1)) == list(full_types)
+
+
 def test_metadata_alone_reproduces_the_alarms(exported, tmp_path):
     det, _, test, path = exported
     det.save(path.with_name("model.json"))               # a saved model beside the export stays its own
     meta = json.loads(path.with_name("model.onnx.json").read_text())
     assert json.loads(path.with_name("model.json").read_text())["method"] == det.name
-    assert meta["method"] == det.name and meta["format_version"] == 1
+    assert meta["method"] == det.name and meta["format_version"] == 2
     assert meta["features"] == det.features_ and meta["window"] == det.window
     rule = meta["alarm_rule"]
     assert rule["threshold"] == det.threshold_ and rule["budget_threshold"] == det.budget_threshold_
@@ -128,8 +161,14 @@ def test_metadata_alone_reproduces_the_alarms(exported, tmp_path):
         assert (rule["k"], rule["n"]) == (det.k, det.n) and meta["classes"] == det.classes_
     else:
         assert rule["k"] is None and rule["n"] is None and meta["classes"] is None
-    # the pair alone, moved elsewhere, opened from either file
-    for name in ("model.onnx", "model.onnx.json"):
+    # the export's files alone (QUADFormer's streaming graph too), moved elsewhere, opened from either file
+    names = ["model.onnx", "model.onnx.json"] + (["model.stream.onnx"] if hasattr(det, "predict_type") else [])
+    assert sorted(p.name for p in path.parent.glob("model.*onnx*")) == sorted(names)
+    if hasattr(det, "predict_type"):
+        assert meta["stream"]["graph"] == "model.stream.onnx"
+    else:
+        assert "stream" not in meta
+    for name in names:
         shutil.copy(path.with_name(name), tmp_path / name)
     for which in ("model.onnx", "model.onnx.json"):
         alone = load_model(tmp_path / which, runtime="onnx")

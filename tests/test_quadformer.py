@@ -59,6 +59,51 @@ def test_last_position_scoring_equals_full_forward():
                           discrepancy(last["series"], last["priors"])[:, -1], atol=1e-6)
 
 
+@pytest.mark.parametrize("layers, use_prior, prior_sigma, context", [
+    (2, True, None, Context(28, fine=12, patch=4)),
+    (1, True, None, Context(28, fine=12, patch=4)),
+    (3, True, 2.0, Context(28, fine=12, patch=4)),
+    (2, False, None, Context(12, fine=12)),
+])
+def test_step_projections_score_as_the_network(layers, use_prior, prior_sigma, context):
+    """``StepNet`` (the network from per-step projections: embedding and first-layer q, k, v of
+    each step computed once, tokens as means of them) gives the score ingredients of the
+    network's own forward on whole windows, in every configuration (depth, learned, fixed or
+    no prior, with or without patches), offline (batches of windows in any order, the fused
+    attention kernel) and one step at a time (the window's state of step embeddings, the
+    explicit attention). Tolerance 1e-5 relative and absolute (float32, sums in another
+    order)."""
+    from quadformer.detectors.context import StepTokens
+    from quadformer.detectors.neural.quadformer import last_step_parts
+    from quadformer.detectors.neural.quadformer_steps import StepNet, projected_batches
+    from quadformer.detectors.windows import Normalizer
+
+    torch.manual_seed(layers)
+    net = QUADFormerNet(5, len(CLASSES), context, d_model=16, heads=2, layers=layers, use_prior=use_prior,
+                        prior_sigma=prior_sigma).eval()
+    X = pd.DataFrame(np.random.default_rng(0).normal(size=(70, 5)), columns=[f"res_{i}" for i in range(5)])
+    X.insert(0, "flight_id", np.repeat([0, 1], [30, 40]))
+    win = Windows(X, list(X.columns[1:]), Normalizer().fit(X.iloc[:, 1:].to_numpy()), context.window)
+    idx = np.arange(len(win))
+    with torch.no_grad():
+        ref = last_step_parts(net, torch.from_numpy(win[idx]), use_prior)
+        steps = StepNet(net, use_prior)
+        got = {k: torch.empty_like(v) for k, v in ref.items()}
+        for pos, tokens, last in projected_batches(steps, win, idx[::-1], context, batch=16):
+            for k, v in steps.score(tokens, last).items():
+                got[k][torch.from_numpy(idx[::-1][pos].copy())] = v
+        for k in ref:
+            torch.testing.assert_close(got[k], ref[k], rtol=1e-5, atol=1e-5)
+        online = StepTokens(context, 1, steps.width)
+        for i in range(len(idx)):
+            if i == 30:                              # the second flight starts from padding
+                online = StepTokens(context, 1, steps.width)
+            step = steps(torch.from_numpy(win[[i]][:, -1]), torch.from_numpy(online.context()))
+            online.push(step.pop("embedding").numpy())
+            for k in ref:
+                torch.testing.assert_close(step[k], ref[k][i:i + 1], rtol=1e-5, atol=1e-5)
+
+
 def test_k_of_n_rule():
     rng = np.random.default_rng(0)
     raw = rng.standard_normal(50)
@@ -98,6 +143,29 @@ def test_streaming_matches_offline(fitted):
     assert [s.attack_type[0] for s in steps] == list(types)
     with pytest.raises(ValueError, match="finite values"):
         det.stream().update(np.full(len(det.features_), np.nan))
+
+
+def test_step_scoring_equals_the_network_on_whole_windows(fitted):
+    """Offline scoring (``raw_scores``, from per-step projections over batches of windows) and
+    the online stream (one GPS step of every flight at a time, the state of the window carried
+    from step to step) give the scores and attack types of the network run on each step's whole
+    window (``score_windows``, the full recomputation): scores to 1e-4, relative and absolute
+    (float32 network, sums in another order), types equal."""
+    det, test = fitted
+    win = Windows(test, det.features_, det.normalizer_, det.window)
+    full_raw, full_types = det.score_windows(win[np.arange(len(win))])
+    det.clear_cache()
+    raw, types = det.raw_scores(test)
+    np.testing.assert_allclose(raw, full_raw, rtol=1e-4, atol=1e-4)
+    assert list(np.array(det.classes_, dtype=object)[types]) == list(full_types)
+    full = kth_of_last_n(full_raw, test, det.k, det.n)
+    ids = test.flight_id.unique()
+    n_steps = len(test) // len(ids)
+    cols = {c: test[c].to_numpy().reshape(len(ids), n_steps) for c in det.features_}
+    stream = det.stream(len(ids))
+    steps = [stream.update({c: v[:, j] for c, v in cols.items()}) for j in range(n_steps)]
+    np.testing.assert_allclose(np.stack([s.score for s in steps], 1).reshape(-1), full, rtol=1e-4, atol=1e-4)
+    assert list(np.stack([s.attack_type for s in steps], 1).reshape(-1)) == list(full_types)
 
 
 def test_onsets_and_types_of_every_alarm_run(fitted):

@@ -176,19 +176,22 @@ def evaluate(
 
 def export(
     model: Path = typer.Option(..., help="Model file written by `quadformer fit` (a network detector)."),
-    out: Path = typer.Option(..., "--out", help="The .onnx file to write (NAME.onnx.json is written beside it)."),
+    out: Path = typer.Option(..., "--out", help="The .onnx file to write (NAME.onnx.json is written beside it, and "
+                                                "NAME.stream.onnx for QUADFormer)."),
 ) -> None:
     """Export a network detector (CNN, LSTM, QUADFormer) to ONNX: feature normalisation and score
-    inside the graph; features, padding and the alarm rule in a JSON beside it."""
+    inside the graph; features, padding and the alarm rule in a JSON beside it; for QUADFormer
+    also its streaming graph (one GPS step and the window's state in)."""
     from quadformer.detectors import load
-    from quadformer.detectors.export import export_onnx
+    from quadformer.detectors.export import export_files, export_onnx
 
     try:
         det = load(model)
         path = export_onnx(det, out)
     except (FileNotFoundError, ValueError, KeyError) as e:
         fail(message(e))
-    typer.echo(f"wrote {path} and {path.name}.json ({det.name}, {len(det.features_)} features, window "
+    names = [p.name for p in export_files(path)]
+    typer.echo(f"wrote {path} and {', '.join(names[1:])} ({det.name}, {len(det.features_)} features, window "
                f"{det.window}); score it with --runtime onnx")
 
 

@@ -18,6 +18,12 @@ with a short window loads and scores as before).
 Token positions (``positions``) are the centres of the steps they cover, in steps from the
 window's first step; QUADFormer's positional encoding and the distance in its prior
 association use them, so a coarse token sits where its steps were.
+
+A token is a mean of steps, so a linear map of the tokens is the same mean of the mapped steps.
+``StepTokens`` keeps, online, what the tokens of a window need from any per-step vectors (a
+network's step projections): the last ``fine`` vectors and the float64 prefix sums of the last
+``window``, from which each patch mean is one difference; a step costs the same whatever the
+window's length.
 """
 
 from __future__ import annotations
@@ -74,3 +80,43 @@ class Context:
 
     def __repr__(self) -> str:
         return f"Context(window={self.window}, fine={self.fine}, patch={self.patch})"
+
+
+class StepTokens:
+    """Tokens from per-step vectors, one step at a time, for ``n`` flights: ``context()`` gives
+    the token means of the window ending at the next step without that step (n, n_tokens - 1,
+    width) float32, the last token being the next step's own vector; ``push(v)`` adds that step
+    (n, width). Before a flight's first step the window is padding whose vectors are zero (the
+    step projections of the normalised padding, which is zero).
+
+    State: the last ``fine`` vectors and the float64 prefix sums of the last ``window`` (a patch
+    mean is the difference of two sums over ``patch``, rounded to float32, as the offline
+    tokens: the mean in float64, then float32). Each ring is kept twice over, end to end, so
+    that the last steps in order are one slice of it and a step copies nothing else."""
+
+    def __init__(self, context: Context, n: int, width: int):
+        self.layout = context
+        self.k = 0                                                   # steps pushed
+        self.recent = np.zeros((n, 2 * context.fine, width), dtype=np.float32)
+        self.sums = np.zeros((n, 2 * context.window, width), dtype=np.float64)
+
+    def context(self) -> np.ndarray:
+        c, k = self.layout, self.k
+        a = k % c.fine                                               # v[k - fine] sits at a (and a + fine)
+        fine = self.recent[:, a + 1:a + c.fine]
+        if not c.n_patches:
+            return fine.copy()
+        b = k % c.window                                             # S[k - window] sits at b (and b + window)
+        s = self.sums[:, b:b + c.n_patches * c.patch + 1:c.patch]    # S[k - window + patch q], q = 0..n_patches
+        out = np.empty((fine.shape[0], c.n_tokens - 1, fine.shape[2]), dtype=np.float32)
+        out[:, :c.n_patches] = (s[:, 1:] - s[:, :-1]) / c.patch
+        out[:, c.n_patches:] = fine
+        return out
+
+    def push(self, v: np.ndarray) -> None:
+        c, k = self.layout, self.k
+        i, j = k % c.window, (k - 1) % c.window
+        self.sums[:, i] = self.sums[:, i + c.window] = self.sums[:, j] + v
+        i = k % c.fine
+        self.recent[:, i] = self.recent[:, i + c.fine] = v
+        self.k = k + 1

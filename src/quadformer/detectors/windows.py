@@ -125,6 +125,25 @@ class Windows:
         coarse = means[1][start[:, None] + context.patch * np.arange(context.n_patches)[None, :]]
         return np.concatenate([coarse, fine], axis=1)
 
+    def spans(self, idx: np.ndarray, max_rows: int):
+        """The windows idx in chunks that each cover a short run of rows: ``(positions in idx,
+        rows (S, features), starts)`` per chunk, window ``idx[positions[i]]`` being
+        ``rows[starts[i]:starts[i] + width]``. Windows are taken in the order of their first
+        row; a chunk covers at most ``max(max_rows, width)`` rows (a view, nothing copied), so a
+        scorer that works on every row of a chunk (per-step projections) works on each row about
+        once when the windows are dense, and never on the whole data at once."""
+        idx = np.asarray(idx)
+        first = self._start[idx]
+        order = np.argsort(first, kind="stable")
+        first = first[order]
+        reach = max(int(max_rows) - self.width, 0)
+        i = 0
+        while i < len(order):
+            lo = first[i]
+            j = max(int(np.searchsorted(first, lo + reach, side="right")), i + 1)
+            yield order[i:j], self._data[lo:first[j - 1] + self.width], first[i:j] - lo
+            i = j
+
     def gather(self, idx: np.ndarray, fn) -> np.ndarray:
         """``fn(windows)`` of the windows idx, concatenated: gathered a chunk at a time, so long
         windows never sit in memory all at once (e.g. ``fn = context.tokens``)."""

@@ -1,5 +1,6 @@
 """The network detectors' ONNX graphs (``detectors.export``): raw residue windows -> score
-(and, for QUADFormer, attack class), the feature normalisation inside the graph.
+(and, for QUADFormer, attack class), the feature normalisation inside the graph; for
+QUADFormer also the streaming graph, one step plus the state of the window before it.
 
 Apart from ``export``, so that opening a saved model (``export.load_model``) does not load
 torch; ``export.export_onnx`` builds these."""
@@ -14,9 +15,10 @@ from torch import nn
 
 from quadformer.detectors.neural.detector import WindowClassifier
 from quadformer.detectors.neural.quadformer import QUADFormer, last_step_parts
+from quadformer.detectors.neural.quadformer_steps import StepNet
 from quadformer.detectors.windows import Normalizer
 
-__all__ = ["Asinh", "LogitGraph", "Normalise", "QUADFormerGraph", "centre"]
+__all__ = ["Asinh", "LogitGraph", "Normalise", "QUADFormerGraph", "QUADFormerStepGraph", "centre"]
 
 
 class Asinh(torch.autograd.Function):
@@ -81,6 +83,10 @@ class QUADFormerGraph(nn.Module):
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         parts = last_step_parts(self.net, self.norm(x), self.disc)
+        return self.raw(parts), parts["type"]
+
+    def raw(self, parts: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``QUADFormer._raw`` of the score ingredients, in float64."""
         log_a = torch.log(torch.clamp_min(parts["err"].double(), 1e-12))     # QUADFormer._anomaly
         if self.disc:
             log_a = log_a - parts["dis"].double() / self.dis_scale
@@ -88,7 +94,23 @@ class QUADFormerGraph(nn.Module):
         if self.supervised:
             p = torch.clamp(parts["p_attack"].double(), 1e-6, 1 - 1e-6)
             s = s + torch.log(p) - torch.log1p(-p)
-        return s, parts["type"]
+        return s
+
+
+class QUADFormerStepGraph(QUADFormerGraph):
+    """QUADFormer's streaming graph: (raw residues of a window's last step (batch, features),
+    the token means of the embeddings of the window's earlier steps (batch, T-1, d_model)) ->
+    (its raw score (float64), attack class index, the step's embedding (batch, d_model)), the
+    network scored from per-step embeddings (``quadformer_steps.StepNet``). The state a window
+    needs from its earlier steps is passed in, the new step's part of it passed out."""
+
+    def __init__(self, det: QUADFormer):
+        super().__init__(det)
+        self.steps = StepNet(self.net, self.disc)
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        parts = self.steps(self.norm(x), context)
+        return self.raw(parts), parts["type"], parts["embedding"]
 
 
 def centre(normalizer: Normalizer) -> np.ndarray:

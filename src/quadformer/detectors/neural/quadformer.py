@@ -32,11 +32,16 @@ plus ``w_anomaly`` times the log of the discrepancy-weighted reconstruction erro
 ``err[k] * exp(-Dis[k] / tau)`` (tau: training median of Dis), relative to its training
 median. ``w_anomaly`` (0, 0.5 or 1) is chosen on validation flights with the alarm rule: the
 unsupervised statistic helps where labels are scarce and adds noise where the classifier
-already separates the classes, and which holds depends on the configuration. Only the last position of a window is needed, which scoring exploits. Alarm rule (onset
-criterion): at least ``k`` of the last ``n`` scores above the threshold; the decision
-function is the k-th largest of the last n scores, so ``score > threshold`` is exactly
-that rule. The onset is estimated by going back from the alarm to where the score last rose
-above ``lower_`` (the 90th percentile of training scores on normal steps).
+already separates the classes, and which holds depends on the configuration. Only the last
+position of a window is needed, which scoring exploits; and each step is embedded (offline
+also projected to the first layer's queries, keys and values) once, not once per window it
+belongs to (``quadformer_steps``): offline scoring runs on batches of windows whose tokens are
+read from the steps' projections, the stream (``StepStream``) keeps the window's step
+embeddings as its state. Alarm rule (onset criterion): at least ``k`` of the last ``n``
+scores above the threshold; the decision function is the k-th largest of the last n scores,
+so ``score > threshold`` is exactly that rule. The onset is estimated by going back from
+the alarm to where the score last rose above ``lower_`` (the 90th percentile of training
+scores on normal steps).
 """
 
 from __future__ import annotations
@@ -52,13 +57,14 @@ from torch import nn
 
 from quadformer.detectors.alarms import runs
 from quadformer.detectors.base import Detector, check_residues, flight_slices, labelled_split
-from quadformer.detectors.context import FINE, PATCH, WINDOW, Context
+from quadformer.detectors.context import FINE, PATCH, WINDOW, Context, StepTokens
 from quadformer.detectors.neural.detector import TorchCheckpoint
-from quadformer.detectors.neural.quadformer_net import QUADFormerNet, discrepancy
+from quadformer.detectors.neural.quadformer_net import QUADFormerNet, discrepancy, last_parts
+from quadformer.detectors.neural.quadformer_steps import BATCH, StepNet, projected_batches
 from quadformer.detectors.neural.training import TrainConfig, train
 from quadformer.detectors.registry import register
-from quadformer.detectors.streams import RingBuffer
-from quadformer.detectors.windows import (AxisSymmetry, Normalizer, RawInputs, Windows, WindowStream, chunk_size,
+from quadformer.detectors.streams import DetectorStream, RingBuffer
+from quadformer.detectors.windows import (AxisSymmetry, Normalizer, RawInputs, Windows, WindowStream,
                                           input_features)
 from quadformer.estimator.schema import ATTACK_TYPES
 
@@ -210,18 +216,34 @@ class QUADFormer(TorchCheckpoint, Detector):
         return self
 
     # -- scoring ----------------------------------------------------------------------------
+    def _steps(self) -> StepNet:
+        """The network scored from per-step projections (``quadformer_steps``), built once per
+        fitted network (not saved: derived from its weights)."""
+        net = self.__dict__.get("_step_net")
+        if net is None or net.net is not self.model_:
+            net = self._step_net = StepNet(self.model_, self._disc)
+        return net
+
     def _parts(self, win: Windows, idx: np.ndarray) -> dict[str, np.ndarray]:
-        """Per-step ingredients of the score for windows idx (their last position)."""
-        ctx = self.context
-        step = chunk_size(ctx.n_tokens, len(self.features_))
-        chunks = [self._window_parts(win.tokens(idx[i:i + step], ctx), tokens=True)
-                  for i in range(0, len(idx), step)]
-        return {k: np.concatenate([c[k] for c in chunks]) if chunks else np.zeros(0)
-                for k in ("err", "dis", "p_attack", "type")}
+        """Per-step ingredients of the score for windows idx (their last position), from per-step
+        projections (``quadformer_steps``): each step of a chunk projected once, the network on
+        batches of windows. Equals ``_window_parts`` of the gathered windows to float32 rounding."""
+        idx = np.asarray(idx)
+        net = self._steps()
+        dev = torch.device(self.device)
+        out = {k: np.empty(len(idx), dtype=np.int64 if k == "type" else np.float64)
+               for k in ("err", "dis", "p_attack", "type")}
+        batch = BATCH if dev.type == "cpu" else 4096
+        with torch.inference_mode():
+            for pos, tokens, last in projected_batches(net, win, idx, self.context, batch):
+                for k, v in net.score(tokens, last).items():
+                    out[k][pos] = v.cpu().numpy()
+        return out
 
     def _window_parts(self, windows: np.ndarray, tokens: bool = False) -> dict[str, np.ndarray]:
         """Score ingredients of the last position of normalised windows (n, W, features), or of
-        the windows whose tokens are given (``tokens=True``: (n, T, features))."""
+        the windows whose tokens are given (``tokens=True``: (n, T, features)): the network on
+        each whole window (``score_windows``)."""
         with torch.no_grad():
             xb = torch.from_numpy(np.ascontiguousarray(windows)).to(torch.device(self.device))
             step = CPU_SCORE_BATCH if xb.device.type == "cpu" else max(1, len(xb))
@@ -232,9 +254,22 @@ class QUADFormer(TorchCheckpoint, Detector):
 
     def score_windows(self, windows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Raw scores (before the k-of-n rule) and predicted attack types of normalised windows
-        (n, W, features)."""
+        (n, W, features), the network run on each whole window (the reference the step-wise
+        scoring of ``raw_scores`` and ``stream`` equals to float32 rounding)."""
         parts = self._window_parts(windows)
         return self._raw(parts), np.array(self.classes_, dtype=object)[parts["type"].astype(int)]
+
+    def score_step(self, x: np.ndarray, context: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One step of windows scored incrementally: normalised last steps x (n, features) and the
+        token means of the embeddings of the windows' earlier steps (n, T-1, d_model) -> raw
+        scores, attack type names and the steps' embeddings (n, d_model) float32 (``StepStream``)."""
+        net = self._steps()
+        dev = torch.device(self.device)
+        with torch.inference_mode():
+            p = net(torch.from_numpy(x).to(dev), torch.from_numpy(context).to(dev))
+            parts = {k: v.cpu().numpy() for k, v in p.items()}
+        raw = self._raw({k: parts[k].astype(np.float64) for k in ("err", "dis", "p_attack")})
+        return raw, np.array(self.classes_, dtype=object)[parts["type"]], parts["embedding"]
 
     def _anomaly(self, parts: dict[str, np.ndarray]) -> np.ndarray:
         """Log of the discrepancy-weighted reconstruction error, err * exp(-Dis / tau), tau the
@@ -304,21 +339,21 @@ class QUADFormer(TorchCheckpoint, Detector):
         (for the configured ``w_anomaly``)."""
         return float(self.lower_[str(float(self.w_anomaly) if self.supervised else 1.0)])
 
-    def stream(self, n_flights: int = 1) -> "KofNStream":
-        return KofNStream(self, n_flights)
+    def stream(self, n_flights: int = 1) -> "StepStream":
+        """Online scoring, one network call per GPS step for all flights, from per-step
+        embeddings (``StepStream``); equal to ``decision_function`` to float32 rounding."""
+        return StepStream(self, n_flights, self.score_step, self.normalizer_, self._steps().width)
 
 
 def last_step_parts(model: nn.Module, xb: torch.Tensor, disc: bool, tokens: bool = False) -> dict[str, torch.Tensor]:
     """Score ingredients of the last position of normalised windows xb (n, W, features) (or of
-    their tokens, ``tokens=True``), as
-    float32 tensors (type: int64): reconstruction error, association discrepancy (zero
-    without it), attack probability and the most likely attack class. Shared by scoring and
-    the exported graph (``detectors.export``)."""
+    their tokens, ``tokens=True``), the network run on each whole window, as float32 tensors
+    (type: int64): reconstruction error, association discrepancy (zero without it), attack
+    probability and the most likely attack class (``quadformer_net.last_parts``). Shared by
+    ``score_windows`` and the exported graph of whole windows (``detectors.export``)."""
     o = model(xb, last_only=True, tokens=tokens)
-    err = ((o["recon"][:, -1] - o["tokens"][:, -1]) ** 2).mean(-1)
-    d = discrepancy(o["series"], o["priors"])[:, -1] if disc else torch.zeros_like(err)
-    prob = torch.softmax(o["logits"][:, -1], dim=-1)
-    return {"err": err, "dis": d, "p_attack": 1 - prob[:, 0], "type": prob[:, 1:].argmax(-1) + 1}
+    dis = discrepancy(o["series"], o["priors"])[:, -1] if disc else None
+    return last_parts(o["recon"][:, -1], o["logits"][:, -1], o["tokens"][:, -1], dis)
 
 
 def onset_times(X: pd.DataFrame, alarms: np.ndarray, raw: np.ndarray, lower: float
@@ -351,23 +386,59 @@ def kth_of_last_n(raw: np.ndarray, X: pd.DataFrame, k: int, n: int) -> np.ndarra
     return out
 
 
+class KofN:
+    """The k-of-n rule online: a ring buffer of the last n raw scores of each flight (``FLOOR``
+    before the flight's start); ``push(raw)`` -> the k-th largest of them, the decision."""
+
+    def __init__(self, n_flights: int, k: int, n: int):
+        self.k, self.n = int(k), int(n)
+        self.last = RingBuffer(n_flights, self.n, fill=FLOOR, dtype=np.float64)
+
+    def push(self, raw: np.ndarray) -> np.ndarray:
+        return np.sort(self.last.push(raw), axis=1)[:, self.n - self.k]
+
+
 class KofNStream(WindowStream):
-    """QUADFormer online: the window stream's raw scores and types, then the k-of-n rule over
-    a ring buffer of the last n raw scores per flight (``FLOOR`` before the flight's start).
-    Any detector with ``window``, ``k``, ``n`` and ``score_windows`` (raw scores, types)."""
+    """QUADFormer online over whole windows: the window stream's raw scores and types, then the
+    k-of-n rule (``KofN``). Any detector with ``window``, ``k``, ``n`` and ``score_windows`` (raw
+    scores, types): an exported graph of whole windows (``detectors.export``)."""
 
     def __init__(self, detector: QUADFormer, n_flights: int, inputs: Normalizer | RawInputs | None = None):
         super().__init__(detector, n_flights, inputs)
-        self.last = RingBuffer(self.n, detector.n, fill=FLOOR, dtype=np.float64)
+        self.rule = KofN(self.n, detector.k, detector.n)
         self.onset_level = getattr(detector, "onset_level_", None)
 
     def _score(self, x):
         raw, types = super()._score(x)
         if self.onset_level is not None:
             self.above = raw > self.onset_level
-        last = self.last.push(raw)
-        d = self.detector
-        return np.sort(last, axis=1)[:, d.n - d.k], types
+        return self.rule.push(raw), types
+
+
+class StepStream(DetectorStream):
+    """QUADFormer online, one step at a time (``quadformer_steps``): the state per flight is the
+    window's step embeddings (``context.StepTokens``, zero before the flight's start, as the
+    padding); each step, ``score_step(inputs (n, features), context (n, T-1, width))`` gives the
+    raw scores, attack types and the new steps' embeddings, which join the state; then the
+    k-of-n rule (``KofN``). ``score_step`` is the detector's own (PyTorch) or an exported
+    streaming graph's (onnxruntime, ``detectors.export``); ``inputs`` maps residues to its
+    inputs (the normaliser, or ``RawInputs`` for a graph that normalises). The detector gives
+    ``context``, ``k``, ``n`` and ``onset_level_``."""
+
+    def __init__(self, detector, n_flights: int, score_step, inputs: Normalizer | RawInputs, width: int):
+        super().__init__(detector, n_flights)
+        self.score_step = score_step
+        self.inputs = inputs
+        self.tokens = StepTokens(detector.context, self.n, width)
+        self.rule = KofN(self.n, detector.k, detector.n)
+        self.onset_level = getattr(detector, "onset_level_", None)
+
+    def _score(self, x):
+        raw, types, embedding = self.score_step(self.inputs.transform(x), self.tokens.context())
+        self.tokens.push(embedding)
+        if self.onset_level is not None:
+            self.above = raw > self.onset_level
+        return self.rule.push(raw), types
 
 
 def _variant(name: str, doc: str, **fixed: Any) -> type[QUADFormer]:

@@ -14,6 +14,10 @@ steps concentrate it on their neighbours (close to it). The per-step association
 discrepancy, the symmetric KL between P and S averaged over heads and layers, is the
 statistic that separates them. Heads: reconstruction of the (normalised) residues and a
 per-step classification into normal and attack types.
+
+This module is the model as trained and saved. Scoring runs its forward (``last_only``) written
+out for inference from per-step projections (``quadformer_steps.StepNet``, the same numbers to
+float32 rounding); ``forward`` on whole windows stays the reference it is tested against.
 """
 
 from __future__ import annotations
@@ -138,6 +142,18 @@ class QUADFormerNet(nn.Module):
             priors.append(p)
         return {"tokens": tok, "recon": self.recon(h), "logits": self.classify(h), "series": series,
                 "priors": priors}
+
+
+def last_parts(recon: torch.Tensor, logits: torch.Tensor, last_token: torch.Tensor, dis: torch.Tensor | None
+               ) -> dict[str, torch.Tensor]:
+    """Score ingredients of the last position of windows from its reconstruction (B, F), class
+    logits (B, C) and association discrepancy (B,) (None without one), and the window's last
+    token (B, F), as float32 tensors (type: int64): reconstruction error, discrepancy (zero
+    without it), attack probability and the most likely attack class."""
+    err = ((recon - last_token) ** 2).mean(-1)
+    prob = torch.softmax(logits, dim=-1)
+    return {"err": err, "dis": torch.zeros_like(err) if dis is None else dis, "p_attack": 1 - prob[:, 0],
+            "type": prob[:, 1:].argmax(-1) + 1}
 
 
 class _ReverseGrad(torch.autograd.Function):
