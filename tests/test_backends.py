@@ -18,6 +18,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
+import quadformer
 from quadformer.cli import app
 from quadformer.config import AttackConfig, SimConfig
 from quadformer.dataset import DatasetError, load_dataset, write_dataset
@@ -262,8 +263,11 @@ def test_a_tuned_models_cache_key_covers_its_own_code_and_not_the_other_methods(
     """A change to the CUSUM must not retrain the networks, nor the reverse; every method's key
     covers the module defining it, what it imports from the detectors package and the residue
     schema (a plugin defined outside the package is covered by its own file)."""
-    def names(method):
-        return {p.as_posix().split("/quadformer/", 1)[-1] for p in detector_sources(method)}
+    package = Path(quadformer.__file__).resolve().parent
+
+    def names(method):      # paths inside the package relative to it (wherever the clone lies)
+        return {p.resolve().relative_to(package).as_posix() if p.resolve().is_relative_to(package) else p.as_posix()
+                for p in detector_sources(method)}
 
     cusum, cnn, quad, pca = names("cusum"), names("cnn"), names("quadformer"), names("pca")
     assert {"detectors/classical.py", "detectors/base.py", "estimator/schema.py"} <= cusum
