@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from logs_support import FIX
-from quadformer.estimator.feed import GapError
+from quadformer.estimator.feed import GapError, StreamError
 from quadformer.estimator.filter_config import FilterConfig, noise_for
 from quadformer.estimator.numeric.filter import NumericFilter
 from quadformer.estimator.online import ResidueStream
@@ -46,6 +46,9 @@ def test_bad_input_is_named():
     f.imu(0.01, np.r_[0, 0, 9.81, 0, 0, 0])
     with pytest.raises(GapError, match="gap of 0.500 s"):
         f.imu(0.51, np.zeros(6))
+    f.push("baro", 0.02, np.array([[np.nan]]))
+    with pytest.raises(StreamError, match=r"baro: the filter's update failed at t = 0.020 s"):
+        f.imu(0.02, np.r_[0, 0, 9.81, 0, 0, 0])
     with pytest.raises(ValueError, match="aiding: unknown sensor 'lidar'"):
         NumericFilter(np.zeros((1, 3)), np.zeros((1, 3)), [[0, 0, 0, 1.0]], np.eye(15)[None],
                       noise_for(FilterConfig(), 0.01), 0.01, aiding=("lidar",))

@@ -11,11 +11,12 @@ holds the two to the same residues on a real log and on simulated flights.
 from __future__ import annotations
 
 from collections import deque
+from contextlib import contextmanager
 from dataclasses import replace
 
 import numpy as np
 
-from quadformer.estimator.feed import AIDING, EPS, GapError
+from quadformer.estimator.feed import AIDING, EPS, GapError, StreamError
 from quadformer.estimator.filter_config import Noise
 from quadformer.estimator.numeric import kernels
 from quadformer.estimator.numeric.reference import Reference
@@ -29,6 +30,16 @@ def _selection(n: int, idx: range) -> np.ndarray:
     for j, k in enumerate(idx):
         H[:, j, k] = 1.0
     return H
+
+
+@contextmanager
+def _named(stream: str, t: float):
+    """A failed update as a ``StreamError`` naming the sample's stream and time."""
+    try:
+        yield
+    except ValueError as e:
+        raise StreamError(f"{stream}: the filter's update failed at t = {t:.3f} s ({e}): a non-finite or "
+                          "impossible sample, or a state the filter lost") from None
 
 
 class Tracker:
@@ -139,12 +150,15 @@ class NumericFilter:
         for name in self.aiding:
             q = self.queues[name]
             while q and q[0][0] <= t + EPS:
-                self._aid(name, q.popleft()[1])
+                stamp, sample, _ = q.popleft()
+                with _named(name, stamp):
+                    self._aid(name, sample)
         rows = []
         q = self.queues["gps"]
         while q and q[0][0] <= t + EPS:
             stamp, fix, std = q.popleft()
-            rows.append((stamp, self._gps(fix, std)))
+            with _named("gps", stamp):
+                rows.append((stamp, self._gps(fix, std)))
         return rows
 
     @property

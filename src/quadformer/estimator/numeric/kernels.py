@@ -204,6 +204,9 @@ def update(p, v, q, ba, bg, P, H, r, var, w_out, nis_out, s_out, dx_out):
     Pn = np.empty((15, 15))
     y = np.empty(m)
     for b in range(n):
+        for i in range(m):
+            if not math.isfinite(r[b, i]):
+                raise ValueError("non-finite innovation")
         Pb = P[b]
         Hb = H[b]
         for i in range(15):
@@ -231,7 +234,7 @@ def update(p, v, q, ba, bg, P, H, r, var, w_out, nis_out, s_out, dx_out):
                 for k in range(j):
                     s -= L[i, k] * L[j, k]
                 if i == j:
-                    if s <= 0.0:
+                    if not s > 0.0:         # also NaN: a non-finite sample or state
                         raise ValueError("innovation covariance not positive definite")
                     L[i, i] = math.sqrt(s)
                 else:
