@@ -66,7 +66,10 @@ def test_benchmark_writes_schema_tables_report_and_reuses_cache(dataset_dir, tmp
         assert list(csv.index) == ["chi2", "cusum"] and csv.shape[1] == 12
     html = (out / "report.html").read_text()
     assert "data:image/png;base64," in html and "point-adjusted" in html and "<table" in html
-    assert (out / "figures" / "f1_by_config.png").exists()
+    assert (out / "figures" / "f1_by_config.png").exists() and (out / "figures" / "delay_vs_false_alarms.png").exists()
+    # the report opens with its figures; the tables follow in sections that fold
+    assert html.index("At a glance") < html.index("data:image/png;base64,") < html.index("<table")
+    assert html.index("<details open><summary>") < html.index("<table")
     alerts = pd.read_csv(out / "alerts.csv")
     assert {"config", "method", "flight_id", "start_s", "onset_s", "attack_type", "score", "end_s"} <= set(alerts.columns)
     assert set(alerts.method) <= {"chi2", "cusum"} and len(alerts) > 0

@@ -18,6 +18,12 @@ from quadformer.report.detection_tables import (TYPE_CONFUSIONS, ablation_table,
 from quadformer.report.html import img, page, table
 
 
+def _fold(title: str, body: str, open_: bool = False) -> str:
+    """A section that opens and closes (``<details>``), its title always shown."""
+    return (f"<details{' open' if open_ else ''}><summary><h2 style='display:inline'>{html.escape(title)}</h2>"
+            f"</summary>{body}</details>")
+
+
 def write_report(results: dict[str, Any], out: Path) -> Path:
     """Write table_model_{I,II}.{md,csv,tex}, metrics.csv, figures/ and report.html into out."""
     out = Path(out)
@@ -41,25 +47,35 @@ def write_report(results: dict[str, Any], out: Path) -> Path:
                 + ", ".join(html.escape(c["dataset"]) for c in results["configs"]) + "; ")
     parts = [head + f"protocol: {html.escape(results['protocol'])}. Labels of "
              f"{results['label_fraction']:.0%} of the training flights are available to every method.</p>"]
+    # figures first: F1 with its interval, delay against false alarms, one example flight
+    examples = [k for k in figs if k.startswith("example_")]
+    parts.append("<h2>At a glance</h2><p>Point-wise F1 on the test flights with its 95% bootstrap interval over "
+                 "flights, by method and configuration:</p>" + img(figs["f1_by_config"]))
+    parts.append("<p>Median detection delay against false alarms per clean test flight-hour (each point a "
+                 "method on one configuration):</p>" + img(figs["delay_vs_false_alarms"]))
+    if examples:
+        parts.append(f"<p>An attacked test flight ({html.escape(examples[0].removeprefix('example_'))}): its "
+                     "GPS innovation, each method's score, threshold and alarms:</p>" + img(figs[examples[0]]))
     for key, df in tables.items():
-        parts.append(f"<h2>Model {key.split('_')[1]}: point-wise precision, recall, F1 (test flights)</h2>")
-        parts.append(table(df))
+        parts.append(_fold(f"Model {key.split('_')[1]}: point-wise precision, recall, F1 (test flights)",
+                           table(df), open_=True))
     if not tables:
         df = dataset_table(results)
         flat = df.copy()
         flat.columns = [f"{d}/{m}" for d, m in df.columns]
         atomic_write_text(out / "table_datasets.csv", flat.to_csv(index_label="method"))
-        parts.append("<h2>Point-wise precision, recall, F1 (test flights)</h2>")
-        parts.append(table(df))
-    parts.append("<h2>All metrics</h2><p>Event-wise scores, detection delays, false alarms per hour on clean "
-                 "test flights, threshold-free AUROC/AUPRC and VUS-PR (range-based PR area averaged over label "
-                 "buffers of 0 to 5 s, Paparrizos et al.), a 95% bootstrap interval of the F1 over test flights, "
-                 "scores at the false-alarm budget threshold. "
-                 "The point-adjusted F1 is shown only for comparison with the literature: it inflates "
-                 "scores and is not the result.</p>")
-    parts.append(table(extra, index=False))
-    for key, b64 in figs.items():
-        parts.append(f"<h3>{html.escape(key)}</h3>{img(b64)}")
+        parts.append(_fold("Point-wise precision, recall, F1 (test flights)", table(df), open_=True))
+    parts.append(_fold("All metrics (every method and configuration)",
+                       "<p>Event-wise scores, detection delays, false alarms per hour on clean "
+                       "test flights, threshold-free AUROC/AUPRC and VUS-PR (range-based PR area averaged over label "
+                       "buffers of 0 to 5 s, Paparrizos et al.), a 95% bootstrap interval of the F1 over test "
+                       "flights, scores at the false-alarm budget threshold. "
+                       "The point-adjusted F1 is shown only for comparison with the literature: it inflates "
+                       "scores and is not the result.</p>" + table(extra, index=False)))
+    rest = [k for k in figs if k not in ("f1_by_config", "delay_vs_false_alarms") and k != (examples or [None])[0]]
+    if rest:
+        parts.append(_fold("More figures: the delays' spread, the other example flights",
+                           "".join(f"<h3>{html.escape(k)}</h3>{img(figs[k])}" for k in rest)))
     abl = ablation_table(results)
     if abl is not None:
         atomic_write_text(out / "ablation.csv", abl.to_csv())
