@@ -15,6 +15,10 @@ from quadformer.io import atomic_write_text
 from quadformer.report.html import img, page, png, table
 
 
+#: alerts listed open in a log's report up to this many (more: the section starts folded)
+MANY_ALERTS = 20
+
+
 def _figures(det) -> dict[str, str]:
     import matplotlib
     matplotlib.use("Agg")
@@ -143,10 +147,14 @@ def write_log_report(det, out: Path, model: str) -> Path:
         "steps under alarm": int(np.sum(det.alarms)), **_alert_lines(det.alerts),
     }
     parts = [f"<h1>quadformer detect: {html.escape(log.path.name)}</h1>", _info_table(info)]
-    parts.append("<h2>Alerts</h2>" + (table(alerts_frame(det.alerts), ".3g", index=False) if det.alerts
-                                      else "<p>none</p>"))
-    for key, b64 in _figures(det).items():
-        parts.append(f"<h2>{html.escape(key.replace('_', ' '))}</h2>{img(b64)}")
+    # figures first (the scores and alarms over the flight, the track, the receiver), then the alerts
+    figs = _figures(det)
+    for key in sorted(figs, key=lambda k: k != "innovations_and_score"):
+        parts.append(f"<h2>{html.escape(key.replace('_', ' '))}</h2>{img(figs[key])}")
+    n = len(det.alerts)
+    parts.append(f"<details{' open' if n <= MANY_ALERTS else ''}><summary><h2 style='display:inline'>Alerts "
+                 f"({n})</h2></summary>"
+                 + (table(alerts_frame(det.alerts), ".3g", index=False) if n else "<p>none</p>") + "</details>")
     parts.append(_notes([*log.notes, *det.notes]))
     atomic_write_text(out / "report.html", page(f"quadformer detect {log.path.name}", parts, width_px=1000))
     return out / "report.html"

@@ -138,9 +138,8 @@ def write_resilience_report(results: dict[str, Any], out: Path) -> Path:
              "against the truth, GPS spoofed (point-wise, no adjustment; steps still excluded after an attack "
              "ends are false positives); the oracle scores 1 by construction.</p>",
              "<h2>All configurations</h2>",
-             table(overall, index=False),
-             "<h2>Per configuration</h2>",
-             table(per_config, ".3g", index=False)]
+             table(overall, index=False)]
+    trajectories: list[str] = []
     for c in results["configs"]:
         path = out / "trajectories" / f"{c['name']}.parquet"
         if not path.exists():
@@ -156,7 +155,15 @@ def write_resilience_report(results: dict[str, Any], out: Path) -> Path:
         fig.savefig(out / "figures" / f"trajectory_{c['name']}.png", dpi=110, bbox_inches="tight")
         b64 = png(fig)
         plt.close(fig)
-        parts.append(f"<h3>{html.escape(c['name'])}</h3>{img(b64)}")
+        trajectories.append(f"<h3>{html.escape(c['name'])}</h3>{img(b64)}")
+    # the figures before the long tables: one attacked flight under every policy, the others folded
+    if trajectories:
+        parts.append("<h2>An attacked flight under each policy</h2>" + trajectories[0])
+    parts.append("<details><summary><h2 style='display:inline'>Per configuration</h2></summary>"
+                 + table(per_config, ".3g", index=False) + "</details>")
+    if len(trajectories) > 1:
+        parts.append("<details><summary><h2 style='display:inline'>The other configurations' flights</h2>"
+                     "</summary>" + "".join(trajectories[1:]) + "</details>")
     parts.append("<h2>Versions</h2><pre>" + html.escape(str(results.get("versions", {}))) + "</pre>")
     doc = page("quadformer resilience", parts, width_px=1300)
     atomic_write_text(out / "report.html", doc)
