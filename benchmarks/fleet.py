@@ -32,7 +32,7 @@ SMALL_LOG = ROOT / "tests" / "fixtures" / "logs" / "sample_log_small.ulg"
 
 
 def detector(model: Path | None, method: str):
-    from quadformer.detectors.export import load_model
+    from quadformer.detectors.onnx_runtime import load_model
 
     if model is not None:
         return load_model(model)

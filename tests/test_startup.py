@@ -16,7 +16,7 @@ SCRIPT = textwrap.dedent("""
 
     import quadformer, quadformer.logs, quadformer.cli
     from quadformer.detectors import available, defaults, get, make
-    from quadformer.detectors.export import load_model
+    from quadformer.detectors.onnx_runtime import load_model
     from quadformer.estimator.schema import NIS
     from quadformer.logs.detect import detect_log
 

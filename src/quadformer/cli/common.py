@@ -193,7 +193,7 @@ def seed_runs(seeds: Optional[int], seed_list: Optional[str], seed: int) -> Opti
 
 def load_model_file(path: Path, runtime: str):
     """The detector saved at ``path`` (a model file, or an .onnx graph with ``runtime`` onnx)."""
-    from quadformer.detectors.export import load_model
+    from quadformer.detectors.onnx_runtime import load_model
 
     try:
         return load_model(path, runtime)

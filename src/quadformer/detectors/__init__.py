@@ -9,8 +9,9 @@ A detector's module is imported when the detector is first asked for by name (``
 from quadformer.detectors.alarms import Alert, alert_counts, alerts_frame, alerts_from_scores, runs, write_alerts
 from quadformer.detectors.attack_types import ShapeTyper
 from quadformer.detectors.base import Detector, NotFittedError, flight_slices
-from quadformer.detectors.export import OnnxDetector, export_onnx, load_model
+from quadformer.detectors.export import export_onnx
 from quadformer.detectors.flight_phase import FlightPhase, PhaseRule
+from quadformer.detectors.onnx_runtime import OnnxDetector, load_model
 from quadformer.detectors.receiver_health import HealthRule, ReceiverHealth
 from quadformer.detectors.registry import available, defaults, get, load, make, register
 from quadformer.detectors.streams import DetectorStream, StreamGroup, StreamStep

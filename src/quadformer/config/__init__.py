@@ -3,168 +3,25 @@
 Every field is validated at construction; an invalid value raises ``ConfigError``
 naming the field. ``SimConfig.from_dict`` builds a config from nested mappings (as read
 from a TOML file at the CLI edge) and rejects unknown keys.
+
+The vocabularies and the field checks are in ``config.base``, the sensors' configuration in
+``config.sensors``; every name stays importable from ``quadformer.config``.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field, fields
 from typing import Any, Mapping
 
-MODELS = ("I", "II")
-NOISE_SHAPES = ("gaussian", "exponential", "laplace")
-ATTACK_KINDS = ("none", "bias", "ramp", "sinusoid", "intermittent", "replay", "freeze")
-#: a mixed attack: each attacked flight draws its own kind from ``AttackConfig.mix``
-MIX = "mix"
-#: the kinds a mixed attack may draw (every kind but "none"), the default of ``AttackConfig.mix``
-MIX_KINDS = tuple(k for k in ATTACK_KINDS if k != "none")
-#: the values of ``AttackConfig.kind``
-ATTACK_CHOICES = (*ATTACK_KINDS, MIX)
-MISSION_KINDS = ("hover", "circle", "lissajous", "minsnap")
-#: sensors a configuration may name, in the canonical order of ``SimConfig.sensors``
-SENSOR_NAMES = ("gps", "imu", "vio", "mag", "baro")
-#: supported sensor configurations (canonical form)
-SENSOR_CONFIGS = ("gps+imu+vio", "gps+imu+mag+baro", "gps+imu+vio+mag+baro")
+from quadformer.config.base import (ATTACK_CHOICES, ATTACK_KINDS, MISSION_KINDS, MIX, MIX_KINDS, MODELS,
+                                    NOISE_SHAPES, SENSOR_CONFIGS, SENSOR_NAMES, ConfigError, _positive, _range,
+                                    _require, parse_sensors)
+from quadformer.config.sensors import BaroConfig, GPSConfig, IMUConfig, MagConfig, VIOConfig
 
-
-class ConfigError(ValueError):
-    """An invalid configuration value; the message names the field."""
-
-
-def _require(cond: bool, name: str, msg: str) -> None:
-    if not cond:
-        raise ConfigError(f"{name}: {msg}")
-
-
-def _positive(name: str, value: float) -> None:
-    _require(isinstance(value, (int, float)) and math.isfinite(value) and value > 0,
-             name, f"must be a positive finite number, got {value!r}")
-
-
-def _non_negative(name: str, value: float) -> None:
-    _require(isinstance(value, (int, float)) and math.isfinite(value) and value >= 0,
-             name, f"must be a non-negative finite number, got {value!r}")
-
-
-def parse_sensors(text: Any, name: str = "sensors") -> str:
-    """The canonical form of a sensor configuration such as ``"imu+gps+mag+baro"``: names
-    joined by ``+`` in the order of ``SENSOR_NAMES``; ``ConfigError`` unless supported."""
-    choices = ", ".join(SENSOR_CONFIGS)
-    _require(isinstance(text, str), name, f"must be a string such as 'gps+imu+vio', got {text!r}; "
-             f"choose from {choices}")
-    parts = [p.strip().lower() for p in text.split("+")]
-    unknown = [p for p in parts if p not in SENSOR_NAMES]
-    _require(not unknown, name, f"unknown sensor {', '.join(map(repr, unknown))} in {text!r}; "
-             f"choose from {choices}")
-    _require(len(set(parts)) == len(parts), name, f"a sensor is named twice in {text!r}; choose from {choices}")
-    canonical = "+".join(n for n in SENSOR_NAMES if n in parts)
-    _require(canonical in SENSOR_CONFIGS, name, f"unsupported sensor configuration {text!r}; choose from {choices}")
-    return canonical
-
-
-def _range(name: str, value: Any, lo: float = -math.inf) -> tuple[float, float]:
-    _require(isinstance(value, (tuple, list)) and len(value) == 2, name,
-             f"must be a pair (low, high), got {value!r}")
-    a, b = (float(v) for v in value)
-    _require(math.isfinite(a) and math.isfinite(b) and a <= b, name,
-             f"must satisfy low <= high with finite values, got {value!r}")
-    _require(a >= lo, name, f"values must be >= {lo}, got {value!r}")
-    return (a, b)
-
-
-@dataclass(frozen=True)
-class GPSConfig:
-    rate_hz: float = 10.0          # Hz, GPS solution rate
-    pos_std_h: float = 0.5         # m, white noise std, horizontal axes
-    pos_std_v: float = 1.0         # m, white noise std, vertical axis
-    vel_std: float = 0.1           # m/s, white noise std, each axis
-    gm_std: float = 0.5            # m, Gauss-Markov position error std (0 disables it)
-    gm_tau: float = 30.0           # s, Gauss-Markov time constant
-
-    def __post_init__(self) -> None:
-        _positive("gps.rate_hz", self.rate_hz)
-        _positive("gps.pos_std_h", self.pos_std_h)
-        _positive("gps.pos_std_v", self.pos_std_v)
-        _positive("gps.vel_std", self.vel_std)
-        _non_negative("gps.gm_std", self.gm_std)
-        _positive("gps.gm_tau", self.gm_tau)
-
-
-@dataclass(frozen=True)
-class VIOConfig:
-    rate_hz: float = 20.0          # Hz, stereo VIO output rate
-    vel_std: float = 0.05          # m/s, velocity noise std, each axis
-    att_std_deg: float = 0.5       # deg, attitude noise std, each axis
-    drift_fraction: float = 0.01   # position drift per metre travelled (odometry frame)
-
-    def __post_init__(self) -> None:
-        _positive("vio.rate_hz", self.rate_hz)
-        _positive("vio.vel_std", self.vel_std)
-        _positive("vio.att_std_deg", self.att_std_deg)
-        _non_negative("vio.drift_fraction", self.drift_fraction)
-
-
-@dataclass(frozen=True)
-class MagConfig:
-    """Three-axis magnetometer: body-frame (FLU) Earth field, hard-iron bias and noise.
-
-    The Earth field in the world frame (ENU) is ``field_h`` pointing to magnetic north
-    (``declination_deg`` east of true north) and ``field_v`` pointing down."""
-    rate_hz: float = 50.0          # Hz, sample rate
-    noise_std: float = 0.005       # gauss, white noise std, each axis
-    bias_std: float = 0.01         # gauss, constant hard-iron bias std per flight, each axis
-    bias_walk: float = 0.0         # gauss/sqrt(s), bias random walk (0 disables it)
-    field_h: float = 0.22          # gauss, horizontal Earth field (towards magnetic north)
-    field_v: float = 0.42          # gauss, vertical Earth field (positive down)
-    declination_deg: float = 0.0   # deg, magnetic north east of true north
-
-    def __post_init__(self) -> None:
-        _positive("mag.rate_hz", self.rate_hz)
-        _positive("mag.noise_std", self.noise_std)
-        _non_negative("mag.bias_std", self.bias_std)
-        _non_negative("mag.bias_walk", self.bias_walk)
-        _positive("mag.field_h", self.field_h)
-        _require(isinstance(self.field_v, (int, float)) and math.isfinite(self.field_v), "mag.field_v",
-                 f"must be a finite number, got {self.field_v!r}")
-        _require(isinstance(self.declination_deg, (int, float)) and -180.0 <= self.declination_deg <= 180.0,
-                 "mag.declination_deg", f"must be in [-180, 180], got {self.declination_deg!r}")
-
-    @property
-    def field_enu(self) -> tuple[float, float, float]:
-        """The Earth field in the world frame (east, north, up), gauss."""
-        d = math.radians(self.declination_deg)
-        return (self.field_h * math.sin(d), self.field_h * math.cos(d), -self.field_v)
-
-
-@dataclass(frozen=True)
-class BaroConfig:
-    """Barometric height: the world-frame height (ENU z) plus a Gauss-Markov bias and noise."""
-    rate_hz: float = 25.0          # Hz, sample rate
-    noise_std: float = 0.4         # m, white noise std
-    gm_std: float = 0.5            # m, Gauss-Markov bias std (0 disables it)
-    gm_tau: float = 60.0           # s, Gauss-Markov time constant
-
-    def __post_init__(self) -> None:
-        _positive("baro.rate_hz", self.rate_hz)
-        _positive("baro.noise_std", self.noise_std)
-        _non_negative("baro.gm_std", self.gm_std)
-        _positive("baro.gm_tau", self.gm_tau)
-
-
-@dataclass(frozen=True)
-class IMUConfig:
-    """IMU error model (rotorpy's: white noise scaled by sqrt(rate/2), bias random walk)."""
-    accel_noise_density: float = 0.02    # m/s^2/sqrt(Hz)
-    gyro_noise_density: float = 0.002    # rad/s/sqrt(Hz)
-    accel_bias_walk: float = 1e-3        # m/s^3/sqrt(Hz), bias random walk
-    gyro_bias_walk: float = 1e-4         # rad/s^2/sqrt(Hz), bias random walk
-    accel_bias_std: float = 0.05         # m/s^2, initial bias std (per flight)
-    gyro_bias_std: float = 0.005         # rad/s, initial bias std (per flight)
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            _non_negative(f"imu.{f.name}", getattr(self, f.name))
+__all__ = ["ATTACK_CHOICES", "ATTACK_KINDS", "MISSION_KINDS", "MIX", "MIX_KINDS", "MODELS", "NOISE_SHAPES",
+           "SENSOR_CONFIGS", "SENSOR_NAMES", "AttackConfig", "BaroConfig", "ConfigError", "EKFConfig", "GPSConfig",
+           "IMUConfig", "MagConfig", "MissionConfig", "SimConfig", "VIOConfig", "merge", "parse_sensors"]
 
 
 @dataclass(frozen=True)
