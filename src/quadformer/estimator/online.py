@@ -174,8 +174,8 @@ class ResidueStream:
         missing velocity component is the change of position since the previous fused fix, with
         the std of that difference (both fixes' position std over the interval) when larger
         than the velocity floor; at the first fix it is 0 (the start's velocity uncertainty)."""
-        pos = np.broadcast_to(np.asarray(pos, dtype=float), (self.n, 3))
-        vel = np.array(np.broadcast_to(np.asarray(vel, dtype=float), (self.n, 3)))
+        pos = per_flight(pos, self.n, 3)
+        vel = np.array(per_flight(vel, self.n, 3))
         if self._last_fix is not None and not spaced(t - self._last_fix[0], self.config.gps_rate_hz):
             return                                         # at most gps_rate_hz fixes per second
         c = self.config
@@ -238,7 +238,7 @@ class ResidueStream:
     def vio(self, t: float, x: np.ndarray) -> None:
         """Visual odometry: ENU velocity and attitude quaternion (n, 7) or (7,)."""
         if "vio" in self.aiding and self.filter is not None:
-            self.filter.push("vio", t, np.array(np.broadcast_to(np.asarray(x, float), (self.n, 7))))
+            self.filter.push("vio", t, np.array(per_flight(x, self.n, 7)))
 
     @property
     def waiting(self) -> float:

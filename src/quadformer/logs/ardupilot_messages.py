@@ -231,8 +231,15 @@ def _indexed_messages(path: Path, size: int):
             ofs = ofs[ofs + fmt.len <= size]            # the last message, cut short at the end, is not read
             if len(ofs):
                 offsets[tid], formats[tid] = ofs, fmt
+        decoded: dict[int, np.ndarray] = {}
+
+        def records(tid: int) -> np.ndarray:      # each message type decoded once
+            if tid not in decoded:
+                decoded[tid] = _records(data, offsets[tid], formats[tid])
+            return decoded[tid]
+
         if _FMT in offsets:
-            defined = _records(data, offsets[_FMT], formats[_FMT])["Type"]
+            defined = records(_FMT)["Type"]
             if len(np.unique(defined)) != len(defined):
                 return None                            # a format redefined on the way
         # every timed message's stamp, in file order
@@ -242,7 +249,11 @@ def _indexed_messages(path: Path, size: int):
             if field is None:
                 continue
             name, factor = field
-            us = _records(data, offsets[tid], fmt)[name].astype(np.uint64) * np.uint64(factor)
+            if fmt.name not in WANTED:               # only its stamps are needed: not kept
+                us = _records(data, offsets[tid], fmt)[name]
+            else:
+                us = records(tid)[name]
+            us = us.astype(np.uint64) * np.uint64(factor)
             t_ofs.append(offsets[tid])
             t_us.append(us)
             clocks["TimeUS" if name == "TimeUS" else "TimeMS"] += len(us)
@@ -256,7 +267,7 @@ def _indexed_messages(path: Path, size: int):
         for tid, fmt in formats.items():
             if fmt.name not in rows:
                 continue
-            rec = _records(data, offsets[tid], fmt)
+            rec = records(tid)
             before = np.searchsorted(t_ofs, offsets[tid], side="right") - 1    # the last timed one at or before
             stamps = [first_us if i < 0 else v for i, v in zip(before.tolist(), t_us[np.maximum(before, 0)].tolist())]
             keys = ["TimeUS"] + [f for f in WANTED[fmt.name] if f in fmt.colhash]

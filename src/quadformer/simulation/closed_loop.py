@@ -326,12 +326,12 @@ def _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, attacked, step, t, residue
     """One GPS step under admission control: the online step scores and decides per flight; apply."""
     out = step.update(t, res, attacked)
     score, alarm, dec, admission = out.score, out.alarm, out.decision, step.admission
-    fuse = torch.from_numpy(dec.fuse)
     scaled = dec.fuse & (dec.std_scale != 1.0)
     if bool(dec.fuse.all()) and not bool(scaled.any()):
         new, dx = proposed, inn.dx
     else:
-        new, inn_applied = gps_update(ekf, pos_g, vel_g, nm, mask=fuse, std_scale=torch.from_numpy(dec.std_scale))
+        new, inn_applied = gps_update(ekf, pos_g, vel_g, nm, mask=torch.from_numpy(dec.fuse),
+                                      std_scale=torch.from_numpy(dec.std_scale))
         dx = inn_applied.dx
     applied = dx[:, 0:3]
     if bool(dec.reset.any()):

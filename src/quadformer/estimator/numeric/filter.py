@@ -11,7 +11,6 @@ holds the two to the same residues on a real log and on simulated flights.
 from __future__ import annotations
 
 from collections import deque
-from contextlib import contextmanager
 from dataclasses import replace
 
 import numpy as np
@@ -30,16 +29,6 @@ def _selection(n: int, idx: range) -> np.ndarray:
     for j, k in enumerate(idx):
         H[:, j, k] = 1.0
     return H
-
-
-@contextmanager
-def _named(stream: str, t: float):
-    """A failed update as a ``StreamError`` naming the sample's stream and time."""
-    try:
-        yield
-    except ValueError as e:
-        raise StreamError(f"{stream}: the filter's update failed at t = {t:.3f} s ({e}): a non-finite or "
-                          "impossible sample, or a state the filter lost") from None
 
 
 class Tracker:
@@ -145,20 +134,23 @@ class NumericFilter:
         ref = self.reference
         kernels.imu_step(self.p, self.v, self.q, self.ba, self.bg, self.P, ref.x, ref.C,
                          np.ascontiguousarray(x, dtype=np.float64).reshape(self.n, 6), h, qd,
-                         self.noise.accel_std, ref.q_b, True)
+                         self.noise.accel_std, ref.q_b)
         self.t = t
-        for name in self.aiding:
-            q = self.queues[name]
-            while q and q[0][0] <= t + EPS:
-                stamp, sample, _ = q.popleft()
-                with _named(name, stamp):
-                    self._aid(name, sample)
         rows = []
-        q = self.queues["gps"]
-        while q and q[0][0] <= t + EPS:
-            stamp, fix, std = q.popleft()
-            with _named("gps", stamp):
+        name, stamp = "imu", t
+        try:
+            for name in self.aiding:
+                q = self.queues[name]
+                while q and q[0][0] <= t + EPS:
+                    stamp, sample, _ = q.popleft()
+                    self._aid(name, sample)
+            name, q = "gps", self.queues["gps"]
+            while q and q[0][0] <= t + EPS:
+                stamp, fix, std = q.popleft()
                 rows.append((stamp, self._gps(fix, std)))
+        except ValueError as e:         # a failed update, named by its stream and time
+            raise StreamError(f"{name}: the filter's update failed at t = {stamp:.3f} s ({e}): a non-finite or "
+                              "impossible sample, or a state the filter lost") from None
         return rows
 
     @property
@@ -173,7 +165,7 @@ class NumericFilter:
         var[:] = std * std
         kernels.update(self.p, self.v, self.q, self.ba, self.bg, self.P, H, np.ascontiguousarray(r), var,
                        w, nis, s, dx)
-        return r.copy(), w.copy(), nis.copy(), s.copy(), dx.copy()
+        return r, w.copy(), nis.copy(), s.copy(), dx.copy()
 
     def _aid(self, name: str, x: np.ndarray) -> None:
         nm, tr = self.noise, self.tracker

@@ -114,11 +114,10 @@ def sandwich(F, P, tmp):
 
 
 @jit
-def imu_step(p, v, q, ba, bg, P, rx, rC, imu, dt, qdiag, accel_std, q_b, with_reference):
+def imu_step(p, v, q, ba, bg, P, rx, rC, imu, dt, qdiag, accel_std, q_b):
     """One IMU sample imu (n,6) (specific force, body rate; FLU) over dt seconds: the reference
-    (``rx``, ``rC``; when ``with_reference``) propagated through the state before its own
-    propagation, then the filter's predict with the process noise ``qdiag`` (12,) of error
-    states 3..14."""
+    (``rx``, ``rC``) propagated through the state before its own propagation, then the
+    filter's predict with the process noise ``qdiag`` (12,) of error states 3..14."""
     n = p.shape[0]
     R = np.empty((3, 3))
     F = np.empty((15, 15))
@@ -128,28 +127,27 @@ def imu_step(p, v, q, ba, bg, P, rx, rC, imu, dt, qdiag, accel_std, q_b, with_re
     tmp3 = np.empty((3, 3))
     e = np.empty(4)
     Re = np.empty((3, 3))
+    a = np.empty(3)
+    # the reference's transition per axis: (position, velocity, acceleration error)
+    Fr[0, 0], Fr[0, 1], Fr[0, 2] = 1.0, dt, -0.5 * dt * dt
+    Fr[1, 0], Fr[1, 1], Fr[1, 2] = 0.0, 1.0, -dt
+    Fr[2, 0], Fr[2, 1], Fr[2, 2] = 0.0, 0.0, 1.0
     for b in range(n):
         rotmat(q[b], R)
         f0, f1, f2 = imu[b, 0] - ba[b, 0], imu[b, 1] - ba[b, 1], imu[b, 2] - ba[b, 2]
         w0, w1, w2 = imu[b, 3] - bg[b, 0], imu[b, 4] - bg[b, 1], imu[b, 5] - bg[b, 2]
-        a = np.empty(3)
         for i in range(3):
             a[i] = R[i, 0] * f0 + R[i, 1] * f1 + R[i, 2] * f2
         a[2] += GRAVITY_Z
-        if with_reference:
-            # the reference per axis: (position, velocity, acceleration error)
-            Fr[0, 0], Fr[0, 1], Fr[0, 2] = 1.0, dt, -0.5 * dt * dt
-            Fr[1, 0], Fr[1, 1], Fr[1, 2] = 0.0, 1.0, -dt
-            Fr[2, 0], Fr[2, 1], Fr[2, 2] = 0.0, 0.0, 1.0
-            for ax in range(3):
-                acc = a[ax] - rx[b, ax, 2]
-                x0, x1 = rx[b, ax, 0], rx[b, ax, 1]
-                rx[b, ax, 0] = x0 + x1 * dt + 0.5 * acc * dt * dt
-                rx[b, ax, 1] = x1 + acc * dt
-                C = rC[b, ax]
-                sandwich(Fr, C, tmp3)
-                C[1, 1] += (accel_std * dt) ** 2
-                C[2, 2] += q_b[ax]
+        for ax in range(3):                  # the reference, through the state before its propagation
+            acc = a[ax] - rx[b, ax, 2]
+            x0, x1 = rx[b, ax, 0], rx[b, ax, 1]
+            rx[b, ax, 0] = x0 + x1 * dt + 0.5 * acc * dt * dt
+            rx[b, ax, 1] = x1 + acc * dt
+            C = rC[b, ax]
+            sandwich(Fr, C, tmp3)
+            C[1, 1] += (accel_std * dt) ** 2
+            C[2, 2] += q_b[ax]
         # nominal state
         for i in range(3):
             p[b, i] = p[b, i] + v[b, i] * dt + 0.5 * a[i] * dt * dt
