@@ -32,6 +32,9 @@ Kinds (``kind``), and what they read:
 - ``typing``: per method, the share of detected attacks typed right (own classifier at the
   first alarm; shape typer at the first alarm and confirmed later), pooled over configurations.
 - ``resilience``: a ``resilience`` run: one row per policy over every configuration's flights.
+- ``zoo``: the shipped detectors' ``index.json`` (``quadformer zoo build``): one row per
+  detector, its figures on the zoo's own held-out simulated test flights at both thresholds.
+- ``zoo-configs``: one shipped set's (``set``) detectors, test F1 by configuration.
 - ``field``: a ``benchmark --profile field`` run: per method and threshold (the simulation's,
   calibrated on the other clean logs), spoofing alerts in the air per in-air hour on the clean
   flights with the exposure and the Poisson interval, the alerts counted apart, and the injected
@@ -60,6 +63,10 @@ ROOT = DOCS.parent
 #:     "paper-f1": {"source": "results/paper/results.json", "kind": "methods", "metric": "f1",
 #:                  "command": "quadformer benchmark --profile paper --out runs/paper-now"},
 TABLES: dict[str, dict[str, Any]] = {
+    "zoo": {"source": "../src/quadformer/detectors/pretrained/models/index.json", "kind": "zoo",
+            "command": "quadformer zoo build"},
+    "zoo-vio": {"source": "../src/quadformer/detectors/pretrained/models/index.json", "kind": "zoo-configs",
+                "set": "vio", "command": "quadformer zoo build"},
     "field": {"source": "results/field/results.json", "kind": "field",
               "command": "quadformer benchmark --profile field --logs ../shared/data/real-flights "
                          "--manifest ../shared/data/real-flights/MANIFEST.csv --out runs/field"},
@@ -298,8 +305,42 @@ def table_field(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
     return markdown(head, rows)
 
 
+def table_zoo(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
+    """The shipped detectors (the package's ``index.json``): one row per detector, its figures on
+    the zoo's held-out simulated test flights at both thresholds."""
+    d = spec.get("digits", 2)
+    rows = []
+    for det_name, e in res["detectors"].items():
+        s = res["sets"][e["set"]]
+        c = e["card"]
+        f, b = c["test"]["at_f1_threshold"], c["test"]["at_budget_threshold"]
+        ci = f.get("f1_ci95")
+        flights = sum(x["flights"] for x in c["training"]["simulation"])
+        rows.append([f"`{det_name}`" + (" (default)" if s["default"] == det_name else ""), e["method"],
+                     f"{s['sensors']}, {s['residues']}", str(flights),
+                     f"{fmt(f['f1'], d)} [{fmt(ci[0], d)}, {fmt(ci[1], d)}]" if ci else fmt(f["f1"], d),
+                     fmt(b["f1"], d), fmt(b["event_recall"], d), fmt(b["delay_median_s"], 1),
+                     fmt(b["false_alarms_per_hour"], 1)])
+    head = ["detector", "method", "sensors, residues", "simulated flights (60/20/20)", "test F1 [95%]",
+            "budget: F1", "budget: event recall", "budget: median delay (s)", "budget: FA/h (clean)"]
+    return markdown(head, rows)
+
+
+def table_zoo_configs(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
+    """One shipped set's detectors (``set``) by configuration: test F1 at the F1 threshold."""
+    d = spec.get("digits", 2)
+    dets = {k: e for k, e in res["detectors"].items() if e["set"] == spec["set"]}
+    if not dets:
+        raise TableError(f"table {name!r}: no shipped detector of set {spec['set']!r}")
+    first = next(iter(dets.values()))["card"]["test"]["at_f1_threshold"]["per_config_f1"]
+    configs = sorted(first, key=lambda n: config_key({"name": n}))
+    rows = [[e["method"]] + [fmt(e["card"]["test"]["at_f1_threshold"]["per_config_f1"].get(c), d) for c in configs]
+            for e in dets.values()]
+    return markdown(["method"] + [config_label({"name": c}) for c in configs], rows)
+
+
 KINDS = {"methods": table_methods, "seeds": table_seeds, "stress": table_stress, "typing": table_typing,
-         "resilience": table_resilience, "field": table_field}
+         "resilience": table_resilience, "field": table_field, "zoo": table_zoo, "zoo-configs": table_zoo_configs}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -312,7 +353,7 @@ def render(name: str, spec: dict[str, Any], page: Path, root: Path, cache: dict[
     command that wrote it."""
     if spec.get("kind") not in KINDS:
         raise TableError(f"table {name!r}: unknown kind {spec.get('kind')!r}; choose from {', '.join(KINDS)}")
-    path = root / "docs" / spec["source"]
+    path = Path(os.path.normpath(root / "docs" / spec["source"]))
     if path not in cache:
         if not path.is_file():
             raise TableError(f"table {name!r}: source {path.relative_to(root).as_posix()} does not exist")

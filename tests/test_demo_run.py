@@ -41,3 +41,32 @@ def test_demo_run_benchmarks_detection_then_resilience_from_the_cache(short_data
     assert run.resilience["configs"][0]["model_from_cache"] is True      # the detection run's tuned CUSUM
     assert sorted(p.name for p in cache.iterdir() if p.name != "models") == [
         f"{n}-{dataset_key(c)}" for n, c in profile_configs(part)]       # nothing simulated
+
+
+def test_the_demo_on_shipped_detectors_trains_nothing_and_scores_every_flight(short_dataset_dir, tmp_path):
+    """The default demo: the shipped vio detectors score every flight of a configuration's new
+    dataset, the shipped QUADFormer drives the resilient estimator, and `detect`'s route reads
+    simulated PX4 and ArduPilot logs with the shipped detector it picks."""
+    from quadformer.detectors import pretrained
+    from quadformer.experiments.demo import run_shipped_demo, shipped_profile
+
+    part = select_configs(shipped_profile(), "modelII-laplace-bias")
+    cache = tmp_path / "cache"
+    for name, cfg in profile_configs(part):
+        shutil.copytree(short_dataset_dir, cache / f"{name}-{dataset_key(cfg)}")
+    out = tmp_path / "demo"
+    run = run_shipped_demo(out, cache, progress=False, workers=1, profile=part, fly=2, log_duration=20.0)
+    assert list(run.phases) == ["simulate", "detection", "resilience", "logs"]
+    cfg = run.detection["configs"][0]
+    assert cfg["split"]["test"] == cfg["n_test_flights"] == 6 and cfg["split"]["train"] == 0
+    assert set(cfg["methods"]) == set(run.shipped) >= {"quadformer", "cusum", "chi2"}
+    assert all(m["model_from_cache"] for m in cfg["methods"].values())          # nothing tuned
+    assert run.detection["shipped"]["quadformer"] == "vio-quadformer"
+    assert "shipped detectors" in run.detection["protocol"]
+    res = run.resilience["configs"][0]
+    assert run.resilience["shipped"] == "vio-quadformer" and res["test_flights"] == 2
+    assert [o.status for o in run.logs.outcomes] == ["scored"] * 4               # two flights, two formats
+    assert sorted(o.path.suffix for o in run.logs.outcomes) == [".bin", ".bin", ".ulg", ".ulg"]
+    assert run.log_detector == pretrained.sets()["magbaro"].default
+    assert (out / "logs" / "summary.csv").exists() and (out / "detection" / "report.html").exists()
+    assert json.loads((out / "detection" / "results.json").read_text())["methods_run"] == list(run.shipped)

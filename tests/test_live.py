@@ -480,9 +480,29 @@ def test_e_cli_monitor_demo(tmp_path):
     assert summary["alerts"] >= 1 and (tmp_path / "demo" / "demo-model.json").exists()
 
 
+def test_cli_monitor_without_a_model_takes_the_shipped_detector_of_its_sensors(tmp_path):
+    from quadformer.detectors import pretrained
+
+    with time_limit(60):        # nobody sends: the duration ends it
+        r = CliRunner().invoke(app, ["monitor", "--connect", f"udpin:{LOCAL}:0", "--duration", "0.5",
+                                     "--out", str(tmp_path / "a")])
+    assert r.exit_code == 0, r.output
+    default = pretrained.sets()["magbaro"].default
+    assert f"detector: shipped {default}" in r.output and "chosen for a link" in r.output
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert summary["detector"]["model"] == f"shipped:{default}" and summary["sensors"] == "gps+imu+mag+baro"
+    with time_limit(60):
+        r = CliRunner().invoke(app, ["monitor", "--connect", f"udpin:{LOCAL}:0", "--duration", "0.5",
+                                     "--sensors", "gps+imu+vio", "--out", str(tmp_path / "b")])
+    assert r.exit_code == 0, r.output
+    assert f"detector: shipped {pretrained.sets()['vio'].default}" in r.output
+
+
 def test_cli_monitor_refuses_bad_input(tmp_path):
-    r = CliRunner().invoke(app, ["monitor", "--connect", f"udpin:{LOCAL}:0"])
-    assert r.exit_code == 2 and "--model" in r.output
+    r = CliRunner().invoke(app, ["monitor"])
+    assert r.exit_code == 2 and "--connect is required" in r.output
+    r = CliRunner().invoke(app, ["monitor", "--connect", f"udpin:{LOCAL}:0", "--sensors", "gps+imu+baro"])
+    assert r.exit_code == 2 and "no shipped detector fits ekf residues of baro+gps+imu" in r.output
     r = CliRunner().invoke(app, ["monitor", "--stale-hold", "-1", "--connect", f"udpin:{LOCAL}:0"])
     assert r.exit_code == 2 and "stale_hold_s" in r.output
     r = CliRunner().invoke(app, ["monitor", "--model", str(tmp_path / "none.json"), "--connect", f"udpin:{LOCAL}:0"])

@@ -5,9 +5,10 @@ resilience; sources of flights (simulation, logs) produce datasets; experiments 
 on top. The names below are loaded on first use (PEP 562), so ``import quadformer`` is quick
 and ``import quadformer.logs`` (say) does not pull in the simulator or torch.
 
-    from quadformer import make, read_log, detect_log
-    detector = make("cusum").fit(train).calibrate(val)     # threshold chosen on validation flights
-    result = detect_log(read_log("flight.ulg"), detector)
+    import quadformer
+    result = quadformer.detect_log("flight.ulg")               # the shipped detector that fits the log
+    detector = quadformer.pretrained("gps+imu+mag+baro")       # a shipped detector, calibrated
+    detector = quadformer.make("cusum").fit(train).calibrate(val)   # or one of your own
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ _EXPORTS = {
     "split_flights": "quadformer.evaluation.protocol",
     "read_log": "quadformer.logs", "detect_log": "quadformer.logs.detect",
     "Monitor": "quadformer.live.monitor",
+    "pretrained": ("quadformer.detectors.pretrained", "load"),
 }
 __all__ = sorted(_EXPORTS)
 __version__ = "0.1.0"
@@ -30,7 +32,8 @@ __version__ = "0.1.0"
 
 def __getattr__(name: str) -> Any:
     if name in _EXPORTS:
-        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+        module, attr = _EXPORTS[name] if isinstance(_EXPORTS[name], tuple) else (_EXPORTS[name], name)
+        value = getattr(importlib.import_module(module), attr)
         globals()[name] = value      # later look-ups skip this function
         return value
     raise AttributeError(f"module 'quadformer' has no attribute {name!r}")

@@ -2,7 +2,7 @@
 ``quadformer --help``.
 
 Commands by module: ``simulate``; ``benchmark`` (benchmark, fit, evaluate, export,
-resilience); ``logs`` (detect, calibrate, logs info, logs import); ``monitor``; ``demo``. ``common``
+resilience); ``logs`` (detect, calibrate, logs info, logs import); ``monitor``; ``demo``; ``zoo`` (zoo list, show, build). ``common``
 holds the options' parsing and help texts, ``tables`` the console's tables. A command imports
 what it uses when it runs, so ``quadformer logs info`` loads the log readers and no more.
 """
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import typer
 
-from quadformer.cli import benchmark, demo, logs, monitor, simulate
+from quadformer.cli import benchmark, demo, logs, monitor, simulate, zoo
 from quadformer.cli.common import build_config
 
 __all__ = ["app", "build_config", "main"]
@@ -34,6 +34,12 @@ logs_app.command("import")(logs.logs_import)
 app.add_typer(logs_app, name="logs")
 
 app.command()(demo.demo)
+
+zoo_app = typer.Typer(no_args_is_help=True, help="The shipped detectors: list them, show a model card, rebuild them.")
+zoo_app.command("list")(zoo.zoo_list)
+zoo_app.command("show")(zoo.zoo_show)
+zoo_app.command("build")(zoo.zoo_build)
+app.add_typer(zoo_app, name="zoo")
 
 
 def main() -> None:  # pragma: no cover

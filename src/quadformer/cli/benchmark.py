@@ -47,12 +47,16 @@ def benchmark(
     flights: int = typer.Option(60, help="Field profile: simulated training flights."),
     injections: int = typer.Option(6, help="Field profile: spoofs of each kind injected into each clean log "
                                    "segment in air."),
+    shipped: Optional[str] = typer.Option(None, help="Field profile: judge a shipped set's detectors (e.g. "
+                                          "magbaro; `quadformer zoo list`) instead of tuning --methods."),
     quiet: bool = typer.Option(False, help="No progress bars."),
 ) -> None:
     """Simulate (or reuse) the profile's configurations, tune and evaluate methods, write tables and a
     report. With --data, the same protocol on given datasets; with --profile field, on real logs."""
     if profile == "field" or logs or manifest is not None:
-        return _field(profile, logs, manifest, methods, data, configs, out, seed, flights, injections)
+        return _field(profile, logs, manifest, methods, data, configs, out, seed, flights, injections, shipped)
+    if shipped is not None:
+        fail("--shipped belongs to --profile field (the demo scores the shipped detectors on simulated flights)")
     from quadformer.dataset import DatasetError
     from quadformer.experiments.detection import run_benchmark, run_datasets, run_seeds
     from quadformer.experiments.pool import BackendError, UnitError
@@ -95,7 +99,7 @@ def benchmark(
     typer.echo(f"report:  {(out / 'report.html').resolve()}")
 
 
-def _field(profile, logs, manifest, methods, data, configs, out, seed, flights, injections) -> None:
+def _field(profile, logs, manifest, methods, data, configs, out, seed, flights, injections, shipped) -> None:
     from quadformer.experiments.field import FieldPlan, run_field
     from quadformer.io import set_threads
     from quadformer.logs import LogError
@@ -115,7 +119,7 @@ def _field(profile, logs, manifest, methods, data, configs, out, seed, flights, 
     set_threads()
     try:
         results = run_field(paths, out, FieldPlan(tuple(method_names(methods)), flights=flights, seed=seed,
-                                                  injections=injections), manifest, echo=typer.echo)
+                                                  injections=injections), manifest, echo=typer.echo, shipped=shipped)
     except (LogError, ManifestError, ValueError) as e:
         fail(str(e))
     print_field(results)

@@ -41,6 +41,10 @@ STALE_HOLD_HELP = ("Seconds the GPS fixes must agree with the estimate (NIS insi
 CONFIGS_HELP = ("Comma-separated configurations of the profile to run (e.g. modelII-laplace-bias; default: "
                 "all); their datasets and models are the whole profile's, shared through the cache.")
 MODEL_HELP = ("Model file written by `quadformer fit` (or `quadformer export`'s .onnx with --runtime onnx).")
+SHIPPED_MODEL_HELP = ("A shipped detector (`quadformer zoo list`: a name such as magbaro-cusum-ref, or a sensor set "
+                      "such as gps+imu+mag+baro) or a model file written by `quadformer fit` (or `quadformer "
+                      "export`'s .onnx with --runtime onnx). Default: the shipped detector that fits the data's "
+                      "sensors, at its false-alarm-budget threshold.")
 
 
 def fail(msg: str) -> NoReturn:
@@ -207,6 +211,48 @@ def calibrated_model(path: Path, runtime: str):
     if getattr(det, "threshold_", None) is None:
         fail(f"{path}: the detector has no alarm threshold; write it with `quadformer fit`")
     return det
+
+
+def model_or_shipped(model: str, runtime: str):
+    """(detector, label, sensors): a model file, else a shipped detector by name or sensor set
+    (at its false-alarm-budget threshold; ``sensors``, the sensors it was trained with, else None)."""
+    from quadformer.detectors import pretrained
+
+    path = Path(model)
+    if path.exists() or not pretrained.is_shipped(model):
+        if not path.exists() and (path.suffix or "/" in model):
+            fail(f"{model}: no such model file")
+        if not path.exists():
+            names = ", ".join(pretrained.entries()) if pretrained.INDEX.exists() else "none"
+            fail(f"--model {model!r}: neither a model file nor a shipped detector (shipped: {names})")
+        return calibrated_model(path, runtime), str(path), None
+    if runtime != "torch":
+        fail("--runtime onnx scores an exported .onnx file (quadformer export); a shipped detector runs on torch")
+    try:
+        det = pretrained.load(model)
+    except pretrained.ZooError as e:
+        fail(str(e))
+    entry = pretrained.resolve(model)
+    typer.echo(f"detector: shipped {entry.name} ({entry.method}, {entry.set.sensors}, {entry.set.residues} residues, "
+               f"budget threshold {det.threshold_:.4g}; `quadformer zoo show {entry.name}`)")
+    return det, f"shipped:{entry.name}", entry.set.sensors
+
+
+def shipped_for_data(have: set[str], residues: str, format: Optional[str], what: str):
+    """(detector, label, sensors) of the shipped detector that fits ``have`` (sensor names),
+    printed with why it was chosen."""
+    from quadformer.detectors import pretrained
+
+    try:
+        entry = pretrained.choose(have, residues, format)
+        det = pretrained.load(entry.name)
+    except pretrained.ZooError as e:
+        fail(str(e))
+    typer.echo(f"detector: shipped {entry.name} ({entry.method}), chosen for {what} "
+               f"({'+'.join(s for s in ('gps', 'imu', 'vio', 'mag', 'baro') if s in have)}, {residues} residues): "
+               f"trained in simulation, threshold at {entry.card['calibration']['budget_per_hour']:g} false alarm per "
+               f"clean flight-hour; --model to choose another (`quadformer zoo list`)")
+    return det, f"shipped:{entry.name}", entry.set.sensors if entry.set.residues == "ekf" else None
 
 
 def load_dataset_dir(path: Path):

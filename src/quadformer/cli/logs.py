@@ -8,15 +8,15 @@ from typing import Optional
 
 import typer
 
-from quadformer.cli.common import (FILTER_HELP, LOG_GPS_DELAY_HELP, MODEL_HELP, RECEIVER_HELP, RESIDUES_HELP,
-                                   RUNTIME_HELP, TYPING_HELP, calibrated_model, check_residues, check_typing, fail,
-                                   log_paths, pair, print_alerts, replay_config)
+from quadformer.cli.common import (FILTER_HELP, LOG_GPS_DELAY_HELP, RECEIVER_HELP, RESIDUES_HELP, RUNTIME_HELP,
+                                   SHIPPED_MODEL_HELP, TYPING_HELP, check_residues, check_typing, fail, log_paths,
+                                   model_or_shipped, pair, print_alerts, replay_config, shipped_for_data)
 from quadformer.config import ATTACK_KINDS, ConfigError
 
 def detect(
     logs: list[Path] = typer.Argument(..., help="Flight logs (PX4 .ulg, ArduPilot .bin, ROS 1/2 bags) or "
                                       "directories holding them."),
-    model: Path = typer.Option(..., help=MODEL_HELP),
+    model: Optional[str] = typer.Option(None, help=SHIPPED_MODEL_HELP),
     runtime: str = typer.Option("torch", help=RUNTIME_HELP),
     residues: str = typer.Option("ekf", help=RESIDUES_HELP),
     out: Path = typer.Option(Path("runs/detect"), "--out", help="Output directory (one folder per log)."),
@@ -44,11 +44,15 @@ def detect(
     from quadformer.io import set_threads
     from quadformer.report.detection_outputs import detect_logs
 
-    det = calibrated_model(model, runtime)
     check_residues(residues)
     check_typing(typing)
-    config = replay_config(sensors, imu_rate, gps_rate, min_segment, filter, det, gps_delay, receiver_accuracy)
     paths = log_paths(logs, format)
+    if model is None:
+        det, label, trained_with = _shipped_for_logs(paths, residues, format)
+    else:
+        det, label, trained_with = model_or_shipped(model, runtime)
+    config = replay_config(sensors or trained_with, imu_rate, gps_rate, min_segment, filter, det, gps_delay,
+                           receiver_accuracy)
     if workers < 0:
         fail(f"--workers must be 0 (one per core) or more, got {workers}")
     if "torch" in sys.modules:                       # a network detector: one thread per log
@@ -80,7 +84,7 @@ def detect(
 
     import os
 
-    run = detect_logs(paths, det, out, residues, config, format=format, typing=typing, model=str(model),
+    run = detect_logs(paths, det, out, residues, config, format=format, typing=typing, model=label,
                       on_log=done, workers=workers or os.cpu_count() or 1)
     if bar is not None:
         bar.close()
@@ -93,6 +97,21 @@ def detect(
     if failed:
         typer.secho(f"{len(failed)} of {len(paths)} log(s) could not be processed", fg=typer.colors.RED, err=True)
         raise typer.Exit(2 if len(failed) == len(paths) else 1)
+
+
+def _shipped_for_logs(paths: list[Path], residues: str, format: Optional[str]):
+    """The shipped detector for the first of ``paths`` that reads (its sensors and format)."""
+    from quadformer.logs import FORMAT_OF_SOURCE, LogError, read_log
+    from quadformer.logs.replay import log_sensors
+
+    for p in paths:
+        try:
+            log = read_log(p, format=format)
+        except LogError:
+            continue
+        return shipped_for_data(set(log_sensors(log)), residues, FORMAT_OF_SOURCE.get(log.source),
+                                p.name if len(paths) == 1 else f"{p.name}, the first of the logs that reads")
+    fail("no log could be read to choose a shipped detector for (each is reported when named with --model)")
 
 
 EVENTS_SHOWN = 12   # events listed by `logs info`, the first by time
@@ -206,7 +225,8 @@ def logs_import(
 def calibrate(
     clean: list[Path] = typer.Option(..., "--clean", help="A clean flight log of the vehicle (PX4 .ulg, ArduPilot "
                                      ".bin, .tlog, ROS bag) or a directory of them; repeat for several."),
-    model: Path = typer.Option(..., help=MODEL_HELP),
+    model: str = typer.Option(..., help="A model file written by `quadformer fit`, or a shipped detector "
+                              "(`quadformer zoo list`)."),
     budget: str = typer.Option("1/h", help="False alarms (alarm runs) per clean flight-hour allowed, e.g. 1/h or 0.5."),
     out: Path = typer.Option(..., "--out", help="The calibrated model (a JSON file like `quadformer fit`'s)."),
     residues: str = typer.Option("ekf", help=RESIDUES_HELP),
@@ -221,13 +241,13 @@ def calibrate(
     from quadformer.logs import LogError
     from quadformer.logs.calibration import calibrate_on_logs
 
-    det = calibrated_model(model, "torch")
+    det, _, trained_with = model_or_shipped(model, "torch")
     check_residues(residues)
     try:
         per_hour = float(budget.strip().removesuffix("/h"))
     except ValueError:
         fail(f"--budget: {budget!r} is not a number of false alarms per hour (e.g. 1/h or 0.5)")
-    config = replay_config(sensors, None, None, 3.0, filter, det)
+    config = replay_config(sensors or trained_with, None, None, 3.0, filter, det)
     paths = log_paths(clean, format)
     set_threads(1)
     before = det.threshold_

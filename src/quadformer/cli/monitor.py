@@ -7,8 +7,9 @@ from typing import Optional
 
 import typer
 
-from quadformer.cli.common import (FILTER_HELP, LIVE_GPS_DELAY_HELP, RECEIVER_HELP, RUNTIME_HELP, STALE_HOLD_HELP,
-                                   TYPING_HELP, calibrated_model, fail, replay_config)
+from quadformer.cli.common import (FILTER_HELP, LIVE_GPS_DELAY_HELP, RECEIVER_HELP, RUNTIME_HELP,
+                                   SHIPPED_MODEL_HELP, STALE_HOLD_HELP, TYPING_HELP, fail, model_or_shipped,
+                                   replay_config, shipped_for_data)
 
 ACT_HELP = ("Act on the vehicle (ArduPilot): on GPS exclusion send MAV_CMD_SET_EKF_SOURCE_SET with the source set "
             "of --act-source-set, and set 1 on re-admission. Off by default. Risks: the vehicle must have a "
@@ -21,8 +22,8 @@ def monitor(
     connect: Optional[str] = typer.Option(None, help="pymavlink connection: udpin:127.0.0.1:14550 (listen, e.g. "
                                           "for MAVProxy --out or mavlink-router), udpout:HOST:PORT, tcp:HOST:PORT, "
                                           "or a serial device /dev/ttyACM0,921600."),
-    model: Optional[Path] = typer.Option(None, help="Model file written by `quadformer fit` (or `quadformer "
-                                         "export`'s .onnx with --runtime onnx)."),
+    model: Optional[str] = typer.Option(None, help=SHIPPED_MODEL_HELP + " On a link: the set of --sensors, else "
+                                        "gps+imu+mag+baro (what a flight controller without a camera sends)."),
     runtime: str = typer.Option("torch", help=RUNTIME_HELP),
     sensors: Optional[str] = typer.Option(None, help="Sensors the monitor's filter fuses, e.g. gps+imu+mag "
                                           "(default: those the detector was fit with)."),
@@ -65,24 +66,25 @@ def monitor(
         adm = AdmissionConfig(hold_s=hold, stale_hold_s=stale_hold, blend_s=blend)
     except ValueError as e:
         fail(str(e))
-    det = calibrated_model(model, runtime) if model is not None else None
+    det, label, trained_with = model_or_shipped(model, runtime) if model is not None else (None, None, None)
     if demo:
         from quadformer.experiments.live_demo import run_demo
 
-        run_demo(out, detector=det, speed=speed, duration_s=duration, act=act, echo=typer.echo,
-                 model_path=str(model) if model else None)
+        run_demo(out, detector=det, speed=speed, duration_s=duration, act=act, echo=typer.echo, model_path=label)
         return
-    if det is None:
-        fail("--model is required (or --demo)")
     if connect is None:
         fail("--connect is required, e.g. --connect udpin:127.0.0.1:14550")
-    filt = replay_config(sensors, imu_rate, gps_rate, 3.0, filter, det, gps_delay, receiver_accuracy)
+    if det is None:
+        have = set((sensors or "gps+imu+mag+baro").split("+"))
+        det, label, trained_with = shipped_for_data(have, "ekf", None, "--sensors" if sensors else "a link")
+    filt = replay_config(sensors or trained_with, imu_rate, gps_rate, 3.0, filter, det, gps_delay,
+                         receiver_accuracy)
     try:
         config = MonitorConfig(connect=connect, filter=filt, admission=adm, gps_instance=gps_instance, system=system,
                                act=act, act_source_set=act_source_set, statustext=statustext,
                                request_rates=request_rates, out=out, duration_s=duration, max_messages=max_messages,
                                typing=typing)
-        mon = Monitor(det, config, echo=typer.echo, model=str(model))
+        mon = Monitor(det, config, echo=typer.echo, model=label)
         mon.open()
     except (ValueError, OSError) as e:
         fail(str(e))

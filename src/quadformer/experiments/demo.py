@@ -153,3 +153,116 @@ def run_demo_profile(out: Path, cache_dir: Path, methods: list[str], profile: st
         if bar is not None:
             bar.close()
     return DemoRun(rows, detection, resilience, phases)
+
+
+# -- the demo on the shipped detectors (``quadformer demo``; ``--train`` is the one above) --------
+#: the demo's test flights: the paper's eight configurations, 20 new flights each (seed
+#: DEMO_SEED: neither the zoo's nor a benchmark's), every one a test flight; the resilience run
+#: flies four configurations' first SHIPPED_FLY flights again under every policy
+SHIPPED_FLY = 5
+#: the flights written as autopilot logs for ``detect``: GPS, IMU, magnetometer and barometer
+#: with the fleet's noise, one of the two spoofed
+LOG_FLIGHTS = 2
+
+
+#: the paper profile's QUADFormer test F1 by configuration (docs/results.md, "Paper profile":
+#: `quadformer benchmark --profile paper`, a model per configuration trained on 360 flights), for
+#: the demo's comparison with the shipped QUADFormer
+PAPER_PROFILE_QUADFORMER_F1 = {
+    "modelI-exponential-bias": 0.91, "modelI-exponential-ramp": 0.98, "modelI-laplace-bias": 0.90,
+    "modelI-laplace-ramp": 0.98, "modelII-exponential-bias": 0.92, "modelII-exponential-ramp": 0.99,
+    "modelII-laplace-bias": 0.93, "modelII-laplace-ramp": 0.99}
+
+
+def versus_paper(detection: dict[str, Any], method: str = "quadformer") -> list[dict[str, Any]]:
+    """Per configuration of a demo run: ``method``'s test F1, its 95% bootstrap interval, the paper
+    profile's F1 and whether the interval holds it."""
+    out = []
+    for c in detection["configs"]:
+        m = c["methods"].get(method)
+        paper = PAPER_PROFILE_QUADFORMER_F1.get(c["name"])
+        if m is None or paper is None:
+            continue
+        ci = m.get("f1_ci95")
+        out.append({"config": c["name"], "f1": m["f1"], "ci95": ci, "paper": paper,
+                    "holds": bool(ci is not None and ci[0] <= paper <= ci[1])})
+    return out
+
+
+def shipped_profile() -> Profile:
+    from quadformer.experiments.grid import DEMO_RESILIENCE_GRID
+    from quadformer.experiments.zoo import DEMO_SEED
+
+    return Profile("demo", 20, seed=DEMO_SEED, stress_flights=0, resilience_grid=DEMO_RESILIENCE_GRID)
+
+
+@dataclass
+class ShippedDemo:
+    datasets: list[dict[str, Any]]
+    detection: dict[str, Any]
+    resilience: dict[str, Any]
+    logs: Any                          # report.detection_outputs.LogsDetection
+    log_detector: str                  # the shipped detector the logs were scored with
+    shipped: dict[str, str]            # method -> shipped detector of the comparison
+    phases: dict[str, float]
+
+
+def run_shipped_demo(out: Path, cache_dir: Path, progress: bool = True, workers: int | None = None,
+                     profile: Profile | None = None, fly: int = SHIPPED_FLY,
+                     log_duration: float = 60.0) -> ShippedDemo:
+    """The shipped detectors on new flights: the paper's eight configurations scored by the
+    ``vio`` set's detectors (nothing tuned), QUADFormer's shipped detector driving the resilient
+    estimator on four of them (their first ``fly`` flights), and ``detect`` on simulated flights
+    (``log_duration`` s) written as a PX4 ULog and an ArduPilot DataFlash log, with the shipped
+    detector ``detect`` picks for them. ``profile``: another set of test flights (its seed not
+    the zoo's)."""
+    from quadformer.dataset import load_dataset
+    from quadformer.detectors import pretrained
+    from quadformer.experiments.cache import ensure_configs
+    from quadformer.experiments.detection import run_shipped
+    from quadformer.experiments.resilience import run_resilience
+
+    prof = profile or shipped_profile()
+    shipped = {e.method: e.name for e in pretrained.entries().values() if e.set.name == "vio"}
+    if not shipped:
+        raise ValueError("no shipped detector of the vio set: build them with `quadformer zoo build`")
+    phases: dict[str, float] = {}
+    t0 = time.perf_counter()
+    paths = ensure_configs(profile_configs(prof), cache_dir, progress=progress, workers=workers)
+    rows = [{"config": name, **dataset_summary(load_dataset(p))} for name, p in paths.items()]
+    phases["simulate"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    detection = run_shipped(prof, shipped, Path(out) / "detection", cache_dir, progress=progress, workers=workers)
+    phases["detection"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    resilience = run_resilience(prof, "quadformer", Path(out) / "resilience", cache_dir, progress=progress,
+                                workers=workers, max_flights=fly, shipped=shipped["quadformer"])
+    phases["resilience"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    logs, name = _detect_on_logs(Path(out), cache_dir, log_duration)
+    phases["logs"] = time.perf_counter() - t0
+    return ShippedDemo(rows, detection, resilience, logs, name, shipped, phases)
+
+
+def _detect_on_logs(out: Path, cache_dir: Path, duration: float):
+    """Simulated flights written as autopilot logs (kept in the cache), scored by ``detect``'s
+    route with the shipped detector it picks for them."""
+    from quadformer.config import SimConfig, merge
+    from quadformer.experiments.cache import dataset_key
+    from quadformer.experiments.flight_logs import simulate_with_logs
+    from quadformer.experiments.zoo import DEMO_SEED, FLEET_NOISE
+    from quadformer.logs import find_logs, read_log
+    from quadformer.logs.detect import shipped_for
+    from quadformer.report.detection_outputs import detect_logs
+
+    cfg = SimConfig.from_dict(merge(FLEET_NOISE, {
+        "model": "I", "noise": "gaussian", "sensors": "gps+imu+mag+baro", "flights": LOG_FLIGHTS, "duration": duration,
+        "seed": DEMO_SEED, "attack": {"kind": "bias", "fraction": 0.5, "magnitude": [4.0, 8.0],
+                                      "onset": [duration / 3, duration / 2]}}))
+    where = Path(cache_dir) / f"demo-logs-{dataset_key(cfg)}"
+    if not (where / "logs").is_dir():
+        simulate_with_logs(cfg, where, ("ulog", "dataflash"), overwrite=True)
+    paths = find_logs([where / "logs"])
+    det, config = shipped_for(read_log(paths[0]))
+    run = detect_logs(paths, det, out / "logs", "ekf", config, model=f"shipped:{det.zoo_name_}")
+    return run, det.zoo_name_

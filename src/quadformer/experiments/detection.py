@@ -27,6 +27,7 @@ from quadformer.evaluation.metrics import bootstrap_f1, evaluate, event_recall_b
 from quadformer.evaluation.protocol import TrainingBudget, split_flights
 from quadformer.experiments.cache import check_device, ensure_configs, ensure_tuned, model_dir_for, tuned_model
 from quadformer.experiments.grid import Profile, get_profile, profile_configs
+from quadformer.experiments.zoo import ZOO_SEED, shipped_tuned
 from quadformer.experiments.pool import Backend, SharedBar
 from quadformer.io import atomic_path, package_versions, write_json
 
@@ -38,8 +39,13 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
                budget_per_hour: float = 1.0, model_dir: Path | None = None,
                detectors: dict[str, Any] | None = None, device: str | None = None,
                tuning: dict[str, dict[str, Any]] | None = None,
-               budget: TrainingBudget | None = None) -> tuple[dict[str, Any], pd.DataFrame]:
+               budget: TrainingBudget | None = None,
+               shipped: dict[str, str] | None = None) -> tuple[dict[str, Any], pd.DataFrame]:
     """Tune and evaluate every method on one dataset. Returns (results, per-step test scores).
+
+    shipped: method -> a shipped detector's name (``detectors.pretrained``): nothing is tuned,
+    every flight of ``ds`` is a test flight (flights the shipped detectors never saw), each
+    method scored at its shipped validation-F1 threshold (and its budget one).
 
     model_dir: cache of tuned detectors (see ``tuned_model``); None: always tune.
     detectors: if given, receives each method's tuned (calibrated) detector.
@@ -51,7 +57,7 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
     rate = ds.gps_rate_hz
     sp = split_flights(ds.scenarios, seed, label_fraction=label_fraction)
     parts = sp.frames(ds.flights)
-    test = parts.test
+    test = parts.test if shipped is None else ds.flights
     offsets = np.linalg.norm(test[["atk_d_x", "atk_d_y", "atk_d_z"]].to_numpy(), axis=1)
     true_types = np.where(test.label.to_numpy() == 1, test.attack_type.astype(str).to_numpy(), "none")
     scores = test[["flight_id", "t", "label"]].copy()
@@ -63,8 +69,9 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
     typed: dict[int, str] = {}
     for m in methods:
         t0 = time.perf_counter()
-        tuned = tuned_model(m, parts.train, parts.y_train, parts.val, rate, budget_per_hour, model_dir, device=device,
-                            budget=budget)
+        tuned = (shipped_tuned(shipped[m]) if shipped is not None else
+                 tuned_model(m, parts.train, parts.y_train, parts.val, rate, budget_per_hour, model_dir, device=device,
+                             budget=budget))
         det = tuned.detector
         t1 = time.perf_counter()
         s = det.decision_function(test)
@@ -91,7 +98,8 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
         scores[f"score_{m}"] = s
         scores[f"alarm_{m}"] = alarms.astype(np.int8)
         alerts.append(alerts_frame(alerts_from_scores(test, s, det, typer=typer, memo=typed)).assign(method=m))
-    split = {"train": len(sp.train), "val": len(sp.val), "test": len(sp.test), "labelled": len(sp.labelled)}
+    split = ({"train": len(sp.train), "val": len(sp.val), "test": len(sp.test), "labelled": len(sp.labelled)}
+             if shipped is None else {"train": 0, "val": 0, "test": int(ds.scenarios.shape[0]), "labelled": 0})
     return {"split": split, "methods": out, "alerts": pd.concat(alerts, ignore_index=True) if alerts else None}, scores
 
 
@@ -212,6 +220,27 @@ def run_benchmark(profile: str | Profile, methods: list[str], out: Path, cache_d
                      budget=prof.budget)
 
 
+def run_shipped(profile: str | Profile, shipped: dict[str, str], out: Path, cache_dir: Path, progress: bool = True,
+                workers: int | None = None) -> dict[str, Any]:
+    """The shipped detectors (method -> shipped name) on the profile's configurations, every
+    flight a test flight; nothing tuned. The profile's seed must not be the zoo's."""
+    prof = get_profile(profile)
+    if prof.seed == ZOO_SEED:
+        raise ValueError(f"profile seed {prof.seed} is the zoo's: its flights are the shipped detectors' own")
+    t_start = time.perf_counter()
+    configs = profile_configs(prof)
+    paths = ensure_configs(configs, cache_dir, progress=progress, workers=workers)
+    t_sim = time.perf_counter() - t_start
+    items = [(name, paths[name], None, {"model": model, "noise": noise, "attack": attack})
+             for (model, noise, attack), (name, _) in zip(prof.grid, configs)]
+    head = {"profile": prof.name, "flights_per_config": prof.flights, "duration_s": prof.duration,
+            "dataset_seed": prof.seed, "shipped": shipped,
+            "training_budget": {"name": "shipped", "rule": "the shipped detectors' own (full budgets; "
+                                "`quadformer zoo show NAME`)"}}
+    methods = list(shipped)
+    return _evaluate(items, methods, Path(out), head, t_start, t_sim, progress, 0, 0.2, 1.0, shipped=shipped)
+
+
 def run_datasets(paths: list[Path], methods: list[str], out: Path, progress: bool = True, seed: int = 0,
                  label_fraction: float = 0.2, budget_per_hour: float = 1.0, device: str = "auto") -> dict[str, Any]:
     """Every method on given datasets (simulated, or imported from flight logs), same protocol;
@@ -236,7 +265,7 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
               seed: int, label_fraction: float, budget_per_hour: float,
               stress: dict[str, list] | None = None, tuning: dict[tuple[str, str], dict[str, Any]] | None = None,
               t_tune: float | None = None, device: str | None = None,
-              budget: TrainingBudget | None = None) -> dict[str, Any]:
+              budget: TrainingBudget | None = None, shipped: dict[str, str] | None = None) -> dict[str, Any]:
     """Tune and score every method on each (name, dataset path, model cache, description);
     with ``stress`` (configuration name -> [(dataset name, stress set, path, seed)]) score the
     tuned detectors on those datasets too; write results.json, scores, alerts and the report."""
@@ -262,7 +291,8 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
         tuned: dict[str, Any] = {}
         res, scores = run_config(ds, methods, seed=seed, label_fraction=label_fraction,
                                  budget_per_hour=budget_per_hour, model_dir=model_dir, detectors=tuned, device=device,
-                                 tuning={m: tuning[(name, m)] for m in methods} if tuning else None, budget=budget)
+                                 tuning={m: tuning[(name, m)] for m in methods} if tuning else None, budget=budget,
+                                 shipped=shipped)
         t0 = time.perf_counter()
         for ds_name, st, st_path, st_seed in (stress or {}).get(name, []):
             stress_out.setdefault(name, {})[st.name] = {
@@ -280,8 +310,11 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
             shared.update(1)
     results = {
         **head, "seed": seed, "label_fraction": label_fraction, "methods_run": methods,
-        "protocol": "split by flight 60/20/20 (stratified), hyper-parameters and threshold maximise "
-                    "validation point-wise F1; test scored once; no point adjustment",
+        "protocol": ("split by flight 60/20/20 (stratified), hyper-parameters and threshold maximise "
+                     "validation point-wise F1; test scored once; no point adjustment" if shipped is None else
+                     "shipped detectors (tuned and calibrated on the zoo's own simulated flights, seed "
+                     f"{ZOO_SEED}); every flight of these datasets is a new test flight; thresholds: the shipped "
+                     "validation-F1 ones (and the budget ones); no point adjustment"),
         "configs": configs, "versions": package_versions(),
         "timing_s": {"simulate": t_sim, "total": time.perf_counter() - t_start},
     }

@@ -187,6 +187,20 @@ def tune_methods(plan: FieldPlan, cfg: SimConfig, out: Path, echo: Callable[[str
     return trained
 
 
+def shipped_detectors(name: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(method -> detector at its validation-F1 threshold, the simulation they learned from) of
+    the shipped set ``name``, which must read the project's filter's (``ekf``) residues."""
+    from quadformer.detectors import pretrained
+
+    sets = pretrained.sets()
+    if name not in sets or sets[name].residues != "ekf":
+        raise ValueError(f"shipped: {name!r} is not a shipped set of ekf residues; choose from "
+                         f"{', '.join(k for k, v in sets.items() if v.residues == 'ekf')}")
+    dets = {e.method: pretrained.load(e.name, threshold="f1") for e in pretrained.entries().values()
+            if e.set.name == name}
+    return dets, next(iter(dets.values())).calibration_["sim_config"]
+
+
 def _with_threshold(det, thr: float):
     d = copy.copy(det)
     d.threshold_ = float(thr)
@@ -257,8 +271,13 @@ def receiver_coverage(fl: FieldLog, alerts: list) -> list[dict[str, Any]]:
 
 
 def run_field(paths: list[Path], out: Path, plan: FieldPlan, manifest: Path | None = None,
-              echo: Callable[[str], None] = print) -> dict[str, Any]:
-    """The field benchmark (see the module text); writes ``out``/results.json, tables and report.html."""
+              echo: Callable[[str], None] = print, shipped: str | None = None) -> dict[str, Any]:
+    """The field benchmark (see the module text); writes ``out``/results.json, tables and report.html.
+
+    ``shipped``: a shipped set's detectors (``detectors.pretrained``; its ``ekf`` sensors) are judged
+    instead of tuning ``plan.methods``: nothing is simulated or tuned, the logs are replayed with
+    the filter tuning of the simulation they learned from, and their ``sim`` threshold is the
+    shipped validation-F1 one."""
     from quadformer.logs.noise import estimate_noise
     from quadformer.report.field import clean_summary, injection_summary, trouble_summary, write_field_report
 
@@ -278,21 +297,31 @@ def run_field(paths: list[Path], out: Path, plan: FieldPlan, manifest: Path | No
         raise LogError("no clean log with an IMU fast enough for the filter could be read: the fleet noise and "
                        "the false-alarm counts need such flights")
     noise = estimate_noise(clean0)
-    cfg = plan.sim_config(noise.sim_overrides())
+    trained = None
+    if shipped is not None:
+        trained, sim = shipped_detectors(shipped)
+        plan = dataclasses.replace(plan, methods=tuple(trained))
+        cfg = SimConfig.from_dict(sim)
+    else:
+        cfg = plan.sim_config(noise.sim_overrides())
     config = FilterConfig.matching(dataclasses.asdict(cfg))
     logs, refused = replay_logs(read, entries, config, plan.phase, echo)
     if not any(fl.clean for fl in logs):
         raise LogError("no clean log could be replayed (see the refusals above)")
-    echo(f"tuning {len(plan.methods)} methods on {cfg.flights} simulated flights (fleet noise from "
-         f"{len(clean0)} clean logs)")
-    trained = tune_methods(plan, cfg, out, echo)
+    if trained is None:
+        echo(f"tuning {len(plan.methods)} methods on {cfg.flights} simulated flights (fleet noise from "
+             f"{len(clean0)} clean logs)")
+        trained = tune_methods(plan, cfg, out, echo)
+    else:
+        echo(f"the shipped {shipped} detectors: {', '.join(trained)} (nothing tuned)")
     rate = config.gps_rate_hz
     results: dict[str, Any] = {"plan": dataclasses.asdict(plan), "sim_config": dataclasses.asdict(cfg),
                                "noise": noise.to_dict(), "manifest": None if manifest is None else str(manifest),
                                "read": [{"log": str(fl.path), "clean": fl.clean, "steps": len(fl.rows),
                                          "air_hours": _air_hours(fl), "phase_source": _phase_source(fl),
                                          "notes": fl.notes} for fl in logs],
-                               "refused": refused, "methods": {}, "versions": package_versions()}
+                               "refused": refused, "methods": {}, "versions": package_versions(),
+                               "shipped": shipped}
     per_log_rows, inj_rows = [], []
     receiver_rows: list[dict[str, Any]] = []
     t0 = time.perf_counter()

@@ -28,6 +28,7 @@ from quadformer.evaluation.resilience import flight_metrics, summarize_policy
 from quadformer.experiments.cache import batch_count, check_device, ensure_datasets, ensure_tuned, model_dir_for, tuned_model
 from quadformer.experiments.detection import training_budget_doc
 from quadformer.experiments.grid import Profile, get_profile, profile_configs
+from quadformer.experiments.zoo import shipped_tuned
 from quadformer.experiments.pool import Backend, run_jobs
 from quadformer.io import atomic_path, package_versions, write_json
 from quadformer.resilience import POLICIES, READMIT_CLEAR, READMIT_STALE, Admission, AdmissionConfig
@@ -55,16 +56,18 @@ def run_config(ds: Dataset, detector: str, seed: int = 0, label_fraction: float 
 def run_configs(parts: list[tuple[Dataset, Path | None]], detector: str, seed: int = 0, label_fraction: float = 0.2,
                 policies: tuple[str, ...] = POLICIES, admission: AdmissionConfig | None = None,
                 max_flights: int | None = None, threshold: str = "f1",
-                budget: TrainingBudget | None = None) -> list[tuple[dict[str, Any], pd.DataFrame, pd.DataFrame]]:
+                budget: TrainingBudget | None = None,
+                shipped: str | None = None) -> list[tuple[dict[str, Any], pd.DataFrame, pd.DataFrame]]:
     """``run_config`` for several configurations (``parts``: dataset and model cache per
     configuration, the configurations ``simulation.mixable``) flown in one closed-loop batch,
     each configuration's flights driven by the detector tuned on it. Each configuration's
     results equal those of ``run_config`` alone (flight i's randomness depends only on its
     configuration, seed and i; each detector streams over its own flights); ``fly_seconds``
-    is the shared batch's time."""
+    is the shared batch's time. ``shipped``: a shipped detector's name drives every
+    configuration instead (nothing tuned; every flight of the datasets is a test flight)."""
     if threshold not in THRESHOLDS:
         raise ValueError(f"threshold: unknown choice {threshold!r}; choose from {', '.join(THRESHOLDS)}")
-    plans = [_plan(ds, model_dir, detector, seed, label_fraction, policies, max_flights, threshold, budget)
+    plans = [_plan(ds, model_dir, detector, seed, label_fraction, policies, max_flights, threshold, budget, shipped)
              for ds, model_dir in parts]
     rate = plans[0]["cfg"].gps.rate_hz
     adm = Admission(np.concatenate([p["pol"] for p in plans]), rate, admission)
@@ -77,18 +80,19 @@ def run_configs(parts: list[tuple[Dataset, Path | None]], detector: str, seed: i
 
 def _plan(ds: Dataset, model_dir: Path | None, detector: str, seed: int, label_fraction: float,
           policies: tuple[str, ...], max_flights: int | None, threshold: str,
-          budget: TrainingBudget | None) -> dict[str, Any]:
+          budget: TrainingBudget | None, shipped: str | None = None) -> dict[str, Any]:
     """One configuration's part of a closed-loop batch: its tuned detector and the test
     flights to fly under every policy."""
     cfg = ds.config
     sp = split_flights(ds.scenarios, seed, label_fraction=label_fraction)
     parts = sp.frames(ds.flights)
     t0 = time.perf_counter()
-    tuned = tuned_model(detector, parts.train, parts.y_train, parts.val, cfg.gps.rate_hz, 1.0, model_dir,
-                        budget=budget)
+    tuned = (shipped_tuned(shipped) if shipped is not None else
+             tuned_model(detector, parts.train, parts.y_train, parts.val, cfg.gps.rate_hz, 1.0, model_dir,
+                         budget=budget))
     t_tune = time.perf_counter() - t0
     det = tuned.detector if threshold == "f1" else tuned.detector.at_budget()
-    test = np.sort(np.asarray(sp.test))
+    test = np.sort(np.asarray(sp.test if shipped is None else ds.scenarios.flight_id.to_numpy()))
     if max_flights is not None:
         test = test[:max_flights]
     attacked = ds.scenarios.set_index("flight_id").loc[test, "attacked"].to_numpy(bool)
@@ -163,10 +167,12 @@ def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: 
                    workers: int | None = None, seed: int = 0, label_fraction: float = 0.2,
                    policies: tuple[str, ...] = POLICIES, admission: AdmissionConfig | None = None,
                    max_flights: int | None = None, threshold: str = "f1", backend: Backend | None = None,
-                   device: str = "auto") -> dict[str, Any]:
+                   device: str = "auto", shipped: str | None = None) -> dict[str, Any]:
     """Work units on ``backend`` (default: local processes): the datasets to simulate, the
     detector to tune per configuration (``device``: where a network trains), then one
-    closed-loop batch per configuration (its test flights under every policy)."""
+    closed-loop batch per configuration (its test flights under every policy).
+    ``shipped``: a shipped detector (of method ``detector``) drives every configuration;
+    nothing is tuned and every flight of the profile's datasets is a test flight."""
     from quadformer.report.resilience import write_resilience_report
 
     prof = get_profile(profile).for_resilience()
@@ -179,15 +185,16 @@ def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: 
     paths = ensure_datasets(prof, cache_dir, progress=progress, workers=workers, backend=backend)
     t_sim = time.perf_counter() - t_start
     model_dirs = {name: model_dir_for(cache_dir, p, seed, label_fraction) for name, p in paths.items()}
-    tuning = ensure_tuned([(name, p, model_dirs[name]) for name, p in paths.items()], [detector], seed,
-                          label_fraction, 1.0, device=device, progress=progress, workers=workers, backend=backend,
-                          budget=prof.budget)
+    tuning = (ensure_tuned([(name, p, model_dirs[name]) for name, p in paths.items()], [detector], seed,
+                           label_fraction, 1.0, device=device, progress=progress, workers=workers, backend=backend,
+                           budget=prof.budget) if shipped is None else
+              {(name, detector): {"cached": True, "seconds": 0.0} for name in paths})
     (out / "trajectories").mkdir(parents=True, exist_ok=True)
     names = list(paths)
     config_of = dict(profile_configs(prof))
     batches = batches_of([config_of[n] for n in names], batch_count(workers, backend))
     units = [([(paths[names[i]], model_dirs[names[i]]) for i in b], detector, seed, label_fraction, tuple(policies),
-              admission, max_flights, threshold, prof.budget) for b in batches]
+              admission, max_flights, threshold, prof.budget, shipped) for b in batches]
     flown = run_jobs(_fly_configs, units, workers=workers, progress=progress, desc="fly", unit="batch",
                      backend=backend, labels=[f"configs {', '.join(names[i] for i in b)}, seed {seed}, "
                                               f"detector {detector}" for b in batches])
@@ -212,12 +219,17 @@ def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: 
     results = {
         "profile": prof.name, "flights_per_config": prof.flights, "duration_s": prof.duration,
         "detector": detector, "threshold_rule": threshold, "max_test_flights": max_flights, "seed": seed,
-        "label_fraction": label_fraction,
-        "training_budget": training_budget_doc(prof.budget, [detector]),
+        "label_fraction": label_fraction, "shipped": shipped,
+        "training_budget": (training_budget_doc(prof.budget, [detector]) if shipped is None else
+                            {"name": "shipped", "rule": f"the shipped detector {shipped}'s own (`quadformer zoo "
+                             f"show {shipped}`)"}),
         "policies": list(policies),
         "admission": vars(admission or AdmissionConfig()),
-        "protocol": "detector tuned on train/validation flights as in the detection benchmark; test flights "
-                    "flown again in closed loop under each policy (same missions, wind, noise and attacks)",
+        "protocol": ("detector tuned on train/validation flights as in the detection benchmark; test flights "
+                     "flown again in closed loop under each policy (same missions, wind, noise and attacks)"
+                     if shipped is None else
+                     f"the shipped detector {shipped} (nothing tuned); flights of these datasets, new to it, flown "
+                     "again in closed loop under each policy (same missions, wind, noise and attacks)"),
         "configs": configs, "versions": package_versions(),
         "timing_s": {"simulate_datasets": t_sim, "total": time.perf_counter() - t_start},
     }

@@ -27,10 +27,13 @@ from typing import Any
 
 from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, STREAMS, FlightLog, LogError
 
-__all__ = ["FORMATS", "GPS_GAP", "IMU_GAP", "STREAMS", "FlightLog", "LogError", "RosTopics",
+__all__ = ["FORMATS", "FORMAT_OF_SOURCE", "GPS_GAP", "IMU_GAP", "STREAMS", "FlightLog", "LogError", "RosTopics",
            "detect_format", "find_logs", "read_dataflash", "read_log", "read_rosbag", "read_tlog", "read_ulog"]
 
 FORMATS = ("px4", "ardupilot", "tlog", "ros")
+#: a read log's ``source`` -> the format (reader) that read it
+FORMAT_OF_SOURCE = {"px4-ulog": "px4", "ardupilot-dataflash": "ardupilot", "mavlink-tlog": "tlog", "ros1-bag": "ros",
+                    "ros2-bag": "ros"}
 #: the readers' names, loaded on first use: name -> module
 _READERS = {"read_ulog": "px4", "read_dataflash": "ardupilot", "read_tlog": "tlog", "looks_like_tlog": "tlog",
             "read_rosbag": "ros", "RosTopics": "ros"}

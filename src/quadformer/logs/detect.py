@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from quadformer.logs import read_log
+from quadformer.logs import FORMAT_OF_SOURCE, read_log
 from quadformer.logs.flightlog import FlightLog, LogError
 from quadformer.estimator.filter_config import FilterConfig
 from quadformer.logs.replay import (RESIDUE_SOURCES, LogFlight, autopilot_rows, ekf_flights, ekf_rows, imu_too_slow,
-                                    missing_features, no_innovations)
+                                    log_sensors, missing_features, no_innovations)
 
 MIN_DETECT_S = 1.0   # s, a segment shorter than this is not scored
 
@@ -86,13 +86,22 @@ def log_rows(log: FlightLog, residues: str = "ekf", config: FilterConfig = Filte
     return flights, notes
 
 
-def detect_log(log: FlightLog | str | Path, detector, residues: str = "ekf",
-               config: FilterConfig = FilterConfig(), format: str | None = None,
+def detect_log(log: FlightLog | str | Path, detector=None, residues: str = "ekf",
+               config: FilterConfig | None = None, format: str | None = None,
                typing: str = "shape") -> LogDetection:
     """Scores, alarms and alerts of a calibrated ``detector`` on every segment of ``log``;
-    ``typing``: where the alerts' attack types come from (``detectors.attack_types.TYPINGS``)."""
+    ``typing``: where the alerts' attack types come from (``detectors.attack_types.TYPINGS``).
+
+    Without a ``detector``, the shipped one that fits the log's sensors and ``residues``
+    (``shipped_for``), at its false-alarm-budget threshold, replayed with the filter tuning of
+    the simulation it learned from (``config`` overrides it). ``config`` None with a detector:
+    EKF2's defaults (``FilterConfig()``)."""
     if not isinstance(log, FlightLog):
         log = read_log(log, format=format)
+    if detector is None:
+        detector, matched = shipped_for(log, residues)
+        config = matched if config is None else config
+    config = FilterConfig() if config is None else config
     if getattr(detector, "threshold_", None) is None:
         raise ValueError(f"{detector.name}: no alarm threshold; use a model written by `quadformer fit`")
     try:
@@ -120,6 +129,18 @@ def detect_log(log: FlightLog | str | Path, detector, residues: str = "ekf",
     alerts = step_alerts(rows, scores, detector, typing, config.gps_rate_hz, events=log.events,
                          receiver=log.receiver, height=log_height(log))
     return LogDetection(log, residues, rows, scores, alarms, alerts, flights[0].sensors, detector, notes)
+
+
+def shipped_for(log: FlightLog, residues: str = "ekf", threshold: str = "budget"):
+    """(detector, filter tuning): the shipped detector that fits ``log``'s sensors and
+    ``residues`` (``detectors.pretrained.choose``), alarming at its ``threshold``, and the
+    filter tuning of the simulation it learned from, fusing the sensors it was trained on."""
+    from quadformer.detectors import pretrained
+
+    entry = pretrained.choose(set(log_sensors(log)), residues, FORMAT_OF_SOURCE.get(log.source))
+    det = pretrained.load(entry.name, threshold=threshold)
+    sim = (getattr(det, "calibration_", None) or {}).get("sim_config")
+    return det, (FilterConfig.matching(sim, sensors=entry.set.sensors) if sim else FilterConfig())
 
 
 def log_height(log: FlightLog) -> pd.DataFrame | None:

@@ -93,7 +93,9 @@ def _interp(t_new: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack([np.interp(t_new, t, v[:, i]) for i in range(v.shape[1])], axis=1)
 
 
-def _sensors_of(log: FlightLog, config: FilterConfig) -> str:
+def log_sensors(log: FlightLog) -> list[str]:
+    """The sensors a replay of ``log`` can fuse: GPS and IMU, and the VIO (visual odometry),
+    magnetometer and barometer it holds."""
     have = ["gps", "imu"]
     if log.odometry is not None:
         have.append("vio")
@@ -101,6 +103,11 @@ def _sensors_of(log: FlightLog, config: FilterConfig) -> str:
         have.append("mag")
     if log.baro is not None:
         have.append("baro")
+    return have
+
+
+def _sensors_of(log: FlightLog, config: FilterConfig) -> str:
+    have = log_sensors(log)
     if config.sensors is None:
         return "+".join(have)
     want = config.sensors.split("+")

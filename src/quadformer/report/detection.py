@@ -45,8 +45,11 @@ def write_report(results: dict[str, Any], out: Path) -> Path:
     else:
         head = (f"<h1>quadformer benchmark: {len(results['configs'])} dataset(s)</h1><p>datasets: "
                 + ", ".join(html.escape(c["dataset"]) for c in results["configs"]) + "; ")
-    parts = [head + f"protocol: {html.escape(results['protocol'])}. Labels of "
-             f"{results['label_fraction']:.0%} of the training flights are available to every method.</p>"]
+    parts = [head + f"protocol: {html.escape(results['protocol'])}. "
+             + ("Every detector is a shipped one: " + ", ".join(html.escape(v) for v in results["shipped"].values())
+                + " (<code>quadformer zoo show NAME</code>).</p>" if results.get("shipped") else
+                f"Labels of {results['label_fraction']:.0%} of the training flights are available to every "
+                "method.</p>")]
     # figures first: F1 with its interval, delay against false alarms, one example flight
     examples = [k for k in figs if k.startswith("example_")]
     parts.append("<h2>At a glance</h2><p>Point-wise F1 on the test flights with its 95% bootstrap interval over "

@@ -11,6 +11,7 @@ beside it (``.pt``), loaded with ``torch.load(..., weights_only=True)``.
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -26,7 +27,7 @@ from quadformer.detectors.neural.lstm import LSTMNet
 from quadformer.detectors.neural.training import TrainConfig, train
 from quadformer.detectors.registry import register
 from quadformer.detectors.windows import AxisSymmetry, Normalizer, Windows, WindowStream, input_features, window_scores
-from quadformer.io import atomic_path
+from quadformer.io import atomic_write_bytes
 
 
 class TorchCheckpoint:
@@ -52,8 +53,11 @@ class TorchCheckpoint:
             setattr(self, k, Normalizer.from_state(v) if k == "normalizer_" else v)
 
     def save_extra(self, path: Path) -> None:
-        with atomic_path(Path(path).with_suffix(".pt")) as tmp:
-            torch.save({k: v.detach().cpu() for k, v in self.model_.state_dict().items()}, tmp)
+        # saved through a buffer: torch names the archive inside the file after the file it
+        # writes to, and a temporary name would make two saves of one model differ
+        buf = io.BytesIO()
+        torch.save({k: v.detach().cpu() for k, v in self.model_.state_dict().items()}, buf)
+        atomic_write_bytes(Path(path).with_suffix(".pt"), buf.getvalue())
 
     def load_extra(self, path: Path) -> None:
         wpath = Path(path).with_suffix(".pt")

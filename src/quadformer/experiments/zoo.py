@@ -1,0 +1,307 @@
+"""The shipped detectors: their recipes and their build (``quadformer zoo build``).
+
+A recipe per sensor set (``RECIPES``): the simulated flights its detectors learn from
+(configurations, flights per configuration, seed) and the methods; the set's default is chosen
+on the validation flights (``build``). The build simulates each set's flights (cached like the benchmark's datasets), splits every
+configuration's flights by flight with the benchmark's protocol (60/20/20, split seed 0, 20% of
+the training flights labelled), tunes each method on the pooled training flights at its full
+training budget, calibrates it on the pooled validation flights (the threshold of best F1 and the
+one meeting ``BUDGET_PER_HOUR`` false alarms per clean flight-hour), scores the pooled test
+flights at both, and writes the saved detectors, their SHA-256 and their cards into a fresh
+directory that replaces the old one only once everything is written
+(``detectors.pretrained`` reads it).
+
+Seeds. The zoo's flights derive from ``ZOO_SEED``; the benchmark's profiles from seed 0 (and
+``--seed-list``'s small integers) and the demo's test flights from ``DEMO_SEED``: no flight a
+benchmark or the demo tests on is one a shipped detector trained or was calibrated on.
+
+Same machine, same seed, same files: the simulation and the tuning draw from explicit
+generators, network training runs on ``THREADS`` CPU threads, and nothing in a saved file
+depends on where or when it was built (the cards, in ``index.json``, hold the package
+versions and the tuning times; the checksums cover the detector files only).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pandas as pd
+
+from quadformer.config import SimConfig, merge
+from quadformer.dataset import load_dataset
+from quadformer.detectors import pretrained
+from quadformer.evaluation.metrics import bootstrap_f1, evaluate
+from quadformer.evaluation.protocol import Tuned, split_flights, tune
+from quadformer.experiments.cache import ensure_configs
+from quadformer.experiments.grid import PAPER_GRID, Profile, profile_configs
+from quadformer.io import atomic_dir, package_versions, write_json
+
+__all__ = ["ZOO_SEED", "DEMO_SEED", "THREADS", "BUDGET_PER_HOUR", "FLEET_NOISE", "Recipe", "RECIPES", "build",
+           "shipped_tuned"]
+
+ZOO_SEED = 1000
+DEMO_SEED = 2000
+#: CPU threads the networks train on (fixed: float sums in another order give other weights)
+THREADS = 2
+BUDGET_PER_HOUR = 1.0
+SPLIT_SEED = 0
+LABEL_FRACTION = 0.2
+#: offset between the flight ids of pooled configurations (a configuration has fewer flights)
+ID_STRIDE = 1_000_000
+
+#: sensor noise of a fleet of real ArduCopter vehicles: what ``logs.noise.estimate_noise``
+#: measured on the clean flights of the field benchmark's set (the committed field run,
+#: ``docs/results/field/results.json``); only these numbers are used, no log is shipped
+FLEET_NOISE: dict[str, Any] = {
+    "gps": {"gm_std": 0.7432064851354794, "pos_std_h": 0.16246638389073875, "pos_std_v": 0.9220659419651528,
+            "vel_std": 0.3457059330527667},
+    "imu": {"accel_noise_density": 0.7354707032918594, "gyro_noise_density": 0.04703928858094162},
+    "mag": {"noise_std": 0.0018132049135960002},
+    "baro": {"gm_std": 4.231174405439167, "noise_std": 0.47591915466248536},
+}
+
+
+def paper_grid(flights: int, seed: int) -> list[tuple[str, SimConfig]]:
+    """The paper's eight configurations (GPS + IMU + VIO; Model I/II, exponential/Laplace noise,
+    bias/ramp) at ``flights`` each, their seeds derived from ``seed``."""
+    return profile_configs(Profile("zoo", flights, seed=seed, grid=PAPER_GRID))
+
+
+def fleet_grid(flights: int, seed: int) -> list[tuple[str, SimConfig]]:
+    """GPS + IMU + magnetometer + barometer with the fleet's noise, both airframes, half of the
+    flights under a bias of 1 to 10 m or a ramp of 0.05 to 2 m/s (the field benchmark's ranges)."""
+    out = []
+    for i, model in enumerate(("I", "II")):
+        cfg = SimConfig.from_dict(merge(FLEET_NOISE, {
+            "model": model, "noise": "gaussian", "sensors": "gps+imu+mag+baro", "flights": flights,
+            "duration": 60.0, "seed": int(np.random.SeedSequence(seed, spawn_key=(0x200, i)).generate_state(1)[0]),
+            "attack": {"kind": "mix", "mix": ["bias", "ramp"], "magnitude": [1.0, 10.0], "rate": [0.05, 2.0],
+                       "onset": [10.0, 40.0]}}))
+        out.append((f"fleet-model{model}-gaussian-mix", cfg))
+    return out
+
+
+@dataclass(frozen=True)
+class Recipe:
+    set: str                        # the set's name (file names start with it)
+    sensors: str
+    residues: str                   # "ekf" or "autopilot"
+    formats: tuple[str, ...]        # log formats it serves (empty: any)
+    methods: tuple[str, ...]        # in order of preference where the validation flights tie
+    flights: int                    # per configuration
+    configs: Callable[[int, int], list[tuple[str, SimConfig]]]
+    about: str
+
+    def names(self) -> list[str]:
+        return [f"{self.set}-{m}" for m in self.methods]
+
+
+RECIPES: tuple[Recipe, ...] = (
+    Recipe("magbaro", "gps+imu+mag+baro", "ekf", (), ("quadformer", "cusum", "chi2", "cusum-ref", "cusum-vref"),
+           100, fleet_grid,
+           "a vehicle without a camera (most PX4 and ArduPilot logs, a MAVLink link): the project's filter over "
+           "GPS, IMU, magnetometer and barometer, trained with a real fleet's sensor noise"),
+    Recipe("vio", "gps+imu+vio", "ekf", (), ("quadformer", "chi2", "cusum", "sprt", "bht", "chi2-vref", "cusum-vref",
+                                               "cusum-ref"),
+           60, paper_grid,
+           "the paper's vehicle: GPS, IMU and stereo visual-inertial odometry, trained on the paper's eight "
+           "configurations (both airframes, exponential and Laplace noise, bias and ramp attacks)"),
+    Recipe("px4", "gps+imu+mag+baro", "autopilot", ("px4",), ("cusum", "chi2"), 100, fleet_grid,
+           "PX4 logs scored on the autopilot's own GPS innovations (--residues autopilot): the NIS tests, "
+           "trained on the simulated filter's NIS with the fleet's noise; PX4's NIS has its own scale, so "
+           "calibrate on the vehicle's clean flights (quadformer calibrate) before trusting its false-alarm rate"),
+)
+
+
+def shipped_tuned(name: str, threshold: str = "f1") -> Tuned:
+    """A shipped detector as the protocol's ``Tuned`` (its card's parameters and validation F1;
+    ``cached``: nothing was tuned here), alarming at its ``threshold``."""
+    e = pretrained.resolve(name)
+    det = pretrained.load(e.name, threshold=threshold)
+    tr = e.card["training"]
+    return Tuned(det, dict(tr["params"]), float(tr["validation_f1"]), cached=True)
+
+
+def _pooled(paths: dict[str, Path]) -> tuple[dict[str, pd.DataFrame], np.ndarray, dict[str, int], dict[str, Any]]:
+    """The train / validation / test flights of every configuration (split by flight, each
+    configuration on its own), pooled with distinct flight ids; the training labels; the split's
+    counts; and the first configuration's simulation (the filter tuning the residues came from)."""
+    parts: dict[str, list[pd.DataFrame]] = {"train": [], "val": [], "test": []}
+    labels, counts, sim = [], {"train": 0, "val": 0, "test": 0, "labelled": 0}, None
+    for i, (name, path) in enumerate(paths.items()):
+        ds = load_dataset(path)
+        sim = sim or ds.meta.get("config")
+        sp = split_flights(ds.scenarios, SPLIT_SEED, label_fraction=LABEL_FRACTION)
+        fr = sp.frames(ds.flights)
+        for k in parts:
+            f = getattr(fr, k).copy()
+            f["flight_id"] = f["flight_id"] + i * ID_STRIDE
+            parts[k].append(f.assign(config=name))
+            counts[k] += len(getattr(sp, k))
+        counts["labelled"] += len(sp.labelled)
+        labels.append(fr.y_train)
+    return {k: pd.concat(v, ignore_index=True) for k, v in parts.items()}, np.concatenate(labels), counts, sim
+
+
+def _figures(test: pd.DataFrame, scores: np.ndarray, threshold: float, rate: float) -> dict[str, Any]:
+    """A card's figures of ``scores`` on flights ``test`` alarming above ``threshold``: pooled,
+    with the F1's 95% bootstrap interval over flights, and the F1 of each configuration."""
+    ids, y = test.flight_id.to_numpy(), test.label.to_numpy()
+    alarms = scores > threshold
+    offsets = np.linalg.norm(test[["atk_d_x", "atk_d_y", "atk_d_z"]].to_numpy(), axis=1)
+    m = evaluate(ids, test.t.to_numpy(), y, scores, alarms, gps_rate_hz=rate, offsets=offsets, vus=False)
+    ci = bootstrap_f1(ids, y, alarms, n_boot=1000, seed=0)
+    keep = ("f1", "precision", "recall", "event_recall", "delay_median_s", "false_alarms_per_hour", "auroc")
+    out = {k: m.get(k) for k in keep}
+    out["f1_ci95"] = list(ci) if ci is not None else None
+    out["threshold"] = float(threshold)
+    out["per_config_f1"] = {}
+    for name, g in test.groupby("config", sort=False):
+        idx = g.index.to_numpy()
+        out["per_config_f1"][name] = evaluate(ids[idx], g.t.to_numpy(), y[idx], scores[idx], alarms[idx],
+                                              gps_rate_hz=rate, vus=False)["f1"]
+    return out
+
+
+def _simulation_doc(configs: list[tuple[str, SimConfig]]) -> list[dict[str, Any]]:
+    out = []
+    for name, c in configs:
+        a = c.attack
+        out.append({"config": name, "model": c.model, "noise": c.noise, "sensors": c.sensors, "flights": c.flights,
+                    "duration_s": c.duration, "seed": c.seed, "attack": {"kind": a.kind, "mix": a.mix,
+                                                                         "magnitude_m": a.magnitude,
+                                                                         "rate_m_s": a.rate, "onset_s": a.onset,
+                                                                         "fraction": a.fraction}})
+    return out
+
+
+def _rates(c: SimConfig) -> dict[str, float]:
+    r = {"imu_hz": 1.0 / c.dt, "gps_hz": c.gps.rate_hz}
+    for s in ("vio", "mag", "baro"):
+        if s in c.sensors.split("+"):
+            r[f"{s}_hz"] = getattr(c, s).rate_hz
+    return r
+
+
+def _kept(out: Path, rebuilt: set[str]) -> dict[str, Any]:
+    """The sets of an existing zoo at ``out`` that a partial build does not rebuild (their
+    index entries; their files are copied over by the caller), none when there is no zoo."""
+    try:
+        doc = pretrained.index(out)
+    except pretrained.ZooError:
+        return {"sets": {}, "detectors": {}}
+    return {"sets": {k: v for k, v in doc["sets"].items() if k not in rebuilt},
+            "detectors": {k: v for k, v in doc["detectors"].items() if v["set"] not in rebuilt}}
+
+
+def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: list[str] | None = None,
+          flights: int | None = None, seed: int = ZOO_SEED, progress: bool = True, workers: int | None = None,
+          echo: Callable[[str], None] = print) -> dict[str, Any]:
+    """Build the recipes' detectors (``sets``: some of them, the others kept as they are in
+    ``out``; ``flights`` per configuration instead of the recipes'; another ``seed``) into
+    ``out`` (default: the package's ``detectors/pretrained/models``), replacing it once
+    everything is written; returns the index.
+
+    A set's default (what ``pretrained.load(set)`` and ``detect`` without ``--model`` give) is
+    its method with the highest point-wise F1 on the validation flights at its false-alarm-budget
+    threshold (the threshold a fielded detector alarms at: F1 there weighs how soon and how long an
+    attack is flagged, and the false alarms the budget leaves), the recipe's order breaking ties."""
+    import shutil
+
+    from quadformer.io import set_threads
+
+    out = pretrained.ROOT if out is None else Path(out)
+    known = [r.set for r in RECIPES]
+    chosen = [r for r in RECIPES if sets is None or r.set in sets]
+    unknown = sorted(set(sets or ()) - set(known))
+    if unknown:
+        raise ValueError(f"sets: unknown {', '.join(unknown)}; choose from {', '.join(known)}")
+    if flights is not None and flights < 10:
+        raise ValueError(f"flights: at least 10 per configuration (each part of the split needs flights), got {flights}")
+    if seed == DEMO_SEED or seed < 100:
+        raise ValueError(f"seed: {seed} is a seed benchmarks or the demo test on; the zoo's default is {ZOO_SEED}")
+    set_threads(THREADS)
+    kept = _kept(out, {r.set for r in chosen}) if sets is not None else {"sets": {}, "detectors": {}}
+    doc: dict[str, Any] = {"format": pretrained.FORMAT, "format_version": pretrained.FORMAT_VERSION,
+                           "seed": seed, "sets": {}, "detectors": {}}
+    t_all = time.perf_counter()
+    with atomic_dir(out, overwrite=True) as tmp:
+        for name, entry in kept["detectors"].items():
+            for f in entry["files"]:
+                shutil.copy2(out / f, tmp / f)
+        for r in RECIPES:
+            if r.set in kept["sets"]:
+                doc["sets"][r.set] = kept["sets"][r.set]
+                doc["detectors"].update({k: v for k, v in kept["detectors"].items() if v["set"] == r.set})
+            elif r in chosen:
+                doc["sets"][r.set], built = _build_set(r, tmp, cache_dir, flights, seed, progress, workers, echo)
+                doc["detectors"].update(built)
+        doc["build_seconds"] = round(time.perf_counter() - t_all, 1)
+        write_json(tmp / "index.json", doc)
+    return doc
+
+
+def _build_set(r: Recipe, tmp: Path, cache_dir: Path, flights: int | None, seed: int, progress: bool,
+               workers: int | None, echo: Callable[[str], None]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """One recipe's detectors written into ``tmp``: (the set's index entry, its detectors' entries)."""
+    configs = r.configs(flights or r.flights, seed)
+    echo(f"{r.set}: simulating {sum(c.flights for _, c in configs)} flights ({len(configs)} configuration(s))")
+    paths = ensure_configs(configs, cache_dir, progress=progress, workers=workers)
+    parts, y_train, counts, sim = _pooled(paths)
+    rate = float(configs[0][1].gps.rate_hz)
+    built, picks = {}, {}
+    for m in r.methods:
+        name = f"{r.set}-{m}"
+        t0 = time.perf_counter()
+        tuned = tune(m, parts["train"], y_train, parts["val"], gps_rate_hz=rate, budget_per_hour=BUDGET_PER_HOUR)
+        det = tuned.detector
+        det.calibrate(det.threshold_, det.budget_threshold_, zoo=name, sim_config=sim,
+                      split_seed=SPLIT_SEED, label_fraction=LABEL_FRACTION, configs=[n for n, _ in configs])
+        t_tune = time.perf_counter() - t0
+        val = _figures(parts["val"], det.decision_function(parts["val"]), det.budget_threshold_, rate)
+        picks[m] = val["f1"] or 0.0
+        s = det.decision_function(parts["test"])
+        det.save(tmp / f"{name}.qfm")
+        files = sorted(p.name for p in tmp.glob(f"{name}.*"))
+        test = parts["test"]
+        card = {
+            "method": m, "set": r.set, "sensors": r.sensors, "residues": r.residues, "about": r.about,
+            "training": {"simulation": _simulation_doc(configs), "split": {
+                "rule": "by flight within each configuration, 60/20/20 stratified by attacked, pooled",
+                "split_seed": SPLIT_SEED, "label_fraction": LABEL_FRACTION, **counts},
+                "budget": "full (the method's default epochs and windows)", "params": tuned.params,
+                "validation_f1": tuned.val_f1,
+                "validation_at_budget": {k: val[k] for k in ("f1", "event_recall", "delay_median_s")},
+                "threads": THREADS, "tune_seconds": round(t_tune, 1)},
+            "rates": _rates(configs[0][1]),
+            "calibration": {"budget_per_hour": BUDGET_PER_HOUR, "f1_threshold": det.threshold_,
+                            "budget_threshold": det.budget_threshold_,
+                            "rule": "f1: best point-wise F1 on the validation flights; budget: at most "
+                                    f"{BUDGET_PER_HOUR:g} alarm run(s) per flight-hour on the clean validation "
+                                    "flights"},
+            "test": {"flights": int(test.flight_id.nunique()),
+                     "attacked_flights": int(test.groupby("flight_id").label.max().sum()),
+                     "flight_hours": len(test) / rate / 3600.0,
+                     "at_f1_threshold": _figures(test, s, det.threshold_, rate),
+                     "at_budget_threshold": _figures(test, s, det.budget_threshold_, rate)},
+            "versions": package_versions(),
+        }
+        built[name] = {"method": m, "set": r.set, "files": {f: pretrained.sha256(tmp / f) for f in files},
+                       "card": card}
+        f, b = card["test"]["at_f1_threshold"], card["test"]["at_budget_threshold"]
+        echo(f"  {name}: tuned in {t_tune:.0f} s; test F1 {f['f1']:.3f} at the F1 threshold; at the budget "
+             f"threshold F1 {b['f1']:.3f} (validation {_fmt(val['f1'])}), event recall {_fmt(b['event_recall'])}")
+    best = max(r.methods, key=lambda m: (picks[m], -r.methods.index(m)))
+    echo(f"  {r.set}: default {r.set}-{best} (highest validation F1 at the budget threshold)")
+    entry = {"sensors": r.sensors, "residues": r.residues, "formats": list(r.formats), "default": f"{r.set}-{best}",
+             "about": r.about, "default_rule": "highest point-wise F1 on the validation flights at the false-"
+                                               "alarm-budget threshold; the recipe's order on ties"}
+    return entry, built
+
+
+def _fmt(x) -> str:
+    return "-" if x is None else f"{x:.2f}"

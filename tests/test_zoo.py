@@ -1,0 +1,166 @@
+"""The shipped detectors: their files load and match their checksums, score flights, are picked
+by the data's sensors, and `detect` / `monitor` / the Python API run without a model of one's own;
+`zoo build` gives the same files twice."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import quadformer
+from quadformer.cli import app
+from quadformer.detectors import pretrained
+
+FIX = Path(__file__).resolve().parent / "fixtures" / "logs"
+COPTER = FIX / "sim_copter.bin"                 # written by the project: ArduPilot DataFlash
+PX4 = FIX / "sample_px4_events.ulg"             # pyulog's sample: PX4 SITL, GPS, IMU, mag, baro
+runner = CliRunner()
+
+
+def test_every_shipped_detector_loads_matches_its_checksum_and_has_a_card():
+    entries = pretrained.entries()
+    assert {e.set.name for e in entries.values()} == {"magbaro", "vio", "px4"}
+    assert {"vio-quadformer", "magbaro-quadformer"} <= set(entries)
+    total = 0
+    for name, e in entries.items():
+        pretrained.verify(name)
+        total += sum((pretrained.ROOT / f).stat().st_size for f in e.files)
+        det = pretrained.load(name)
+        assert det.threshold_ == e.card["calibration"]["budget_threshold"]
+        assert pretrained.load(name, threshold="f1").threshold_ == e.card["calibration"]["f1_threshold"]
+        c = e.card
+        assert c["training"]["simulation"] and all(s["seed"] for s in c["training"]["simulation"])
+        assert c["test"]["flights"] > 0 and 0.0 <= c["test"]["at_f1_threshold"]["f1"] <= 1.0
+        assert "torch" in c["versions"] and c["rates"]["gps_hz"] > 0
+    assert total < 8e6                          # a few MB in all
+
+
+def test_shipped_networks_score_a_flight_the_same_as_their_validation_calibration(bias_dataset):
+    """The vio set's QUADFormer and CUSUM score a simulated gps+imu+vio flight: finite scores, one
+    per step, alarms on the attacked flights' steps more than on the clean ones'."""
+    X = bias_dataset.flights
+    for name in ("vio-quadformer", "vio-cusum"):
+        det = pretrained.load(name, threshold="f1")
+        s = det.decision_function(X)
+        assert s.shape == (len(X),) and np.isfinite(s).all()
+        alarms = s > det.threshold_
+        y = X.label.to_numpy() == 1
+        assert alarms[y].mean() > alarms[~y].mean(), name
+
+
+def test_a_damaged_or_unknown_shipped_detector_is_named(tmp_path):
+    root = tmp_path / "zoo"
+    shutil.copytree(pretrained.ROOT, root)
+    victim = root / "magbaro-cusum.qfm"
+    doc = json.loads(victim.read_text())
+    doc["state"]["threshold_"] = 0.0
+    victim.write_text(json.dumps(doc))
+    with pytest.raises(pretrained.ZooError, match="magbaro-cusum.qfm has SHA-256 .* the file was changed"):
+        pretrained.load("magbaro-cusum", root=root)
+    (root / "magbaro-chi2.qfm").unlink()
+    with pytest.raises(pretrained.ZooError, match="magbaro-chi2.qfm is missing"):
+        pretrained.load("magbaro-chi2", root=root)
+    with pytest.raises(pretrained.ZooError, match="no shipped detector 'nope'"):
+        pretrained.load("nope")
+    with pytest.raises(pretrained.ZooError, match="threshold"):
+        pretrained.load("magbaro-cusum", threshold="median")
+
+
+@pytest.mark.parametrize("have, residues, fmt, expected", [
+    ({"gps", "imu", "mag", "baro"}, "ekf", "ardupilot", "magbaro"),
+    ({"gps", "imu", "vio", "mag", "baro"}, "ekf", "px4", "magbaro"),
+    ({"gps", "imu", "vio"}, "ekf", "ros", "vio"),
+    ({"gps", "imu", "mag", "baro"}, "autopilot", "px4", "px4"),
+])
+def test_the_shipped_detector_that_fits_the_data_is_chosen(have, residues, fmt, expected):
+    chosen = pretrained.choose(have, residues, fmt)
+    assert chosen.set.name == expected and chosen.name == pretrained.sets()[expected].default
+    assert pretrained.resolve("gps+imu+mag+baro").name == pretrained.sets()["magbaro"].default
+    assert pretrained.resolve("vio").name == pretrained.sets()["vio"].default
+
+
+@pytest.mark.parametrize("have, residues, fmt, message", [
+    ({"gps", "imu", "baro"}, "ekf", "ardupilot", "no shipped detector fits ekf residues of baro\\+gps\\+imu"),
+    ({"gps", "imu", "mag", "baro"}, "autopilot", "ardupilot", "autopilot residues .* from a ardupilot log"),
+])
+def test_data_no_shipped_detector_fits_is_named_with_what_to_do(have, residues, fmt, message):
+    with pytest.raises(pretrained.ZooError, match=message) as e:
+        pretrained.choose(have, residues, fmt)
+    assert "--model" in str(e.value)
+
+
+def test_detect_log_without_a_detector_uses_the_shipped_one():
+    res = quadformer.detect_log(COPTER)
+    default = pretrained.resolve("magbaro")
+    assert res.detector.zoo_name_ == default.name and res.sensors == "gps+imu+mag+baro"
+    assert res.detector.threshold_ == default.card["calibration"]["budget_threshold"]
+    assert len(res.scores) == len(res.rows) > 500 and np.isfinite(res.scores).all()
+    assert quadformer.pretrained("gps+imu+mag+baro").name == default.method
+
+
+@pytest.mark.parametrize("log, residues, set_", [
+    (COPTER, "ekf", "magbaro"),
+    (PX4, "ekf", "magbaro"),
+    (PX4, "autopilot", "px4"),
+])
+def test_detect_runs_without_a_model(log, residues, set_, tmp_path):
+    shipped = pretrained.sets()[set_].default
+    out = tmp_path / "det"
+    res = runner.invoke(app, ["detect", str(log), "--residues", residues, "--out", str(out), "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert f"detector: shipped {shipped}" in res.output and "chosen for" in res.output
+    summary = json.loads((out / log.name / "summary.json").read_text())
+    assert summary["model"] == f"shipped:{shipped}"
+    assert (out / log.name / "report.html").exists()
+
+
+def test_detect_takes_a_shipped_name_or_set_and_names_what_is_neither(tmp_path):
+    res = runner.invoke(app, ["detect", str(COPTER), "--model", "magbaro-cusum-ref", "--out", str(tmp_path / "a"),
+                              "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert "detector: shipped magbaro-cusum-ref (cusum-ref, gps+imu+mag+baro" in res.output
+    res = runner.invoke(app, ["detect", str(COPTER), "--model", "magbaro-lstm", "--out", str(tmp_path / "b")])
+    assert res.exit_code == 2 and "neither a model file nor a shipped detector" in res.output
+    res = runner.invoke(app, ["detect", str(COPTER), "--residues", "autopilot", "--out", str(tmp_path / "c")])
+    assert res.exit_code == 2 and "no shipped detector fits autopilot residues" in res.output
+
+
+def test_zoo_list_and_show_print_the_cards():
+    res = runner.invoke(app, ["zoo", "list"])
+    assert res.exit_code == 0, res.output
+    for name in pretrained.entries():
+        assert name in res.output
+    res = runner.invoke(app, ["zoo", "show", "magbaro-quadformer"])
+    assert res.exit_code == 0, res.output
+    e = pretrained.resolve("magbaro-quadformer")
+    for text in ("training data (simulated; no real log)", "seed", "calibration: F1 threshold", "budget threshold",
+                 "test:", "versions:", e.files["magbaro-quadformer.pt"][:16]):
+        assert text in res.output
+    res = runner.invoke(app, ["zoo", "show", "nope"])
+    assert res.exit_code == 2 and "no shipped detector 'nope'" in res.output
+
+
+def test_zoo_build_gives_the_same_files_twice(tmp_path):
+    """The px4 set (the NIS tests) built twice from one cache of its simulated flights: the same
+    checksums; the index's cards say how they were trained."""
+    from quadformer.experiments.zoo import build
+
+    cache = tmp_path / "cache"
+    a = build(tmp_path / "a", cache, sets=["px4"], flights=10, progress=False, echo=lambda s: None)
+    b = build(tmp_path / "b", cache, sets=["px4"], flights=10, progress=False, echo=lambda s: None)
+    assert {k: v["files"] for k, v in a["detectors"].items()} == {k: v["files"] for k, v in b["detectors"].items()}
+    assert list(a["detectors"]) == ["px4-cusum", "px4-chi2"]
+    default = a["sets"]["px4"]["default"]
+    assert pretrained.load("px4", root=tmp_path / "a").name == a["detectors"][default]["method"]
+    card = a["detectors"]["px4-cusum"]["card"]
+    assert card["training"]["split"]["train"] == 12 and card["training"]["simulation"][0]["flights"] == 10
+    assert not list(tmp_path.glob(".*"))     # nothing half-written left beside the outputs
+    with pytest.raises(ValueError, match="seed: 0 is a seed benchmarks or the demo test on"):
+        build(tmp_path / "c", cache, sets=["px4"], seed=0)
+    with pytest.raises(ValueError, match="sets: unknown nope"):
+        build(tmp_path / "c", cache, sets=["nope"])
