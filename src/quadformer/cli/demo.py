@@ -56,7 +56,7 @@ def _shipped(out: Path, cache: Path, quiet: bool) -> None:
                "a shipped detector saw; thresholds are the shipped ones (best F1 on the zoo's validation flights; "
                "the budget ones in the `budget:` columns). About 3 minutes on 2 cores.")
     try:
-        run = run_shipped_demo(out, cache, progress=not quiet, echo=typer.echo)
+        run = run_shipped_demo(out, cache, progress=not quiet)
     except (ValueError, pretrained.ZooError) as e:
         fail(str(e))
     typer.echo("Test datasets (GPS noise moments: velocity error on clean steps):")

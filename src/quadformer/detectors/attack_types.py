@@ -226,6 +226,13 @@ class ShapeTyper:
         tau_a = (back[None, :] - onsets[:, None]) * dt                   # the same at each row's anchor
         on, on_a = (tau >= 0).astype(float), (tau_a >= 0).astype(float)
         tau, tau_a = np.maximum(tau, 0.0), np.maximum(tau_a, 0.0)
+        # the periodic shapes at each whole step since an onset, from a table of those steps'
+        # times: the same numbers as evaluated at every (onset, row), computed once per step
+        m = np.arange(n)[None, :] - onsets[:, None]
+        m_a = back[None, :] - onsets[:, None]
+        lo = int(min(m.min(), m_a.min()))
+        grid = np.maximum(np.arange(lo, int(max(m.max(), m_a.max())) + 1) * dt, 0.0)
+        i, i_a = m - lo, m_a - lo
         pen = np.log(n) if self.penalty is None else self.penalty
         fit = _Fit(Yp, Yv, Wp, Wv)
         costs: dict[str, float] = {}
@@ -237,11 +244,15 @@ class ShapeTyper:
         if "ramp" in self.kinds:
             costs["ramp"] = fit(tau - tau_a, on) + 4 * pen
         if "sinusoid" in self.kinds:
-            costs["sinusoid"] = min(fit(on * np.sin(w * tau) - on_a * np.sin(w * tau_a), on * w * np.cos(w * tau))
-                                    for w in 2 * np.pi * np.asarray(self.frequencies)) + 5 * pen
+            def sinusoid(w: float) -> float:
+                sin, cos = np.sin(w * grid), np.cos(w * grid)
+                return fit(on * sin[i] - on_a * sin[i_a], on * w * cos[i])
+            costs["sinusoid"] = min(sinusoid(w) for w in 2 * np.pi * np.asarray(self.frequencies)) + 5 * pen
         if "intermittent" in self.kinds:
-            costs["intermittent"] = min(fit(on * (np.mod(tau, p) < 0.5 * p) - on_a * (np.mod(tau_a, p) < 0.5 * p), None)
-                                        for p in self.periods) + 5 * pen
+            def intermittent(p: float) -> float:
+                high = np.mod(grid, p) < 0.5 * p
+                return fit(on * high[i] - on_a * high[i_a], None)
+            costs["intermittent"] = min(intermittent(p) for p in self.periods) + 5 * pen
         # replay and freeze: the honest fix of other rows (a known offset), plus a free constant
         # position offset (the receiver's slow error then against now)
         no_cv = np.zeros((len(onsets), 3))

@@ -159,10 +159,11 @@ def run_demo_profile(out: Path, cache_dir: Path, methods: list[str], profile: st
 #: the demo's test flights: the paper's eight configurations, 20 new flights each (seed
 #: DEMO_SEED: neither the zoo's nor a benchmark's), every one a test flight; the resilience run
 #: flies four configurations' first SHIPPED_FLY flights again under every policy
-SHIPPED_FLY = 5
+SHIPPED_FLY = 4
 #: the flights written as autopilot logs for ``detect``: GPS, IMU, magnetometer and barometer
 #: with the fleet's noise, one of the two spoofed
 LOG_FLIGHTS = 2
+LOG_DURATION = 40.0     # s
 
 
 #: the paper profile's QUADFormer test F1 by configuration (docs/results.md, "Paper profile":
@@ -209,7 +210,7 @@ class ShippedDemo:
 
 def run_shipped_demo(out: Path, cache_dir: Path, progress: bool = True, workers: int | None = None,
                      profile: Profile | None = None, fly: int = SHIPPED_FLY,
-                     log_duration: float = 60.0) -> ShippedDemo:
+                     log_duration: float = LOG_DURATION) -> ShippedDemo:
     """The shipped detectors on new flights: the paper's eight configurations scored by the
     ``vio`` set's detectors (nothing tuned), QUADFormer's shipped detector driving the resilient
     estimator on four of them (their first ``fly`` flights), and ``detect`` on simulated flights
@@ -264,5 +265,6 @@ def _detect_on_logs(out: Path, cache_dir: Path, duration: float):
         simulate_with_logs(cfg, where, ("ulog", "dataflash"), overwrite=True)
     paths = find_logs([where / "logs"])
     det, config = shipped_for(read_log(paths[0]))
-    run = detect_logs(paths, det, out / "logs", "ekf", config, model=f"shipped:{det.zoo_name_}")
+    run = detect_logs(paths, det, out / "logs", "ekf", config, model=f"shipped:{det.zoo_name_}",
+                      workers=min(len(paths), os.cpu_count() or 1))
     return run, det.zoo_name_

@@ -25,10 +25,11 @@ from quadformer.detectors.alarms import run_starts
 from quadformer.detectors.attack_types import TYPING_COLUMNS, ShapeTyper
 from quadformer.evaluation.metrics import bootstrap_f1, evaluate, event_recall_by_type
 from quadformer.evaluation.protocol import TrainingBudget, split_flights
-from quadformer.experiments.cache import check_device, ensure_configs, ensure_tuned, model_dir_for, tuned_model
+from quadformer.experiments.cache import (batch_count, check_device, ensure_configs, ensure_tuned, model_dir_for,
+                                          tuned_model)
 from quadformer.experiments.grid import Profile, get_profile, profile_configs
 from quadformer.experiments.zoo import ZOO_SEED, shipped_tuned
-from quadformer.experiments.pool import Backend, SharedBar
+from quadformer.experiments.pool import Backend, SharedBar, run_jobs
 from quadformer.io import atomic_path, package_versions, write_json
 
 #: bootstrap resamples of the test flights for the F1 interval of a run
@@ -238,7 +239,8 @@ def run_shipped(profile: str | Profile, shipped: dict[str, str], out: Path, cach
             "training_budget": {"name": "shipped", "rule": "the shipped detectors' own (full budgets; "
                                 "`quadformer zoo show NAME`)"}}
     methods = list(shipped)
-    return _evaluate(items, methods, Path(out), head, t_start, t_sim, progress, 0, 0.2, 1.0, shipped=shipped)
+    return _evaluate(items, methods, Path(out), head, t_start, t_sim, progress, 0, 0.2, 1.0, shipped=shipped,
+                     workers=workers)
 
 
 def run_datasets(paths: list[Path], methods: list[str], out: Path, progress: bool = True, seed: int = 0,
@@ -261,14 +263,23 @@ def run_datasets(paths: list[Path], methods: list[str], out: Path, progress: boo
                      budget_per_hour, device=device)
 
 
+def _score_shipped(path: Path, methods: list[str], budget_per_hour: float,
+                   shipped: dict[str, str]) -> tuple[dict[str, Any], pd.DataFrame]:
+    """One work unit: ``run_config`` of the shipped detectors on the dataset at ``path``."""
+    return run_config(load_dataset(path), methods, budget_per_hour=budget_per_hour, shipped=shipped)
+
+
 def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t_sim: float, progress: bool,
               seed: int, label_fraction: float, budget_per_hour: float,
               stress: dict[str, list] | None = None, tuning: dict[tuple[str, str], dict[str, Any]] | None = None,
               t_tune: float | None = None, device: str | None = None,
-              budget: TrainingBudget | None = None, shipped: dict[str, str] | None = None) -> dict[str, Any]:
+              budget: TrainingBudget | None = None, shipped: dict[str, str] | None = None,
+              workers: int | None = None) -> dict[str, Any]:
     """Tune and score every method on each (name, dataset path, model cache, description);
     with ``stress`` (configuration name -> [(dataset name, stress set, path, seed)]) score the
-    tuned detectors on those datasets too; write results.json, scores, alerts and the report."""
+    tuned detectors on those datasets too; write results.json, scores, alerts and the report.
+    With ``shipped`` detectors (nothing to tune) the configurations are scored in ``workers``
+    processes (default one per core), each configuration one unit."""
     from quadformer.experiments.stress import StressPool, score_stress, stress_sets_doc
     from quadformer.report import write_report
 
@@ -277,7 +288,13 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
     all_alerts: list[pd.DataFrame] = []
     iterator = items
     shared = progress if isinstance(progress, SharedBar) else None
-    if shared is not None:
+    scored: dict[str, tuple[dict[str, Any], pd.DataFrame]] = {}
+    if shipped is not None and stress is None and len(items) > 1 and batch_count(workers) > 1:
+        outs = run_jobs(_score_shipped, [(path, methods, budget_per_hour, shipped) for _, path, _, _ in items],
+                        workers=workers, progress=progress, desc="evaluate", unit="dataset",
+                        labels=[name for name, *_ in items])
+        scored = {name: o for (name, *_), o in zip(items, outs)}
+    elif shared is not None:
         shared.phase("evaluate")
     elif progress:
         from tqdm.auto import tqdm
@@ -289,10 +306,10 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
         ds = load_dataset(path)
         rate = ds.gps_rate_hz
         tuned: dict[str, Any] = {}
-        res, scores = run_config(ds, methods, seed=seed, label_fraction=label_fraction,
-                                 budget_per_hour=budget_per_hour, model_dir=model_dir, detectors=tuned, device=device,
-                                 tuning={m: tuning[(name, m)] for m in methods} if tuning else None, budget=budget,
-                                 shipped=shipped)
+        res, scores = scored[name] if name in scored else run_config(
+            ds, methods, seed=seed, label_fraction=label_fraction, budget_per_hour=budget_per_hour,
+            model_dir=model_dir, detectors=tuned, device=device,
+            tuning={m: tuning[(name, m)] for m in methods} if tuning else None, budget=budget, shipped=shipped)
         t0 = time.perf_counter()
         for ds_name, st, st_path, st_seed in (stress or {}).get(name, []):
             stress_out.setdefault(name, {})[st.name] = {
@@ -306,7 +323,7 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
             all_alerts.append(frame.assign(config=name))
         configs.append({"name": name, **described, "dataset": str(path), "n_test_flights": res["split"]["test"],
                         **res})
-        if shared is not None:
+        if shared is not None and name not in scored:
             shared.update(1)
     results = {
         **head, "seed": seed, "label_fraction": label_fraction, "methods_run": methods,

@@ -102,7 +102,7 @@ class Recipe:
 
 RECIPES: tuple[Recipe, ...] = (
     Recipe("magbaro", "gps+imu+mag+baro", "ekf", (), ("quadformer", "cusum", "chi2", "cusum-ref", "cusum-vref"),
-           100, fleet_grid,
+           200, fleet_grid,
            "a vehicle without a camera (most PX4 and ArduPilot logs, a MAVLink link): the project's filter over "
            "GPS, IMU, magnetometer and barometer, trained with a real fleet's sensor noise"),
     Recipe("vio", "gps+imu+vio", "ekf", (), ("quadformer", "chi2", "cusum", "sprt", "bht", "chi2-vref", "cusum-vref",
@@ -110,7 +110,7 @@ RECIPES: tuple[Recipe, ...] = (
            60, paper_grid,
            "the paper's vehicle: GPS, IMU and stereo visual-inertial odometry, trained on the paper's eight "
            "configurations (both airframes, exponential and Laplace noise, bias and ramp attacks)"),
-    Recipe("px4", "gps+imu+mag+baro", "autopilot", ("px4",), ("cusum", "chi2"), 100, fleet_grid,
+    Recipe("px4", "gps+imu+mag+baro", "autopilot", ("px4",), ("cusum", "chi2"), 200, fleet_grid,
            "PX4 logs scored on the autopilot's own GPS innovations (--residues autopilot): the NIS tests, "
            "trained on the simulated filter's NIS with the fleet's noise; PX4's NIS has its own scale, so "
            "calibrate on the vehicle's clean flights (quadformer calibrate) before trusting its false-alarm rate"),
