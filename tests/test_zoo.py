@@ -146,20 +146,40 @@ def test_zoo_list_and_show_print_the_cards():
 
 
 def test_zoo_build_gives_the_same_files_twice(tmp_path):
-    """The px4 set (the NIS tests) built twice from one cache of its simulated flights: the same
-    checksums; the index's cards say how they were trained."""
+    """The px4 set (the NIS tests) built twice from one cache of its simulated flights (10 flights of
+    20 s per airframe: a quick trial of the recipe): the same checksums; the index's cards say how
+    they were trained."""
     from quadformer.experiments.zoo import build
 
     cache = tmp_path / "cache"
-    a = build(tmp_path / "a", cache, sets=["px4"], flights=10, progress=False, echo=lambda s: None)
-    b = build(tmp_path / "b", cache, sets=["px4"], flights=10, progress=False, echo=lambda s: None)
+    a = build(tmp_path / "a", cache, sets=["px4"], flights=10, duration=20.0, progress=False, echo=lambda s: None)
+    b = build(tmp_path / "b", cache, sets=["px4"], flights=10, duration=20.0, progress=False, echo=lambda s: None)
     assert {k: v["files"] for k, v in a["detectors"].items()} == {k: v["files"] for k, v in b["detectors"].items()}
     assert list(a["detectors"]) == ["px4-cusum", "px4-chi2"]
     default = a["sets"]["px4"]["default"]
     assert pretrained.load("px4", root=tmp_path / "a").name == a["detectors"][default]["method"]
     card = a["detectors"]["px4-cusum"]["card"]
     assert card["training"]["split"]["train"] == 12 and card["training"]["simulation"][0]["flights"] == 10
+    assert card["training"]["simulation"][0]["duration_s"] == 20.0
     assert not list(tmp_path.glob(".*"))     # nothing half-written left beside the outputs
+    # a field run's figures go into the cards only when it judged these very files
+    from quadformer.experiments.zoo import attach_field
+
+    run = {"shipped": "px4", "shipped_files": {k: v["files"] for k, v in a["detectors"].items()},
+           "read": [{"log": "a.bin"}], "refused": [],
+           "false_alarms": [{"method": "cusum", "threshold": "sim", "logs": 1, "air_hours": 0.5, "spoofing_air": 2,
+                             "per_air_hour": 4.0, "ci_low": 0.5, "ci_high": 14.4}],
+           "injection": [{"method": "cusum", "threshold": "sim", "kind": "bias", "injected": 6, "event_recall": 0.5,
+                          "recall_big": 0.6, "delay_median_s": 1.0}]}
+    (tmp_path / "field.json").write_text(json.dumps(run))
+    assert attach_field(a, tmp_path / "field.json") == "px4"
+    card = a["detectors"]["px4-cusum"]["card"]["field"]
+    assert card["false_alarms_clean"][0]["spoofing_air"] == 2 and card["injected"][0]["event_recall"] == 0.5
+    assert a["detectors"]["px4-chi2"]["card"]["field"]["injected"] == []
+    run["shipped_files"]["px4-chi2"] = {"px4-chi2.qfm": "0" * 64}
+    (tmp_path / "field.json").write_text(json.dumps(run))
+    with pytest.raises(ValueError, match="judged other files than the px4 set"):
+        attach_field(a, tmp_path / "field.json")
     with pytest.raises(ValueError, match="seed: 0 is a seed benchmarks or the demo test on"):
         build(tmp_path / "c", cache, sets=["px4"], seed=0)
     with pytest.raises(ValueError, match="sets: unknown nope"):

@@ -85,13 +85,14 @@ def _shipped(out: Path, cache: Path, quiet: bool) -> None:
             n = alert_counts(o.detection.alerts)
             first = next((a for a in o.detection.alerts if a.kind == "spoofing" and a.phase == "air"), None)
             typer.echo(f"  {o.path.name}: {n['alerts']} spoofing alert(s) in the air"
-                       + (f", the first raised at {first.start_s:.1f} s, onset estimated {first.onset_s:.1f} s ({first.attack_type})"
-                          if first is not None else ""))
+                       + (f", the first raised at {first.start_s:.1f} s, onset estimated {first.onset_s:.1f} s "
+                          f"({first.attack_type})" if first is not None else ""))
         else:
             typer.echo(f"  {o.path.name}: {o.status}: {o.reason}")
     typer.echo(f"\ndemo took {time.perf_counter() - t0:.0f} s: " + ", ".join(f"{k} {v:.0f} s"
                                                                       for k, v in run.phases.items()))
-    typer.echo(f"detection report:  {(out / 'detection' / 'report.html').resolve()}  (open in a browser; works offline)")
+    typer.echo(f"detection report:  {(out / 'detection' / 'report.html').resolve()}  (open in a browser; "
+               "works offline)")
     typer.echo(f"resilience report: {(out / 'resilience' / 'report.html').resolve()}")
     typer.echo(f"log reports:       {(out / 'logs').resolve()}/*/report.html")
     typer.echo("Train every method from scratch instead: quadformer demo --train")
@@ -113,6 +114,7 @@ def _trained(out: Path, cache: Path, quiet: bool) -> None:
     typer.echo(f"\ndemo took {time.perf_counter() - t0:.0f} s (estimated {todo.estimate_s:.0f} s): "
                + ", ".join(f"{k} {v:.0f} s" for k, v in run.phases.items()))
     typer.echo(f"detection results: {(out / 'detection' / 'results.json').resolve()}")
-    typer.echo(f"detection report:  {(out / 'detection' / 'report.html').resolve()}  (open in a browser; works offline)")
+    typer.echo(f"detection report:  {(out / 'detection' / 'report.html').resolve()}  (open in a browser; "
+               "works offline)")
     typer.echo(f"resilience report: {(out / 'resilience' / 'report.html').resolve()}")
     typer.echo(f"alerts:            {(out / 'resilience' / 'alerts.csv').resolve()}")

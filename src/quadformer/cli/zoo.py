@@ -80,9 +80,25 @@ def zoo_show(
                    f"event recall {_num(f['event_recall'])}, median delay {_num(f['delay_median_s'])} s, "
                    f"{_num(f['false_alarms_per_hour'])} false alarms per clean flight-hour")
         typer.echo("    per configuration F1: " + ", ".join(f"{k} {v:.2f}" for k, v in f["per_config_f1"].items()))
-    for k in ("paper_profile", "field"):
-        if c.get(k):
-            typer.echo(f"{k.replace('_', ' ')}: {c[k]}")
+    if c.get("paper_profile"):
+        pp = c["paper_profile"]
+        typer.echo(f"paper profile, same method ({pp['source']}): F1 "
+                   + ", ".join(f"{k} {v:.2f}" for k, v in pp["f1"].items()))
+    fd = c.get("field")
+    if fd:
+        typer.echo(f"field benchmark on real flights ({fd['source']}; {fd['logs_read']} logs replayed, "
+                   f"{fd['logs_refused']} refused):")
+        for r in fd["false_alarms_clean"]:
+            typer.echo(f"  {r['threshold']} threshold: {r['spoofing_air']} spoofing alert(s) in {r['air_hours']:.3f} "
+                       f"in-air hours of clean flights = {r['per_air_hour']:.0f} per hour [{r['ci_low']:.0f}, "
+                       f"{r['ci_high']:.0f}]")
+        for r in fd["injected"]:
+            typer.echo(f"  {r['threshold']} threshold, injected {r['kind']}: recall {_num(r['event_recall'])} of "
+                       f"{r['injected']}, median delay {_num(r['delay_median_s'])} s")
+        if fd["unscored"]:
+            typer.echo(f"  not scored on {len(fd['unscored'])} log(s): {fd['unscored'][0]['reason']}")
+    else:
+        typer.echo("field benchmark: not run on this detector (`quadformer benchmark --profile field --shipped SET`)")
     typer.echo("versions: " + ", ".join(f"{k} {v}" for k, v in c["versions"].items()))
     typer.echo("files (SHA-256, checked): " + ", ".join(f"{f} {d[:16]}" for f, d in e.files.items()))
 
@@ -95,6 +111,9 @@ def zoo_build(
     flights: Optional[int] = typer.Option(None, help="Flights per configuration (default: each recipe's)."),
     seed: Optional[int] = typer.Option(None, help="The zoo's seed (default 1000; the benchmarks test on 0-99, "
                                        "the demo on 2000)."),
+    field: Optional[Path] = typer.Option(None, help="A field run's results.json on a shipped set (`quadformer "
+                                         "benchmark --profile field --shipped SET`): its figures go into the set's "
+                                         "cards when it judged the very files built (same checksums)."),
     quiet: bool = typer.Option(False, help="No progress bars."),
 ) -> None:
     """Rebuild the shipped detectors from their recipes: simulate, tune and calibrate every method,
@@ -104,7 +123,7 @@ def zoo_build(
 
     try:
         doc = build(out, cache, sets=[s.strip() for s in sets.split(",")] if sets else None, flights=flights,
-                    seed=ZOO_SEED if seed is None else seed, progress=not quiet, echo=typer.echo)
+                    seed=ZOO_SEED if seed is None else seed, progress=not quiet, echo=typer.echo, field=field)
     except ValueError as e:
         fail(str(e))
     from quadformer.detectors import pretrained

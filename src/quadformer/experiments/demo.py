@@ -166,22 +166,15 @@ LOG_FLIGHTS = 2
 LOG_DURATION = 40.0     # s
 
 
-#: the paper profile's QUADFormer test F1 by configuration (docs/results.md, "Paper profile":
-#: `quadformer benchmark --profile paper`, a model per configuration trained on 360 flights), for
-#: the demo's comparison with the shipped QUADFormer
-PAPER_PROFILE_QUADFORMER_F1 = {
-    "modelI-exponential-bias": 0.91, "modelI-exponential-ramp": 0.98, "modelI-laplace-bias": 0.90,
-    "modelI-laplace-ramp": 0.98, "modelII-exponential-bias": 0.92, "modelII-exponential-ramp": 0.99,
-    "modelII-laplace-bias": 0.93, "modelII-laplace-ramp": 0.99}
-
-
 def versus_paper(detection: dict[str, Any], method: str = "quadformer") -> list[dict[str, Any]]:
     """Per configuration of a demo run: ``method``'s test F1, its 95% bootstrap interval, the paper
-    profile's F1 and whether the interval holds it."""
+    profile's F1 (``zoo.PAPER_PROFILE_F1``) and whether the interval holds it."""
+    from quadformer.experiments.zoo import PAPER_PROFILE_F1
+
     out = []
     for c in detection["configs"]:
         m = c["methods"].get(method)
-        paper = PAPER_PROFILE_QUADFORMER_F1.get(c["name"])
+        paper = PAPER_PROFILE_F1.get(method, {}).get(c["name"])
         if m is None or paper is None:
             continue
         ci = m.get("f1_ci95")
@@ -240,12 +233,12 @@ def run_shipped_demo(out: Path, cache_dir: Path, progress: bool = True, workers:
                                 workers=workers, max_flights=fly, shipped=shipped["quadformer"])
     phases["resilience"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    logs, name = _detect_on_logs(Path(out), cache_dir, log_duration)
+    logs, name = _detect_on_logs(Path(out), cache_dir, log_duration, workers)
     phases["logs"] = time.perf_counter() - t0
     return ShippedDemo(rows, detection, resilience, logs, name, shipped, phases)
 
 
-def _detect_on_logs(out: Path, cache_dir: Path, duration: float):
+def _detect_on_logs(out: Path, cache_dir: Path, duration: float, workers: int | None = None):
     """Simulated flights written as autopilot logs (kept in the cache), scored by ``detect``'s
     route with the shipped detector it picks for them."""
     from quadformer.config import SimConfig, merge
@@ -266,5 +259,5 @@ def _detect_on_logs(out: Path, cache_dir: Path, duration: float):
     paths = find_logs([where / "logs"])
     det, config = shipped_for(read_log(paths[0]))
     run = detect_logs(paths, det, out / "logs", "ekf", config, model=f"shipped:{det.zoo_name_}",
-                      workers=min(len(paths), os.cpu_count() or 1))
+                      workers=min(len(paths), workers or os.cpu_count() or 1))
     return run, det.zoo_name_

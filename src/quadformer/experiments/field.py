@@ -201,6 +201,13 @@ def shipped_detectors(name: str) -> tuple[dict[str, Any], dict[str, Any]]:
     return dets, next(iter(dets.values())).calibration_["sim_config"]
 
 
+def shipped_files(name: str) -> dict[str, dict[str, str]]:
+    """The files and SHA-256 of a shipped set's detectors (what a field run judged)."""
+    from quadformer.detectors import pretrained
+
+    return {e.name: dict(e.files) for e in pretrained.entries().values() if e.set.name == name}
+
+
 def _with_threshold(det, thr: float):
     d = copy.copy(det)
     d.threshold_ = float(thr)
@@ -321,7 +328,7 @@ def run_field(paths: list[Path], out: Path, plan: FieldPlan, manifest: Path | No
                                          "air_hours": _air_hours(fl), "phase_source": _phase_source(fl),
                                          "notes": fl.notes} for fl in logs],
                                "refused": refused, "methods": {}, "versions": package_versions(),
-                               "shipped": shipped}
+                               "shipped": shipped, "shipped_files": shipped_files(shipped) if shipped else None}
     per_log_rows, inj_rows = [], []
     receiver_rows: list[dict[str, Any]] = []
     t0 = time.perf_counter()

@@ -2,14 +2,14 @@
 
 A recipe per sensor set (``RECIPES``): the simulated flights its detectors learn from
 (configurations, flights per configuration, seed) and the methods; the set's default is chosen
-on the validation flights (``build``). The build simulates each set's flights (cached like the benchmark's datasets), splits every
-configuration's flights by flight with the benchmark's protocol (60/20/20, split seed 0, 20% of
-the training flights labelled), tunes each method on the pooled training flights at its full
-training budget, calibrates it on the pooled validation flights (the threshold of best F1 and the
-one meeting ``BUDGET_PER_HOUR`` false alarms per clean flight-hour), scores the pooled test
-flights at both, and writes the saved detectors, their SHA-256 and their cards into a fresh
-directory that replaces the old one only once everything is written
-(``detectors.pretrained`` reads it).
+on the validation flights (``build``). The build simulates each set's flights (cached like the
+benchmark's datasets), splits every configuration's flights by flight with the benchmark's
+protocol (60/20/20, split seed 0, 20% of the training flights labelled), tunes each method on
+the pooled training flights at its full training budget, calibrates it on the pooled validation
+flights (the threshold of best F1 and the one meeting ``BUDGET_PER_HOUR`` false alarms per clean
+flight-hour), scores the pooled test flights at both, and writes the saved detectors, their
+SHA-256 and their cards into a fresh directory that replaces the old one only once everything is
+written (``detectors.pretrained`` reads it).
 
 Seeds. The zoo's flights derive from ``ZOO_SEED``; the benchmark's profiles from seed 0 (and
 ``--seed-list``'s small integers) and the demo's test flights from ``DEMO_SEED``: no flight a
@@ -40,8 +40,8 @@ from quadformer.experiments.cache import ensure_configs
 from quadformer.experiments.grid import PAPER_GRID, Profile, profile_configs
 from quadformer.io import atomic_dir, package_versions, write_json
 
-__all__ = ["ZOO_SEED", "DEMO_SEED", "THREADS", "BUDGET_PER_HOUR", "FLEET_NOISE", "Recipe", "RECIPES", "build",
-           "shipped_tuned"]
+__all__ = ["ZOO_SEED", "DEMO_SEED", "THREADS", "BUDGET_PER_HOUR", "FLEET_NOISE", "PAPER_PROFILE_F1", "Recipe",
+           "RECIPES", "build", "attach_field", "field_figures", "shipped_tuned"]
 
 ZOO_SEED = 1000
 DEMO_SEED = 2000
@@ -65,22 +65,41 @@ FLEET_NOISE: dict[str, Any] = {
 }
 
 
-def paper_grid(flights: int, seed: int) -> list[tuple[str, SimConfig]]:
+#: the paper profile's test F1 by method and configuration (docs/results.md, "Paper profile":
+#: `quadformer benchmark --profile paper`, commit 47559b9: a model per configuration, 360 training
+#: flights each), which the ``vio`` set's cards and the demo cite beside their own figures
+PAPER_PROFILE_F1: dict[str, dict[str, float]] = {
+    m: dict(zip(("modelI-exponential-bias", "modelI-exponential-ramp", "modelI-laplace-bias", "modelI-laplace-ramp",
+                 "modelII-exponential-bias", "modelII-exponential-ramp", "modelII-laplace-bias",
+                 "modelII-laplace-ramp"), f1))
+    for m, f1 in {
+        "chi2": (0.51, 0.75, 0.56, 0.74, 0.51, 0.75, 0.55, 0.76),
+        "cusum": (0.54, 0.75, 0.53, 0.69, 0.58, 0.68, 0.54, 0.71),
+        "sprt": (0.58, 0.77, 0.65, 0.77, 0.62, 0.75, 0.67, 0.77),
+        "bht": (0.63, 0.79, 0.70, 0.77, 0.67, 0.77, 0.70, 0.79),
+        "chi2-vref": (0.19, 0.78, 0.19, 0.72, 0.21, 0.72, 0.20, 0.73),
+        "cusum-vref": (0.20, 0.76, 0.18, 0.69, 0.20, 0.68, 0.19, 0.71),
+        "cusum-ref": (0.50, 0.75, 0.50, 0.67, 0.52, 0.67, 0.51, 0.70),
+        "quadformer": (0.91, 0.98, 0.90, 0.98, 0.92, 0.99, 0.93, 0.99),
+    }.items()}
+
+
+def paper_grid(flights: int, seed: int, duration: float = 60.0) -> list[tuple[str, SimConfig]]:
     """The paper's eight configurations (GPS + IMU + VIO; Model I/II, exponential/Laplace noise,
     bias/ramp) at ``flights`` each, their seeds derived from ``seed``."""
-    return profile_configs(Profile("zoo", flights, seed=seed, grid=PAPER_GRID))
+    return profile_configs(Profile("zoo", flights, duration=duration, seed=seed, grid=PAPER_GRID))
 
 
-def fleet_grid(flights: int, seed: int) -> list[tuple[str, SimConfig]]:
+def fleet_grid(flights: int, seed: int, duration: float = 60.0) -> list[tuple[str, SimConfig]]:
     """GPS + IMU + magnetometer + barometer with the fleet's noise, both airframes, half of the
     flights under a bias of 1 to 10 m or a ramp of 0.05 to 2 m/s (the field benchmark's ranges)."""
     out = []
     for i, model in enumerate(("I", "II")):
         cfg = SimConfig.from_dict(merge(FLEET_NOISE, {
             "model": model, "noise": "gaussian", "sensors": "gps+imu+mag+baro", "flights": flights,
-            "duration": 60.0, "seed": int(np.random.SeedSequence(seed, spawn_key=(0x200, i)).generate_state(1)[0]),
+            "duration": duration, "seed": int(np.random.SeedSequence(seed, spawn_key=(0x200, i)).generate_state(1)[0]),
             "attack": {"kind": "mix", "mix": ["bias", "ramp"], "magnitude": [1.0, 10.0], "rate": [0.05, 2.0],
-                       "onset": [10.0, 40.0]}}))
+                       "onset": [duration / 6, duration * 2 / 3]}}))
         out.append((f"fleet-model{model}-gaussian-mix", cfg))
     return out
 
@@ -93,7 +112,7 @@ class Recipe:
     formats: tuple[str, ...]        # log formats it serves (empty: any)
     methods: tuple[str, ...]        # in order of preference where the validation flights tie
     flights: int                    # per configuration
-    configs: Callable[[int, int], list[tuple[str, SimConfig]]]
+    configs: Callable[..., list[tuple[str, SimConfig]]]     # (flights, seed, duration) -> named configs
     about: str
 
     def names(self) -> list[str]:
@@ -198,9 +217,45 @@ def _kept(out: Path, rebuilt: set[str]) -> dict[str, Any]:
             "detectors": {k: v for k, v in doc["detectors"].items() if v["set"] not in rebuilt}}
 
 
+def field_figures(results: dict[str, Any], method: str) -> dict[str, Any]:
+    """A card's summary of a field run (``benchmark --profile field --shipped SET``) for ``method``:
+    spoofing alerts in the air on the clean logs, and the injected spoofs' recall and delay, at
+    each threshold."""
+    keep_fa = ("threshold", "logs", "air_hours", "spoofing_air", "per_air_hour", "ci_low", "ci_high")
+    keep_inj = ("threshold", "kind", "injected", "event_recall", "recall_big", "delay_median_s")
+    return {"logs_read": len(results.get("read", [])), "logs_refused": len(results.get("refused", [])),
+            "false_alarms_clean": [{k: r.get(k) for k in keep_fa} for r in results["false_alarms"]
+                                   if r["method"] == method],
+            "injected": [{k: r.get(k) for k in keep_inj} for r in results["injection"] if r["method"] == method],
+            "unscored": results.get("unscored", {}).get(method, []),
+            "source": "quadformer benchmark --profile field --shipped " + str(results["shipped"])}
+
+
+def attach_field(doc: dict[str, Any], path: Path) -> str:
+    """Put a field run's figures into the cards of the set it judged, after checking that it
+    judged these very files; the set's name."""
+    import json
+
+    res = json.loads(Path(path).read_text())
+    name = res.get("shipped")
+    judged = res.get("shipped_files") or {}
+    if not name or name not in doc["sets"]:
+        raise ValueError(f"field: {path} is not a field run of a shipped set built here (`quadformer benchmark "
+                         "--profile field --shipped SET`)")
+    mine = {k: v["files"] for k, v in doc["detectors"].items() if v["set"] == name}
+    if judged != mine:
+        raise ValueError(f"field: {path} judged other files than the {name} set built now (checksums differ): "
+                         "run the field benchmark again on these detectors")
+    for k, v in doc["detectors"].items():
+        if v["set"] == name:
+            v["card"]["field"] = field_figures(res, v["method"])
+    return name
+
+
 def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: list[str] | None = None,
           flights: int | None = None, seed: int = ZOO_SEED, progress: bool = True, workers: int | None = None,
-          echo: Callable[[str], None] = print) -> dict[str, Any]:
+          echo: Callable[[str], None] = print, field: Path | None = None,
+          duration: float = 60.0) -> dict[str, Any]:
     """Build the recipes' detectors (``sets``: some of them, the others kept as they are in
     ``out``; ``flights`` per configuration instead of the recipes'; another ``seed``) into
     ``out`` (default: the package's ``detectors/pretrained/models``), replacing it once
@@ -209,7 +264,12 @@ def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: l
     A set's default (what ``pretrained.load(set)`` and ``detect`` without ``--model`` give) is
     its method with the highest point-wise F1 on the validation flights at its false-alarm-budget
     threshold (the threshold a fielded detector alarms at: F1 there weighs how soon and how long an
-    attack is flagged, and the false alarms the budget leaves), the recipe's order breaking ties."""
+    attack is flagged, and the false alarms the budget leaves), the recipe's order breaking ties.
+
+    ``duration``: seconds per simulated flight (the recipes' 60 s; shorter for a quick trial).
+    ``field``: the results.json of a field run on the set's detectors (``benchmark --profile
+    field --shipped SET``); its figures go into their cards where it judged the very files built
+    (same checksums), else ValueError."""
     import shutil
 
     from quadformer.io import set_threads
@@ -221,7 +281,8 @@ def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: l
     if unknown:
         raise ValueError(f"sets: unknown {', '.join(unknown)}; choose from {', '.join(known)}")
     if flights is not None and flights < 10:
-        raise ValueError(f"flights: at least 10 per configuration (each part of the split needs flights), got {flights}")
+        raise ValueError(f"flights: at least 10 per configuration (each part of the split needs flights), "
+                         f"got {flights}")
     if seed == DEMO_SEED or seed < 100:
         raise ValueError(f"seed: {seed} is a seed benchmarks or the demo test on; the zoo's default is {ZOO_SEED}")
     set_threads(THREADS)
@@ -238,17 +299,21 @@ def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: l
                 doc["sets"][r.set] = kept["sets"][r.set]
                 doc["detectors"].update({k: v for k, v in kept["detectors"].items() if v["set"] == r.set})
             elif r in chosen:
-                doc["sets"][r.set], built = _build_set(r, tmp, cache_dir, flights, seed, progress, workers, echo)
+                doc["sets"][r.set], built = _build_set(r, tmp, cache_dir, flights, seed, progress, workers, echo,
+                                                       duration)
                 doc["detectors"].update(built)
+        if field is not None:
+            echo(f"field figures of the {attach_field(doc, field)} set from {field}")
         doc["build_seconds"] = round(time.perf_counter() - t_all, 1)
         write_json(tmp / "index.json", doc)
     return doc
 
 
 def _build_set(r: Recipe, tmp: Path, cache_dir: Path, flights: int | None, seed: int, progress: bool,
-               workers: int | None, echo: Callable[[str], None]) -> tuple[dict[str, Any], dict[str, Any]]:
+               workers: int | None, echo: Callable[[str], None],
+               duration: float = 60.0) -> tuple[dict[str, Any], dict[str, Any]]:
     """One recipe's detectors written into ``tmp``: (the set's index entry, its detectors' entries)."""
-    configs = r.configs(flights or r.flights, seed)
+    configs = r.configs(flights or r.flights, seed, duration)
     echo(f"{r.set}: simulating {sum(c.flights for _, c in configs)} flights ({len(configs)} configuration(s))")
     paths = ensure_configs(configs, cache_dir, progress=progress, workers=workers)
     parts, y_train, counts, sim = _pooled(paths)
@@ -289,6 +354,10 @@ def _build_set(r: Recipe, tmp: Path, cache_dir: Path, flights: int | None, seed:
                      "at_f1_threshold": _figures(test, s, det.threshold_, rate),
                      "at_budget_threshold": _figures(test, s, det.budget_threshold_, rate)},
             "versions": package_versions(),
+            "paper_profile": ({"source": "docs/results.md#paper-profile (quadformer benchmark --profile paper; a "
+                                         "model per configuration, 360 training flights each)",
+                               "f1": PAPER_PROFILE_F1[m]} if r.set == "vio" and m in PAPER_PROFILE_F1 else None),
+            "field": None,
         }
         built[name] = {"method": m, "set": r.set, "files": {f: pretrained.sha256(tmp / f) for f in files},
                        "card": card}
