@@ -63,6 +63,10 @@ ROOT = DOCS.parent
 #:     "paper-f1": {"source": "results/paper/results.json", "kind": "methods", "metric": "f1",
 #:                  "command": "quadformer benchmark --profile paper --out runs/paper-now"},
 TABLES: dict[str, dict[str, Any]] = {
+    "field-shipped": {"source": "results/field-shipped/results.json", "kind": "field",
+                      "command": "quadformer benchmark --profile field --shipped magbaro --logs "
+                                 "../shared/data/real-flights --manifest ../shared/data/real-flights/MANIFEST.csv "
+                                 "--out runs/field-shipped"},
     "zoo": {"source": "../src/quadformer/detectors/pretrained/models/index.json", "kind": "zoo",
             "command": "quadformer zoo build"},
     "zoo-vio": {"source": "../src/quadformer/detectors/pretrained/models/index.json", "kind": "zoo-configs",

@@ -58,7 +58,8 @@ def benchmark(
     if shipped is not None:
         fail("--shipped belongs to --profile field (the demo scores the shipped detectors on simulated flights)")
     from quadformer.dataset import DatasetError
-    from quadformer.experiments.detection import run_benchmark, run_datasets, run_seeds
+    from quadformer.experiments.detection import run_benchmark, run_datasets
+    from quadformer.experiments.seeds import run_seeds
     from quadformer.experiments.pool import BackendError, UnitError
     from quadformer.io import set_threads
 

@@ -93,8 +93,8 @@ def zoo_show(
                        f"in-air hours of clean flights = {r['per_air_hour']:.0f} per hour [{r['ci_low']:.0f}, "
                        f"{r['ci_high']:.0f}]")
         for r in fd["injected"]:
-            typer.echo(f"  {r['threshold']} threshold, injected {r['kind']}: recall {_num(r['event_recall'])} of "
-                       f"{r['injected']}, median delay {_num(r['delay_median_s'])} s")
+            typer.echo(f"  {r['threshold']} threshold, injected {r['kind']}: event recall {_num(r['event_recall'])} "
+                       f"({r['injected']} injected), median delay {_num(r['delay_median_s'])} s")
         if fd["unscored"]:
             typer.echo(f"  not scored on {len(fd['unscored'])} log(s): {fd['unscored'][0]['reason']}")
     else:
@@ -140,4 +140,4 @@ def _ci(f: dict) -> str:
 
 
 def _num(x) -> str:
-    return "-" if x is None else f"{x:.3g}"
+    return "-" if x is None or x != x else f"{x:.3g}"

@@ -226,10 +226,8 @@ class ShapeTyper:
         tau_a = (back[None, :] - onsets[:, None]) * dt                   # the same at each row's anchor
         on, on_a = (tau >= 0).astype(float), (tau_a >= 0).astype(float)
         tau, tau_a = np.maximum(tau, 0.0), np.maximum(tau_a, 0.0)
-        # the periodic shapes at each whole step since an onset, from a table of those steps'
-        # times: the same numbers as evaluated at every (onset, row), computed once per step
-        m = np.arange(n)[None, :] - onsets[:, None]
-        m_a = back[None, :] - onsets[:, None]
+        # periodic shapes from a table over the steps since an onset (the same numbers, once per step)
+        m, m_a = np.arange(n)[None, :] - onsets[:, None], back[None, :] - onsets[:, None]
         lo = int(min(m.min(), m_a.min()))
         grid = np.maximum(np.arange(lo, int(max(m.max(), m_a.max())) + 1) * dt, 0.0)
         i, i_a = m - lo, m_a - lo
@@ -244,15 +242,11 @@ class ShapeTyper:
         if "ramp" in self.kinds:
             costs["ramp"] = fit(tau - tau_a, on) + 4 * pen
         if "sinusoid" in self.kinds:
-            def sinusoid(w: float) -> float:
-                sin, cos = np.sin(w * grid), np.cos(w * grid)
-                return fit(on * sin[i] - on_a * sin[i_a], on * w * cos[i])
-            costs["sinusoid"] = min(sinusoid(w) for w in 2 * np.pi * np.asarray(self.frequencies)) + 5 * pen
+            waves = [(w, np.sin(w * grid), np.cos(w * grid)) for w in 2 * np.pi * np.asarray(self.frequencies)]
+            costs["sinusoid"] = min(fit(on * sn[i] - on_a * sn[i_a], on * w * cs[i]) for w, sn, cs in waves) + 5 * pen
         if "intermittent" in self.kinds:
-            def intermittent(p: float) -> float:
-                high = np.mod(grid, p) < 0.5 * p
-                return fit(on * high[i] - on_a * high[i_a], None)
-            costs["intermittent"] = min(intermittent(p) for p in self.periods) + 5 * pen
+            highs = [np.mod(grid, p) < 0.5 * p for p in self.periods]
+            costs["intermittent"] = min(fit(on * h[i] - on_a * h[i_a], None) for h in highs) + 5 * pen
         # replay and freeze: the honest fix of other rows (a known offset), plus a free constant
         # position offset (the receiver's slow error then against now)
         no_cv = np.zeros((len(onsets), 3))

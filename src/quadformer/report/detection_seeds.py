@@ -15,7 +15,7 @@ from quadformer.report.html import page, table
 
 def seeds_table(results: dict[str, Any], metric: str = "f1") -> pd.DataFrame:
     """One metric over the seeds: rows methods, columns configurations, cells
-    "mean ± std [min, max]" (``run_seeds``' summary)."""
+    "mean ± std [min, max]" (``experiments.seeds.run_seeds``' summary)."""
     summary = results["summary"]
     cols = list(summary)
     rows = {}
