@@ -496,13 +496,18 @@ def test_cli_monitor_without_a_model_takes_the_shipped_detector_of_its_sensors(t
                                      "--sensors", "gps+imu+vio", "--out", str(tmp_path / "b")])
     assert r.exit_code == 0, r.output
     assert f"detector: shipped {pretrained.sets()['vio'].default}" in r.output
+    with time_limit(60):      # a vehicle without a compass: the magbaro default reads the GPS residues only
+        r = CliRunner().invoke(app, ["monitor", "--connect", f"udpin:{LOCAL}:0", "--duration", "0.5",
+                                     "--sensors", "gps+imu+baro", "--out", str(tmp_path / "c")])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "c" / "summary.json").read_text())["sensors"] == "gps+imu+baro"
 
 
 def test_cli_monitor_refuses_bad_input(tmp_path):
     r = CliRunner().invoke(app, ["monitor"])
     assert r.exit_code == 2 and "--connect is required" in r.output
-    r = CliRunner().invoke(app, ["monitor", "--connect", f"udpin:{LOCAL}:0", "--sensors", "gps+imu+baro"])
-    assert r.exit_code == 2 and "no shipped detector fits ekf residues of baro+gps+imu" in r.output
+    r = CliRunner().invoke(app, ["monitor", "--connect", f"udpin:{LOCAL}:0", "--sensors", "gps+vio"])
+    assert r.exit_code == 2 and "no shipped detector fits ekf residues of gps+vio" in r.output
     r = CliRunner().invoke(app, ["monitor", "--stale-hold", "-1", "--connect", f"udpin:{LOCAL}:0"])
     assert r.exit_code == 2 and "stale_hold_s" in r.output
     r = CliRunner().invoke(app, ["monitor", "--model", str(tmp_path / "none.json"), "--connect", f"udpin:{LOCAL}:0"])

@@ -76,16 +76,21 @@ def test_a_damaged_or_unknown_shipped_detector_is_named(tmp_path):
     ({"gps", "imu", "vio", "mag", "baro"}, "ekf", "px4", "magbaro"),
     ({"gps", "imu", "vio"}, "ekf", "ros", "vio"),
     ({"gps", "imu", "mag", "baro"}, "autopilot", "px4", "px4"),
+    ({"gps", "imu", "baro"}, "ekf", "ardupilot", "magbaro"),     # a log without a compass
 ])
 def test_the_shipped_detector_that_fits_the_data_is_chosen(have, residues, fmt, expected):
     chosen = pretrained.choose(have, residues, fmt)
     assert chosen.set.name == expected and chosen.name == pretrained.sets()[expected].default
+    assert pretrained.needs(chosen.name) <= have or residues == "autopilot"
+    if residues == "ekf":      # the replay fuses the set's sensors the data has
+        assert pretrained.fused_sensors(chosen, have) == "+".join(
+            s for s in ("gps", "imu", "vio", "mag", "baro") if s in have and s in chosen.set.parts)
     assert pretrained.resolve("gps+imu+mag+baro").name == pretrained.sets()["magbaro"].default
     assert pretrained.resolve("vio").name == pretrained.sets()["vio"].default
 
 
 @pytest.mark.parametrize("have, residues, fmt, message", [
-    ({"gps", "imu", "baro"}, "ekf", "ardupilot", "no shipped detector fits ekf residues of baro\\+gps\\+imu"),
+    ({"gps", "vio"}, "ekf", "ros", "no shipped detector fits ekf residues of gps\\+vio"),
     ({"gps", "imu", "mag", "baro"}, "autopilot", "ardupilot", "autopilot residues .* from a ardupilot log"),
 ])
 def test_data_no_shipped_detector_fits_is_named_with_what_to_do(have, residues, fmt, message):
@@ -117,6 +122,31 @@ def test_detect_runs_without_a_model(log, residues, set_, tmp_path):
     summary = json.loads((out / log.name / "summary.json").read_text())
     assert summary["model"] == f"shipped:{shipped}"
     assert (out / log.name / "report.html").exists()
+
+
+def test_detect_over_logs_of_different_sensors_fuses_each_logs_own(tmp_path):
+    """A vehicle without a compass beside one with: the shipped default reads the GPS residues
+    only, so both are scored, each replay fusing the set's sensors its log has."""
+    import dataclasses
+
+    from quadformer.experiments.flight_logs import UTC0
+    from quadformer.logs import read_log
+    from quadformer.logs.dataflash_writer import write_dataflash
+    from quadformer.logs.writing import LogHeader
+
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    shutil.copy(COPTER, logs / "compass.bin")
+    no_mag = dataclasses.replace(read_log(COPTER), mag=None)
+    write_dataflash(no_mag, logs / "no_compass.bin", LogHeader(utc0=UTC0))
+    out = tmp_path / "det"
+    res = runner.invoke(app, ["detect", str(logs), "--out", str(out), "--quiet", "--workers", "1"])
+    assert res.exit_code == 0, res.output
+    default = pretrained.sets()["magbaro"].default
+    assert pretrained.needs(default) == {"gps", "imu"}
+    fused = {n: json.loads((out / n / "summary.json").read_text())["sensors"]
+             for n in ("compass.bin", "no_compass.bin")}
+    assert fused == {"compass.bin": "gps+imu+mag+baro", "no_compass.bin": "gps+imu+baro"}
 
 
 def test_detect_takes_a_shipped_name_or_set_and_names_what_is_neither(tmp_path):

@@ -238,9 +238,10 @@ def model_or_shipped(model: str, runtime: str):
     return det, f"shipped:{entry.name}", entry.set.sensors
 
 
-def shipped_for_data(have: set[str], residues: str, format: Optional[str], what: str):
+def shipped_for_data(have: set[str], residues: str, format: Optional[str], what: str, per_log: bool = False):
     """(detector, label, sensors) of the shipped detector that fits ``have`` (sensor names),
-    printed with why it was chosen."""
+    printed with why it was chosen; ``sensors``: those of its set in ``have`` (``per_log``: its
+    set's, each log fusing those it has), None for autopilot residues."""
     from quadformer.detectors import pretrained
 
     try:
@@ -252,7 +253,9 @@ def shipped_for_data(have: set[str], residues: str, format: Optional[str], what:
                f"({'+'.join(s for s in ('gps', 'imu', 'vio', 'mag', 'baro') if s in have)}, {residues} residues): "
                f"trained in simulation, threshold at {entry.card['calibration']['budget_per_hour']:g} false alarm per "
                f"clean flight-hour; --model to choose another (`quadformer zoo list`)")
-    return det, f"shipped:{entry.name}", entry.set.sensors if entry.set.residues == "ekf" else None
+    if entry.set.residues != "ekf":
+        return det, f"shipped:{entry.name}", None
+    return det, f"shipped:{entry.name}", entry.set.sensors if per_log else pretrained.fused_sensors(entry, have)
 
 
 def load_dataset_dir(path: Path):
@@ -266,15 +269,18 @@ def load_dataset_dir(path: Path):
 
 def replay_config(sensors: Optional[str], imu_rate: Optional[float], gps_rate: Optional[float],
                   min_segment: float, filter: str, det=None, gps_delay: Optional[float] = None,
-                  receiver_accuracy: bool = True):
+                  receiver_accuracy: bool = True, where_logged: bool = False):
     """The replay's filter tuning: EKF2's defaults, the simulation a model was fit on, or a
-    simulated dataset's; explicit rates override it."""
+    simulated dataset's; explicit rates override it. ``where_logged``: each log fuses those of
+    ``sensors`` it has (a shipped detector's set, not named by --sensors)."""
     from quadformer.dataset import DatasetError, load_dataset
     from quadformer.estimator.filter_config import FilterConfig
 
     over = {k: v for k, v in (("sensors", sensors), ("imu_rate_hz", imu_rate), ("gps_rate_hz", gps_rate),
                               ("min_segment_s", min_segment), ("gps_delay_s", gps_delay),
                               ("receiver_accuracy", receiver_accuracy)) if v is not None}
+    if where_logged:
+        over["sensors_where_logged"] = True
     try:
         if filter == "ekf2":
             return FilterConfig(**over)

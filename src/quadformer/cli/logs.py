@@ -52,7 +52,7 @@ def detect(
     else:
         det, label, trained_with = model_or_shipped(model, runtime)
     config = replay_config(sensors or trained_with, imu_rate, gps_rate, min_segment, filter, det, gps_delay,
-                           receiver_accuracy)
+                           receiver_accuracy, where_logged=sensors is None and trained_with is not None)
     if workers < 0:
         fail(f"--workers must be 0 (one per core) or more, got {workers}")
     if "torch" in sys.modules:                       # a network detector: one thread per log
@@ -110,7 +110,8 @@ def _shipped_for_logs(paths: list[Path], residues: str, format: Optional[str]):
         except LogError:
             continue
         return shipped_for_data(set(log_sensors(log)), residues, FORMAT_OF_SOURCE.get(log.source),
-                                p.name if len(paths) == 1 else f"{p.name}, the first of the logs that reads")
+                                p.name if len(paths) == 1 else f"{p.name}, the first of the logs that reads",
+                                per_log=True)
     fail("no log could be read to choose a shipped detector for (each is reported when named with --model)")
 
 
@@ -247,7 +248,8 @@ def calibrate(
         per_hour = float(budget.strip().removesuffix("/h"))
     except ValueError:
         fail(f"--budget: {budget!r} is not a number of false alarms per hour (e.g. 1/h or 0.5)")
-    config = replay_config(sensors or trained_with, None, None, 3.0, filter, det)
+    config = replay_config(sensors or trained_with, None, None, 3.0, filter, det,
+                           where_logged=sensors is None and trained_with is not None)
     paths = log_paths(clean, format)
     set_threads(1)
     before = det.threshold_

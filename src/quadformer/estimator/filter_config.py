@@ -32,6 +32,9 @@ class FilterConfig:
     a simulation's instead. IMU noise is per filter step at ``imu_rate_hz`` and is scaled to
     keep its density when a log's IMU is slower."""
     sensors: str | None = None      # e.g. "gps+imu+mag+baro"; None: every sensor the log has
+    #: a log replay fuses those of ``sensors`` the log has (GPS and IMU still needed) instead of
+    #: refusing a log that lacks one (the shipped detectors: a log without a compass, say)
+    sensors_where_logged: bool = False
     imu_rate_hz: float = 100.0      # Hz, IMU averaged down to at most this rate
     gps_rate_hz: float = 10.0       # Hz, at most this many fixes fused per second
     accel_noise: float = 0.35       # m/s^2, accelerometer noise per filter step

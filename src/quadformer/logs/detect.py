@@ -134,13 +134,16 @@ def detect_log(log: FlightLog | str | Path, detector=None, residues: str = "ekf"
 def shipped_for(log: FlightLog, residues: str = "ekf", threshold: str = "budget"):
     """(detector, filter tuning): the shipped detector that fits ``log``'s sensors and
     ``residues`` (``detectors.pretrained.choose``), alarming at its ``threshold``, and the
-    filter tuning of the simulation it learned from, fusing the sensors it was trained on."""
+    filter tuning of the simulation it learned from, fusing the sensors of its set the log has
+    (each log of a run its own)."""
     from quadformer.detectors import pretrained
 
-    entry = pretrained.choose(set(log_sensors(log)), residues, FORMAT_OF_SOURCE.get(log.source))
+    have = set(log_sensors(log))
+    entry = pretrained.choose(have, residues, FORMAT_OF_SOURCE.get(log.source))
     det = pretrained.load(entry.name, threshold=threshold)
     sim = (getattr(det, "calibration_", None) or {}).get("sim_config")
-    return det, (FilterConfig.matching(sim, sensors=entry.set.sensors) if sim else FilterConfig())
+    over = {"sensors": entry.set.sensors, "sensors_where_logged": True} if entry.set.residues == "ekf" else {}
+    return det, (FilterConfig.matching(sim, **over) if sim else FilterConfig(**over))
 
 
 def log_height(log: FlightLog) -> pd.DataFrame | None:

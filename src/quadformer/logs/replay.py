@@ -111,6 +111,8 @@ def _sensors_of(log: FlightLog, config: FilterConfig) -> str:
     if config.sensors is None:
         return "+".join(have)
     want = config.sensors.split("+")
+    if config.sensors_where_logged:
+        want = [s for s in want if s in have or s in ("gps", "imu")]
     lacking = [s for s in want if s not in have]
     if lacking:
         raise LogError(f"{log.path}: the sensor configuration {config.sensors!r} needs "

@@ -30,11 +30,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from quadformer.config import SENSOR_NAMES
 from quadformer.detectors.base import Detector
 from quadformer.detectors.registry import load as load_file
+from quadformer.estimator.schema import GROUPS, SENSOR_GROUPS
 
 __all__ = ["ROOT", "INDEX", "THRESHOLDS", "SensorSet", "Entry", "ZooError", "index", "sets", "entries", "entry",
-           "resolve", "load", "choose", "verify", "sha256", "is_shipped"]
+           "resolve", "load", "choose", "needs", "fused_sensors", "verify", "sha256", "is_shipped"]
 
 ROOT = Path(__file__).resolve().parent / "models"
 INDEX = ROOT / "index.json"
@@ -159,18 +161,39 @@ def load(name: str, threshold: str = "budget", root: Path | None = None) -> Dete
     return det.at_budget() if threshold == "budget" else det
 
 
+def needs(name: str, root: Path | None = None) -> frozenset[str]:
+    """The sensors a shipped detector reads residues of: GPS and IMU, and each aiding sensor
+    (VIO, magnetometer, barometer) whose residue columns are among its inputs."""
+    e = resolve(name, root)
+    try:
+        doc = json.loads(((ROOT if root is None else Path(root)) / f"{e.name}.qfm").read_text())
+    except (FileNotFoundError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ZooError(f"{e.name}: its saved detector cannot be read ({err})") from None
+    feats = set(doc.get("state", {}).get("features_", []))
+    return frozenset({"gps", "imu"} | {sensor for sensor, groups in SENSOR_GROUPS.items()
+                                       if any(c in feats for g in groups for c in GROUPS[g].columns)})
+
+
+def fused_sensors(entry: Entry, have: set[str] | frozenset[str]) -> str:
+    """The sensors a replay for ``entry`` fuses: those of its set the data has (the set was
+    trained fusing them all; a detector that reads only the GPS residues also scores a log
+    without, say, a magnetometer, with the filter fusing the rest)."""
+    return "+".join(s for s in SENSOR_NAMES if s in entry.set.parts and s in have)
+
+
 def choose(have: set[str] | frozenset[str], residues: str = "ekf", format: str | None = None,
            root: Path | None = None) -> Entry:
-    """The default detector of the first set (in the index's order) for ``residues`` and the log
-    ``format`` whose sensors the data has (``have``: sensor names, e.g. {"gps", "imu", "mag",
-    "baro"}; the autopilot's innovations need no sensor of ours); ZooError naming what would
-    fit otherwise."""
+    """The default detector of a set for ``residues`` and the log ``format`` whose inputs the data
+    has (``have``: sensor names, e.g. {"gps", "imu", "mag", "baro"}; ``needs``; the autopilot's
+    innovations need no sensor of ours): a set whose sensors the data all has first, then the one
+    sharing most of them, then the index's order; ZooError naming what would fit otherwise."""
     have = frozenset(have)
     fits = [s for s in sets(root).values()
-            if s.residues == residues and (s.residues == "autopilot" or s.parts <= have)
+            if s.residues == residues and (s.residues == "autopilot" or needs(s.default, root) <= have)
             and (not s.formats or format in s.formats)]
     if fits:
-        return entries(root)[fits[0].default]
+        best = min(enumerate(fits), key=lambda p: (not p[1].parts <= have, -len(p[1].parts & have), p[0]))[1]
+        return entries(root)[best.default]
     offered = [f"{s.sensors} ({s.residues} residues{', ' + '/'.join(s.formats) + ' logs' if s.formats else ''})"
                for s in sets(root).values()]
     raise ZooError(f"no shipped detector fits {residues} residues of {'+'.join(sorted(have))}"
