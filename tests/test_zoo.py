@@ -214,3 +214,6 @@ def test_zoo_build_gives_the_same_files_twice(tmp_path):
         build(tmp_path / "c", cache, sets=["px4"], seed=0)
     with pytest.raises(ValueError, match="sets: unknown nope"):
         build(tmp_path / "c", cache, sets=["nope"])
+    with pytest.raises(ValueError, match="field: .*nope.json: no such file"):     # before any work
+        build(tmp_path / "c", cache, sets=["px4"], field=tmp_path / "nope.json")
+    assert not (tmp_path / "c").exists()

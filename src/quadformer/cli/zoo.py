@@ -126,6 +126,8 @@ def zoo_build(
                     seed=ZOO_SEED if seed is None else seed, progress=not quiet, echo=typer.echo, field=field)
     except ValueError as e:
         fail(str(e))
+    except OSError as e:      # an installed package's folder may not be writable
+        fail(f"cannot write the detectors: {e}; build them elsewhere with --out DIR")
     from quadformer.detectors import pretrained
 
     where = out or pretrained.ROOT

@@ -231,12 +231,26 @@ def field_figures(results: dict[str, Any], method: str) -> dict[str, Any]:
             "source": "quadformer benchmark --profile field --shipped " + str(results["shipped"])}
 
 
+def read_field(path: Path) -> dict[str, Any]:
+    """A field run's results.json on a shipped set, or ValueError naming what is wrong."""
+    import json
+
+    try:
+        res = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise ValueError(f"field: {path}: no such file") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"field: {path}: not a results.json ({e})") from None
+    if not isinstance(res, dict) or not res.get("shipped") or not {"false_alarms", "injection"} <= set(res):
+        raise ValueError(f"field: {path} is not a field run of a shipped set (`quadformer benchmark --profile "
+                         "field --shipped SET`)")
+    return res
+
+
 def attach_field(doc: dict[str, Any], path: Path) -> str:
     """Put a field run's figures into the cards of the set it judged, after checking that it
     judged these very files; the set's name."""
-    import json
-
-    res = json.loads(Path(path).read_text())
+    res = read_field(path)
     name = res.get("shipped")
     judged = res.get("shipped_files") or {}
     if not name or name not in doc["sets"]:
@@ -285,6 +299,8 @@ def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: l
                          f"got {flights}")
     if seed == DEMO_SEED or seed < 100:
         raise ValueError(f"seed: {seed} is a seed benchmarks or the demo test on; the zoo's default is {ZOO_SEED}")
+    if field is not None:
+        read_field(field)          # a bad file fails before the build, not after it
     set_threads(THREADS)
     kept = _kept(out, {r.set for r in chosen}) if sets is not None else {"sets": {}, "detectors": {}}
     doc: dict[str, Any] = {"format": pretrained.FORMAT, "format_version": pretrained.FORMAT_VERSION,
