@@ -219,20 +219,20 @@ def model_or_shipped(model: str, runtime: str):
     from quadformer.detectors import pretrained
 
     path = Path(model)
-    if path.exists() or not pretrained.is_shipped(model):
-        if not path.exists() and (path.suffix or "/" in model):
-            fail(f"{model}: no such model file")
-        if not path.exists():
-            names = ", ".join(pretrained.entries()) if pretrained.INDEX.exists() else "none"
-            fail(f"--model {model!r}: neither a model file nor a shipped detector (shipped: {names})")
+    if path.exists():
         return calibrated_model(path, runtime), str(path), None
+    try:
+        entry = pretrained.resolve(model)
+    except pretrained.ZooError as e:
+        if path.suffix or "/" in model:
+            fail(f"{model}: no such model file")
+        fail(f"--model {model!r}: neither a model file nor a shipped detector ({e})")
     if runtime != "torch":
         fail("--runtime onnx scores an exported .onnx file (quadformer export); a shipped detector runs on torch")
     try:
-        det = pretrained.load(model)
+        det = pretrained.load(entry.name)
     except pretrained.ZooError as e:
         fail(str(e))
-    entry = pretrained.resolve(model)
     typer.echo(f"detector: shipped {entry.name} ({entry.method}, {entry.set.sensors}, {entry.set.residues} residues, "
                f"budget threshold {det.threshold_:.4g}; `quadformer zoo show {entry.name}`)")
     return det, f"shipped:{entry.name}", entry.set.sensors

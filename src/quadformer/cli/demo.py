@@ -35,6 +35,7 @@ def demo(
 
 def _shipped(out: Path, cache: Path, quiet: bool) -> None:
     from quadformer.detectors import pretrained
+    from quadformer.detectors.alarms import alert_counts
     from quadformer.experiments.demo import SHIPPED_FLY, run_shipped_demo, shipped_profile, versus_paper
     from quadformer.experiments.grid import summary_table
     from quadformer.experiments.zoo import ZOO_SEED
@@ -80,8 +81,6 @@ def _shipped(out: Path, cache: Path, quiet: bool) -> None:
                f"the shipped {run.log_detector}")
     for o in run.logs.outcomes:
         if o.status == "scored":
-            from quadformer.detectors.alarms import alert_counts
-
             n = alert_counts(o.detection.alerts)
             first = next((a for a in o.detection.alerts if a.kind == "spoofing" and a.phase == "air"), None)
             typer.echo(f"  {o.path.name}: {n['alerts']} spoofing alert(s) in the air"

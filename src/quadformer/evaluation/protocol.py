@@ -152,6 +152,7 @@ class Tuned:
     val_f1: float
     grid: list[dict[str, Any]] = field(default_factory=list)
     cached: bool = False    # loaded from a model cache instead of tuned now
+    val_scores: np.ndarray | None = None   # the winner's scores of the validation flights (tuned now)
 
 
 def grid_points(grid: dict[str, list[Any]]) -> list[dict[str, Any]]:
@@ -195,4 +196,4 @@ def tune(method: str, train: pd.DataFrame, y_train: np.ndarray, val: pd.DataFram
     assert best is not None
     det, params, _, f1, scores = best
     det.calibrate(val, y_val, gps_rate_hz=gps_rate_hz, budget_per_hour=budget_per_hour, scores=scores)
-    return Tuned(det, params, f1, tried)
+    return Tuned(det, params, f1, tried, val_scores=scores)

@@ -56,9 +56,14 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
     ``tune_seconds`` instead of the time taken to load them.
     budget: a reduced training budget (None: the full one)."""
     rate = ds.gps_rate_hz
-    sp = split_flights(ds.scenarios, seed, label_fraction=label_fraction)
-    parts = sp.frames(ds.flights)
-    test = parts.test if shipped is None else ds.flights
+    if shipped is None:
+        sp = split_flights(ds.scenarios, seed, label_fraction=label_fraction)
+        parts = sp.frames(ds.flights)
+        test = parts.test
+        split = {"train": len(sp.train), "val": len(sp.val), "test": len(sp.test), "labelled": len(sp.labelled)}
+    else:       # nothing to tune: every flight is a test flight
+        test = ds.flights
+        split = {"train": 0, "val": 0, "test": int(ds.scenarios.shape[0]), "labelled": 0}
     offsets = np.linalg.norm(test[["atk_d_x", "atk_d_y", "atk_d_z"]].to_numpy(), axis=1)
     true_types = np.where(test.label.to_numpy() == 1, test.attack_type.astype(str).to_numpy(), "none")
     scores = test[["flight_id", "t", "label"]].copy()
@@ -99,8 +104,6 @@ def run_config(ds: Dataset, methods: list[str], seed: int = 0, label_fraction: f
         scores[f"score_{m}"] = s
         scores[f"alarm_{m}"] = alarms.astype(np.int8)
         alerts.append(alerts_frame(alerts_from_scores(test, s, det, typer=typer, memo=typed)).assign(method=m))
-    split = ({"train": len(sp.train), "val": len(sp.val), "test": len(sp.test), "labelled": len(sp.labelled)}
-             if shipped is None else {"train": 0, "val": 0, "test": int(ds.scenarios.shape[0]), "labelled": 0})
     return {"split": split, "methods": out, "alerts": pd.concat(alerts, ignore_index=True) if alerts else None}, scores
 
 

@@ -84,15 +84,18 @@ def _plan(ds: Dataset, model_dir: Path | None, detector: str, seed: int, label_f
     """One configuration's part of a closed-loop batch: its tuned detector and the test
     flights to fly under every policy."""
     cfg = ds.config
-    sp = split_flights(ds.scenarios, seed, label_fraction=label_fraction)
-    parts = sp.frames(ds.flights)
     t0 = time.perf_counter()
-    tuned = (shipped_tuned(shipped) if shipped is not None else
-             tuned_model(detector, parts.train, parts.y_train, parts.val, cfg.gps.rate_hz, 1.0, model_dir,
-                         budget=budget))
+    if shipped is None:
+        sp = split_flights(ds.scenarios, seed, label_fraction=label_fraction)
+        parts = sp.frames(ds.flights)
+        tuned = tuned_model(detector, parts.train, parts.y_train, parts.val, cfg.gps.rate_hz, 1.0, model_dir,
+                            budget=budget)
+        test = np.sort(np.asarray(sp.test))
+    else:       # nothing to tune: every flight is a test flight
+        tuned = shipped_tuned(shipped)
+        test = np.sort(ds.scenarios.flight_id.to_numpy())
     t_tune = time.perf_counter() - t0
     det = tuned.detector if threshold == "f1" else tuned.detector.at_budget()
-    test = np.sort(np.asarray(sp.test if shipped is None else ds.scenarios.flight_id.to_numpy()))
     if max_flights is not None:
         test = test[:max_flights]
     attacked = ds.scenarios.set_index("flight_id").loc[test, "attacked"].to_numpy(bool)

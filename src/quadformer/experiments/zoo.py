@@ -115,9 +115,6 @@ class Recipe:
     configs: Callable[..., list[tuple[str, SimConfig]]]     # (flights, seed, duration) -> named configs
     about: str
 
-    def names(self) -> list[str]:
-        return [f"{self.set}-{m}" for m in self.methods]
-
 
 RECIPES: tuple[Recipe, ...] = (
     Recipe("magbaro", "gps+imu+mag+baro", "ekf", (), ("quadformer", "cusum", "chi2", "cusum-ref", "cusum-vref"),
@@ -343,7 +340,7 @@ def _build_set(r: Recipe, tmp: Path, cache_dir: Path, flights: int | None, seed:
         det.calibrate(det.threshold_, det.budget_threshold_, zoo=name, sim_config=sim,
                       split_seed=SPLIT_SEED, label_fraction=LABEL_FRACTION, configs=[n for n, _ in configs])
         t_tune = time.perf_counter() - t0
-        val = _figures(parts["val"], det.decision_function(parts["val"]), det.budget_threshold_, rate)
+        val = _figures(parts["val"], tuned.val_scores, det.budget_threshold_, rate)
         picks[m] = val["f1"] or 0.0
         s = det.decision_function(parts["test"])
         det.save(tmp / f"{name}.qfm")

@@ -35,11 +35,10 @@ from quadformer.detectors.base import Detector
 from quadformer.detectors.registry import load as load_file
 from quadformer.estimator.schema import GROUPS, SENSOR_GROUPS
 
-__all__ = ["ROOT", "INDEX", "THRESHOLDS", "SensorSet", "Entry", "ZooError", "index", "sets", "entries", "entry",
-           "resolve", "load", "choose", "needs", "fused_sensors", "verify", "sha256", "is_shipped"]
+__all__ = ["ROOT", "THRESHOLDS", "SensorSet", "Entry", "ZooError", "index", "sets", "entries", "entry",
+           "resolve", "load", "choose", "needs", "fused_sensors", "verify", "sha256"]
 
 ROOT = Path(__file__).resolve().parent / "models"
-INDEX = ROOT / "index.json"
 FORMAT = "quadformer-zoo"
 FORMAT_VERSION = 1
 THRESHOLDS = ("budget", "f1")
@@ -71,11 +70,6 @@ class Entry:
     files: dict[str, str]       # file name -> SHA-256
     card: dict[str, Any]
 
-    @property
-    def path(self) -> Path:
-        """The saved detector's JSON document."""
-        return ROOT / f"{self.name}.qfm"
-
 
 def sha256(path: Path) -> str:
     h = hashlib.sha256()
@@ -85,9 +79,13 @@ def sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def _base(root: Path | None) -> Path:
+    return ROOT if root is None else Path(root)
+
+
 def index(root: Path | None = None) -> dict[str, Any]:
     """The parsed ``index.json`` (of the package, or of a zoo written to ``root``)."""
-    path = (ROOT if root is None else Path(root)) / "index.json"
+    path = _base(root) / "index.json"
     try:
         doc = json.loads(path.read_text())
     except FileNotFoundError:
@@ -100,45 +98,46 @@ def index(root: Path | None = None) -> dict[str, Any]:
     return doc
 
 
-def sets(root: Path | None = None) -> dict[str, SensorSet]:
+def _sets(doc: dict[str, Any]) -> dict[str, SensorSet]:
     return {k: SensorSet(name=k, sensors=v["sensors"], residues=v["residues"], formats=tuple(v.get("formats", ())),
                          default=v["default"], about=v.get("about", ""))
-            for k, v in index(root)["sets"].items()}
+            for k, v in doc["sets"].items()}
+
+
+def _entries(doc: dict[str, Any]) -> dict[str, Entry]:
+    by_set = _sets(doc)
+    return {k: Entry(name=k, method=v["method"], set=by_set[v["set"]], files=dict(v["files"]), card=v["card"])
+            for k, v in doc["detectors"].items()}
+
+
+def sets(root: Path | None = None) -> dict[str, SensorSet]:
+    """Every shipped set by name, in the index's order."""
+    return _sets(index(root))
 
 
 def entries(root: Path | None = None) -> dict[str, Entry]:
     """Every shipped detector by name, in the index's order."""
-    doc = index(root)
-    by_set = sets(root)
-    return {k: Entry(name=k, method=v["method"], set=by_set[v["set"]], files=dict(v["files"]), card=v["card"])
-            for k, v in doc["detectors"].items()}
+    return _entries(index(root))
 
 
 def resolve(name: str, root: Path | None = None) -> Entry:
     """A shipped detector by its name, its set's name (``magbaro``) or its set's sensors
     (``gps+imu+mag+baro``: the set's default detector)."""
-    all_ = entries(root)
+    doc = index(root)
+    all_, by_set = _entries(doc), _sets(doc)
     if name in all_:
         return all_[name]
-    for s in sets(root).values():
+    for s in by_set.values():
         if name == s.name or (name == s.sensors and s.residues == "ekf"):
             return all_[s.default]
     raise ZooError(f"no shipped detector {name!r}; choose a name ({', '.join(all_)}) or a sensor set "
-                   f"({', '.join(sorted({s.sensors for s in sets(root).values() if s.residues == 'ekf'}))})")
-
-
-def is_shipped(name: str, root: Path | None = None) -> bool:
-    try:
-        resolve(name, root)
-        return True
-    except ZooError:
-        return False
+                   f"({', '.join(sorted({s.sensors for s in by_set.values() if s.residues == 'ekf'}))})")
 
 
 def verify(name: str, root: Path | None = None) -> Entry:
     """The entry after checking that its files are there with their recorded SHA-256."""
     e = resolve(name, root)
-    base = ROOT if root is None else Path(root)
+    base = _base(root)
     for fname, digest in e.files.items():
         p = base / fname
         if not p.is_file():
@@ -156,17 +155,17 @@ def load(name: str, threshold: str = "budget", root: Path | None = None) -> Dete
     if threshold not in THRESHOLDS:
         raise ZooError(f"threshold: {threshold!r}; choose from {', '.join(THRESHOLDS)}")
     e = verify(name, root)
-    det = load_file((ROOT if root is None else Path(root)) / f"{e.name}.qfm")
+    det = load_file(_base(root) / f"{e.name}.qfm")
     det.zoo_name_ = e.name
     return det.at_budget() if threshold == "budget" else det
 
 
-def needs(name: str, root: Path | None = None) -> frozenset[str]:
+def needs(name: str | Entry, root: Path | None = None) -> frozenset[str]:
     """The sensors a shipped detector reads residues of: GPS and IMU, and each aiding sensor
     (VIO, magnetometer, barometer) whose residue columns are among its inputs."""
-    e = resolve(name, root)
+    e = name if isinstance(name, Entry) else resolve(name, root)
     try:
-        doc = json.loads(((ROOT if root is None else Path(root)) / f"{e.name}.qfm").read_text())
+        doc = json.loads((_base(root) / f"{e.name}.qfm").read_text())
     except (FileNotFoundError, json.JSONDecodeError, UnicodeDecodeError) as err:
         raise ZooError(f"{e.name}: its saved detector cannot be read ({err})") from None
     feats = set(doc.get("state", {}).get("features_", []))
@@ -188,14 +187,16 @@ def choose(have: set[str] | frozenset[str], residues: str = "ekf", format: str |
     innovations need no sensor of ours): a set whose sensors the data all has first, then the one
     sharing most of them, then the index's order; ZooError naming what would fit otherwise."""
     have = frozenset(have)
-    fits = [s for s in sets(root).values()
-            if s.residues == residues and (s.residues == "autopilot" or needs(s.default, root) <= have)
+    doc = index(root)
+    all_, by_set = _entries(doc), _sets(doc)
+    fits = [s for s in by_set.values()
+            if s.residues == residues and (s.residues == "autopilot" or needs(all_[s.default], root) <= have)
             and (not s.formats or format in s.formats)]
     if fits:
         best = min(enumerate(fits), key=lambda p: (not p[1].parts <= have, -len(p[1].parts & have), p[0]))[1]
-        return entries(root)[best.default]
+        return all_[best.default]
     offered = [f"{s.sensors} ({s.residues} residues{', ' + '/'.join(s.formats) + ' logs' if s.formats else ''})"
-               for s in sets(root).values()]
+               for s in by_set.values()]
     raise ZooError(f"no shipped detector fits {residues} residues of {'+'.join(sorted(have))}"
                    + (f" from a {format} log" if format else "") + f"; shipped: {'; '.join(offered)}. "
                    "Fit one on a simulation of these sensors (quadformer simulate --sensors ...; quadformer fit) "
