@@ -25,6 +25,17 @@ receiver still reports a good 3D fix and a steady accuracy: that is what a spoof
 detector alarm there stays ``spoofing``. Only a receiver that says its fix is lost or worse is
 degraded.
 
+The capture signature. A spoofer's capture of a receiver also moves its own indicators: the
+satellites drop (``sat_drop``: to at most that share of their running median, and by 3 or more)
+and recover, the noise (``noise_rise``) or jamming indicator (``jamming_rise``) rises, the
+accuracy estimates inflate (the eph jump above; the speed accuracy above ``speed_acc_ratio``
+times its running median and ``speed_acc_floor``). ``capture_sign(t)`` gives the latest such sign
+within ``capture_hold_s`` (None otherwise). It is evidence, not a verdict: the online step
+(``resilience.step``) calls a detector alarm raised with such a sign ``spoofing`` (reason
+``capture: ...``) when the fix moves against the IMU at the same time (the raw innovation, which
+the receiver's inflated accuracy cannot normalise away), and ``degraded`` only for a lost fix or
+the autopilot's glitch or failsafe.
+
 A degraded episode runs from its first sign to ``hold_s`` after its last, and is one ``Alert``
 of kind ``degraded`` (attack type ``none``, score NaN, reason the first sign's), given as an
 ``alert_start`` event by the call that sees the sign, and an ``alert_end`` (its ``end_s`` the
@@ -61,9 +72,17 @@ class HealthRule:
     eph_floor_m: float = 1.0     # m, an eph at or below this is never a jump
     hold_s: float = 3.0          # s a degraded episode lasts after its last sign
     spoof_level: int = 2         # the least spoofing state that is the receiver reporting spoofing
+    sat_drop: float = 0.7        # satellites at or below this share of their running median are a drop ...
+    sat_drop_min: int = 3        # ... of at least this many
+    noise_rise: float = 1.15     # a noise indicator above this many times its running median is a rise
+    jamming_rise: float = 20.0   # a jamming indicator this much above its running median is a rise (0-255)
+    speed_acc_ratio: float = 2.5  # a speed accuracy above this many times its running median is a jump ...
+    speed_acc_floor: float = 0.5  # ... and above this (m/s)
+    capture_hold_s: float = 5.0  # s a capture sign stands after its report
 
     def __post_init__(self):
-        for name in ("eph_ratio", "window_s", "eph_floor_m", "hold_s"):
+        for name in ("eph_ratio", "window_s", "eph_floor_m", "hold_s", "sat_drop", "noise_rise", "jamming_rise",
+                     "speed_acc_ratio", "speed_acc_floor", "capture_hold_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"HealthRule.{name} must be a finite number >= 0, got {v!r}")
@@ -89,11 +108,15 @@ class ReceiverHealth:
         self.alerts: list[Alert] = []
         self._eph: deque[tuple[float, float]] = deque()    # (t, eph) of the reports with a fix in the window
         self._report: str | None = None                    # the last report's sign, standing until the next
+        self._kind_report: str | None = None               # fix or accuracy: what that sign is
         self._autopilot: dict[str, str] = {}               # standing autopilot signs: glitch, failsafe
         self._spoof = False
         self._had_fix = False                              # a report with a fix seen (acquisition over)
         self._last = -math.inf                             # s, when a sign was last present
         self._reason: str | None = None                    # the last sign's reason
+        self._kind: str | None = None                      # what the last sign was: fix, accuracy, autopilot
+        self._history: dict[str, deque] = {k: deque() for k in ("satellites", "noise", "jamming", "speed_acc")}
+        self._capture: tuple[float, str] | None = None     # (t, reason) of the last capture sign
 
     # -- inputs ---------------------------------------------------------------------------
     def report(self, t: float, fix_type: float, satellites: float = math.nan, eph: float = math.nan,
@@ -120,11 +143,59 @@ class ReceiverHealth:
                     sign = f"accuracy jump (eph {e:.1f} m, median {median:.1f} m)"
             self._eph.append((t, e))
         self._report = sign
+        self._kind_report = "fix" if sign is not None and sign.startswith("fix") else ("accuracy" if sign else None)
+        if math.isfinite(fix) and fix >= r.min_fix:
+            capture = self._capture_signs(t, {"satellites": satellites, "noise": noise, "jamming": jamming,
+                                              "speed_acc": speed_acc})
+            if sign is not None and sign.startswith("accuracy"):
+                capture = [sign, *capture]
+            if capture:
+                self._capture = (t, "; ".join(capture))
         s = float(spoofing)
         self._spoof = math.isfinite(s) and s >= r.spoof_level
         if sign is not None:
             events += self._sign(t, sign, phase)
         return events
+
+    def _capture_signs(self, t: float, values: dict[str, float]) -> list[str]:
+        """The capture signs of a report with a fix (see the module text), against the running
+        medians of the reports before it within ``window_s``."""
+        r, out = self.rule, []
+        for name, v in values.items():
+            v = float(v)
+            hist = self._history[name]
+            while hist and hist[0][0] < t - r.window_s:
+                hist.popleft()
+            if not math.isfinite(v):
+                continue
+            if hist:
+                m = float(np.median([x for _, x in hist]))
+                if name == "satellites" and v <= r.sat_drop * m and m - v >= r.sat_drop_min:
+                    out.append(f"satellites {v:.0f} (median {m:.0f})")
+                elif name == "noise" and m > 0 and v > r.noise_rise * m:
+                    out.append(f"noise indicator {v:.0f} (median {m:.0f})")
+                elif name == "jamming" and v > m + r.jamming_rise:
+                    out.append(f"jamming indicator {v:.0f} (median {m:.0f})")
+                elif name == "speed_acc" and v > r.speed_acc_floor and v > r.speed_acc_ratio * m:
+                    out.append(f"speed accuracy {v:.1f} m/s (median {m:.1f})")
+            hist.append((t, v))
+        return out
+
+    def capture_sign(self, t: float) -> str | None:
+        """The receiver's latest capture sign within ``capture_hold_s`` before t (see the module
+        text), None when there is none."""
+        if self._capture is None or float(t) > self._capture[0] + self.rule.capture_hold_s:
+            return None
+        return self._capture[1]
+
+    def degraded_by(self, t: float) -> str | None:
+        """What the receiver's degradation at t is: ``fix`` (a report without a fix), ``accuracy``
+        (an accuracy jump), ``autopilot`` (its glitch, failsafe or GPS lost), None when healthy."""
+        if self._report is not None:
+            return self._kind_report
+        if self._autopilot:
+            return "autopilot"
+        return self._kind if float(t) < self._last + self.rule.hold_s else None
 
     def event(self, t: float, kind: str, *, phase: str = "air") -> list[AlertEvent]:
         """One of the autopilot's events at t (``GPS_EVENTS``; others only advance the clock)."""
@@ -175,6 +246,8 @@ class ReceiverHealth:
 
     def _sign(self, t: float, reason: str, phase: str) -> list[AlertEvent]:
         self._last, self._reason = max(self._last, t), reason
+        self._kind = ("fix" if reason.startswith("fix") else "accuracy" if reason.startswith("accuracy")
+                      else "autopilot")
         if self.open is not None:
             return []
         self.open = Alert(self.flight_id, t, t, "none", math.nan, None, kind="degraded", phase=phase, reason=reason)

@@ -31,6 +31,7 @@ BUILTIN: dict[str, tuple[str, bool]] = {
     "cnn": ("quadformer.detectors.neural.detector", True), "lstm": ("quadformer.detectors.neural.detector", True),
     "quadformer": (_QUADFORMER, True), "quadformer-noprior": (_QUADFORMER, False),
     "quadformer-nosup": (_QUADFORMER, False), "quadformer-nodisc": (_QUADFORMER, False),
+    "glr": ("quadformer.detectors.glr", False),
 }
 _REGISTRY: dict[str, type[Detector]] = {}
 _EXTRA: set[str] = {name for name, (_, default) in BUILTIN.items() if not default}

@@ -20,8 +20,9 @@ import pandas as pd
 from quadformer.logs import FORMAT_OF_SOURCE, read_log
 from quadformer.logs.flightlog import FlightLog, LogError
 from quadformer.estimator.filter_config import FilterConfig
+from quadformer.estimator.schema import GROUPS
 from quadformer.logs.replay import (RESIDUE_SOURCES, LogFlight, autopilot_rows, ekf_flights, ekf_rows, imu_too_slow,
-                                    log_sensors, missing_features, no_innovations)
+                                    log_height, log_sensors, missing_features, no_innovations)
 
 MIN_DETECT_S = 1.0   # s, a segment shorter than this is not scored
 
@@ -146,15 +147,6 @@ def shipped_for(log: FlightLog, residues: str = "ekf", threshold: str = "budget"
     return det, (FilterConfig.matching(sim, **over) if sim else FilterConfig(**over))
 
 
-def log_height(log: FlightLog) -> pd.DataFrame | None:
-    """The vehicle's height (columns t, h; m) for its flight phase where its events do not say:
-    the barometer's altitude, else the GPS altitude, else None."""
-    for stream, col in ((log.baro, "alt"), (log.gps, "alt")):
-        if stream is not None and len(stream):
-            return pd.DataFrame({"t": stream["t"].to_numpy(), "h": stream[col].to_numpy()})
-    return None
-
-
 def step_alerts(rows: pd.DataFrame, scores: np.ndarray, detector, typing: str = "shape",
                 gps_rate_hz: float = FilterConfig.gps_rate_hz, events: pd.DataFrame | None = None,
                 receiver: pd.DataFrame | None = None, height: pd.DataFrame | None = None) -> list:
@@ -190,6 +182,8 @@ def step_alerts(rows: pd.DataFrame, scores: np.ndarray, detector, typing: str = 
         types = np.asarray(detector.predict_type(rows), dtype=object)
     above = onset_flags(rows, detector)
     typed = [c for c in TYPING_COLUMNS[1:] if c in rows.columns] if shape is not None else []
+    # the raw GPS innovation: whether the fix moves against the IMU (a receiver's capture)
+    typed += [c for c in GROUPS["res_gps_r"].columns if c in rows.columns and c not in typed]
     t = rows["t"].to_numpy(dtype=float)
     items = list(timeline(("events", events), ("receiver", receiver), ("height", height))) if labelled else []
     fields = [c for c in REPORT_FIELDS if receiver is not None and c in receiver.columns]

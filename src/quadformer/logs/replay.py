@@ -148,6 +148,24 @@ def _base_rows(seg: int, t: np.ndarray, gps: pd.DataFrame, log: FlightLog) -> di
     return cols
 
 
+def log_height(log: FlightLog) -> pd.DataFrame | None:
+    """The vehicle's height (columns t, h; m) for its flight phase where its events do not say:
+    the barometer's altitude, else the GPS altitude, else None."""
+    for stream, col in ((log.baro, "alt"), (log.gps, "alt")):
+        if stream is not None and len(stream):
+            return pd.DataFrame({"t": stream["t"].to_numpy(), "h": stream[col].to_numpy()})
+    return None
+
+
+def in_air(log: FlightLog, t: np.ndarray) -> np.ndarray:
+    """The ``in_air`` column of rows at times t: 1 where the log's flight phase
+    (``detectors.flight_phase.phases`` over the whole log: its events, else its height) is
+    ``air``, 0 on the ground and in the take-off transition."""
+    from quadformer.detectors.flight_phase import phases
+
+    return (phases(np.asarray(t, dtype=float), log.events, log_height(log)) == "air").astype(np.float64)
+
+
 def imu_rate_hz(log: FlightLog) -> float:
     """The IMU's logged rate (Hz, from the median interval); 0 without an IMU."""
     if log.imu is None or len(log.imu) < 3:
@@ -197,6 +215,7 @@ def autopilot_rows(log: FlightLog, seg: int = 0) -> pd.DataFrame:
     inn = inn.iloc[int(np.argmax(sane)):]
     t = inn["t"].to_numpy()
     cols = _base_rows(seg, t, part.gps, part)
+    cols["in_air"] = in_air(log, t)
     r = -np.nan_to_num(inn[["pos_x", "pos_y", "pos_z", "vel_x", "vel_y", "vel_z"]].to_numpy())  # measured - predicted
     var = inn[["var_pos_x", "var_pos_y", "var_pos_z", "var_vel_x", "var_vel_y", "var_vel_z"]].to_numpy()
     names = GROUPS["res_gps_r"].axes
@@ -311,6 +330,7 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
     notes += stream.notes
     t_rows = np.array([r["t"] for r in out])
     base = _base_rows(seg, t_rows, gps, part)
+    base["in_air"] = in_air(log, t_rows)
     idx = np.searchsorted(gt, t_rows)                   # the fixes fused, in the decimated list
     flights = []
     for b, (attack, (_, _, label, d_pos)) in enumerate(zip(attacks, fixes)):

@@ -45,6 +45,11 @@ if TYPE_CHECKING:
 
 GPS_R, GPS_S = GROUPS["res_gps_r"].columns, GROUPS["res_gps_s"].columns   # the admission's inputs
 MAX_PENDING = 100          # alerts awaiting their confirmed type (one per alarm start within confirm_s)
+#: the fix moving against the IMU, in the raw innovation (not normalised by the receiver's own
+#: accuracy, which a capture inflates): a horizontal velocity innovation of this many m/s ...
+CAPTURE_SPEED = 1.0
+#: ... or a horizontal position innovation of this many m
+CAPTURE_JUMP = 3.0
 
 
 @dataclass(frozen=True)
@@ -58,6 +63,23 @@ class StepResult:
     state_before: np.ndarray | None = None  # admission states before and after the decision
     state_after: np.ndarray | None = None
     events: list[AlertEvent] = field(default_factory=list)
+
+
+def moving(cols: Mapping[str, Any]) -> str | None:
+    """How the fix moves against the IMU in a row's raw GPS innovation (horizontal velocity of at
+    least ``CAPTURE_SPEED`` m/s or position of at least ``CAPTURE_JUMP`` m), None when it does
+    not or the row has no raw innovation."""
+    def norm(a: str, b: str) -> float:
+        if a not in cols or b not in cols:
+            return float("nan")
+        return float(np.hypot(np.asarray(cols[a], dtype=float).reshape(-1)[0],
+                              np.asarray(cols[b], dtype=float).reshape(-1)[0]))
+    v, p = norm("res_gps_r_vx", "res_gps_r_vy"), norm("res_gps_r_px", "res_gps_r_py")
+    if v >= CAPTURE_SPEED:
+        return f"the fix moves {v:.1f} m/s against the IMU"
+    if p >= CAPTURE_JUMP:
+        return f"the fix is {p:.1f} m from the IMU's prediction"
+    return None
 
 
 class OnlineStep:
@@ -107,7 +129,7 @@ class OnlineStep:
     def update_columns(self, t, cols: Mapping[str, Any], attacked=None) -> StepResult:
         """``update`` for a residue row already in the flight table's columns ``{column: (n,)}``."""
         if self.stream is not None:
-            st = self.stream.update(cols)
+            st = self.stream.update(self._scored(t, cols))
             score, alarm, types, above = st.score, np.asarray(st.alarm, dtype=bool), st.attack_type, st.above
         else:
             score, alarm, types, above = self._zeros, self._quiet, None, None
@@ -125,7 +147,7 @@ class OnlineStep:
         raised, label = alarm, {}
         if self.phase is not None or self.health is not None:
             t0 = float(np.asarray(t).reshape(-1)[0])
-            raised, label, events = self._label(t0, alarm)
+            raised, label, events = self._label(t0, alarm, cols)
         kinds = types
         if self.typer is not None:
             t0 = float(np.asarray(t).reshape(-1)[0])
@@ -141,17 +163,39 @@ class OnlineStep:
             kinds = np.array([None if a is None else a.attack_type], dtype=object)
         return StepResult(np.asarray(score, dtype=float), alarm, kinds, cols, dec, before, after, events)
 
-    def _label(self, t: float, alarm: np.ndarray) -> tuple[np.ndarray, dict[str, Any], list[AlertEvent]]:
+    def _scored(self, t, cols: Mapping[str, Any]) -> Mapping[str, Any]:
+        """The row the stream scores: the residue columns with the step's time ``t`` and, with a
+        flight phase, ``in_air`` (1 in the air), for the detectors that read them (``glr``)."""
+        extra: dict[str, Any] = {}
+        if "t" not in cols:
+            extra["t"] = np.broadcast_to(np.asarray(t, dtype=float).reshape(-1), (self.n,))
+        if self.phase is not None and "in_air" not in cols:
+            t0 = float(np.asarray(t).reshape(-1)[0])
+            extra["in_air"] = np.array([1.0 if self._phase_at(t0) == "air" else 0.0])
+        return {**cols, **extra} if extra else cols
+
+    def _label(self, t: float, alarm: np.ndarray,
+               cols: Mapping[str, Any]) -> tuple[np.ndarray, dict[str, Any], list[AlertEvent]]:
         """The alarm the tracker raises on (the detector's, or the receiver's spoofing flag), what
-        a new alert is labelled with, and the receiver's episodes the step's time closes."""
+        a new alert is labelled with, and the receiver's episodes the step's time closes.
+
+        A receiver degraded by a lost fix or by the autopilot's glitch or failsafe makes an alarm
+        ``degraded``. A capture sign of the receiver (its satellites, noise, jamming or accuracy
+        jumping: ``ReceiverHealth.capture_sign``) while the fix moves against the IMU (``moving``)
+        makes it ``spoofing``, reason ``capture: ...``; an accuracy jump without that motion
+        stays ``degraded``."""
         label: dict[str, Any] = {"phase": self._phase_at(t)}
         events = []
         if self.health is not None:
             events = self.health.tick(t)
             why = self.health.degraded(t)
+            sign = self.health.capture_sign(t)
+            move = moving(cols) if sign is not None else None
             if self.health.spoof_flag(t):
                 alarm = np.ones(1, dtype=bool)
                 label.update(kind="spoofing", reason=SPOOFED)
+            elif move is not None and self.health.degraded_by(t) not in ("fix", "autopilot"):
+                label.update(kind="spoofing", reason=f"capture: {sign}; {move}")
             elif why is not None:
                 label.update(kind="degraded", reason=why)
         return alarm, label, events

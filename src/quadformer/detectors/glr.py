@@ -1,0 +1,292 @@
+"""A step test on the GPS innovations that normalises itself on each flight (``glr``).
+
+A spoof begins with a step: a bias moves the fix without the velocity, a consistent drift
+switched on at once moves the velocity without the IMU seeing an acceleration, a receiver's
+capture moves both within a second or two. The filter's innovation (the fix minus what the
+IMU predicted) shows the step until the filter has absorbed it; the receiver's and the IMU's
+slow errors change the innovation's mean too, but not in a step. The statistic is the
+generalised likelihood ratio for a step in the innovation's mean at several scales: for each
+window ``M`` of ``windows`` (seconds), the mean raw innovation over the last M seconds minus
+its mean over the ``reference_s`` seconds before them,
+
+    d_M(t) = mean r(t - M, t]  -  mean r(t - M - reference_s, t - M],
+
+for three groups of components: horizontal position, horizontal velocity, and the vertical
+pair (position and velocity). Each component of d_M is divided by its scale sigma, the
+group's squares are averaged, and the score is the largest over windows and groups: about 1
+on a clean flight's typical step, large at a spoof's onset.
+
+The raw innovation, not the whitened one: a receiver under capture inflates its own accuracy
+estimates, and a test whitened by them is normalised away by the very numbers the attacker
+moves. The scales come from the data instead:
+
+- ``fit`` learns prior scales from training flights (their clean steps in the air): a robust
+  standard deviation (1.4826 x the median absolute deviation) of each component of each d_M;
+- each flight then normalises itself. Until it has ``calib_min_s`` seconds in the air, the
+  scales are the prior's times ``adapt`` (the noisiest vehicle the test allows: a large spoof
+  is still seen, a small one waits for the calibration). From then on, the scales
+  are the robust standard deviations of the flight's own d_M over its steps in the air so far,
+  up to its first ``calib_s`` seconds in the air (then frozen), refreshed every ``refresh_s``
+  seconds of data; each is kept within ``adapt`` times the prior either way. The median
+  ignores the few steps of a spoof's onset, and the bound keeps a spoof present from take-off
+  (or a noisy flight) from teaching a scale more than ``adapt`` times the prior; a consistent
+  drift present from take-off leaves the innovations as a clean flight's.
+
+"In the air" is the optional ``in_air`` column of the rows (1 airborne, 0 not: a log's flight
+phase, the live vehicle's); without it every step is. Time is the ``t`` column. The online
+stream (``stream``) computes the same scores step by step (to 1e-9) from a bounded buffer of
+the last ``max(windows) + reference_s`` seconds and the calibration's ``calib_s`` seconds.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Mapping
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from quadformer.detectors.base import Detector, check_residues, flight_slices
+from quadformer.detectors.registry import register
+from quadformer.detectors.streams import DetectorStream, StreamStep
+
+#: the groups of the raw GPS innovation the step test reads
+GROUPS = (("res_gps_r_px", "res_gps_r_py"), ("res_gps_r_vx", "res_gps_r_vy"), ("res_gps_r_pz", "res_gps_r_vz"))
+INPUTS = tuple(c for g in GROUPS for c in g)
+AIR = "in_air"
+MAD_STD = 1.4826          # robust std of a normal variable per median absolute deviation
+TINY = 1e-6               # a scale is never below this (m or m/s)
+EDGE = 1e-6               # s: a step exactly M seconds old is outside the window, whatever the rounding of t
+
+
+def _check_settings(det: "StepGLR") -> None:
+    w = det.windows
+    if not (isinstance(w, (tuple, list)) and w and all(isinstance(v, (int, float)) and v > 0 for v in w)):
+        raise ValueError(f"glr: windows must be positive seconds, got {w!r}")
+    for name in ("reference_s", "calib_s", "refresh_s", "adapt"):
+        v = getattr(det, name)
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise ValueError(f"glr: {name} must be a positive number, got {v!r}")
+    if not (isinstance(det.calib_min_s, (int, float)) and 0 <= det.calib_min_s <= det.calib_s):
+        raise ValueError(f"glr: calib_min_s must be from 0 to calib_s ({det.calib_s!r}), got {det.calib_min_s!r}")
+    if det.adapt < 1:
+        raise ValueError(f"glr: adapt must be at least 1, got {det.adapt!r}")
+
+
+def step_features(t: np.ndarray, x: np.ndarray, windows, reference_s: float) -> np.ndarray:
+    """d_M of one flight, (steps, windows x 6): for each window (in order) the six components
+    (``INPUTS`` order) of the mean over (t - M, t] minus the mean over the reference before it;
+    NaN where the reference holds less than half its length of data."""
+    T = len(t)
+    out = np.full((T, len(windows) * 6), np.nan)
+    if T == 0:
+        return out
+    c = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
+    k = np.arange(T)
+    for j, M in enumerate(windows):
+        lo = np.searchsorted(t, t - M + EDGE, side="left")
+        lo2 = np.searchsorted(t, t - M - reference_s + EDGE, side="left")
+        na, nb = (k + 1 - lo), (lo - lo2)
+        ok = (nb > 0) & (t[0] <= t - M - 0.5 * reference_s + EDGE)
+        a = (c[k + 1] - c[lo]) / na[:, None]
+        b = (c[lo] - c[lo2]) / np.where(nb > 0, nb, 1)[:, None]
+        out[:, 6 * j:6 * j + 6] = np.where(ok[:, None], a - b, np.nan)
+    return out
+
+
+def robust_scale(d: np.ndarray, q: float = 0.5) -> np.ndarray:
+    """Per column, of the finite rows: the q-quantile of the absolute deviation about the median,
+    as a normal variable's std (q 0.5: 1.4826 x the median absolute deviation)."""
+    out = np.full(d.shape[1], np.nan)
+    k = float(stats.norm.ppf(0.5 + q / 2))
+    for j in range(d.shape[1]):
+        v = d[:, j][np.isfinite(d[:, j])]
+        if len(v):
+            out[j] = float(np.quantile(np.abs(v - np.median(v)), q)) / k
+    return out
+
+
+class _Calibration:
+    """One flight's self-normalisation (see the module text), fed step by step: ``scales(t)``
+    before the step's score, ``add(t, d, in_air)`` after it."""
+
+    def __init__(self, det: "StepGLR"):
+        self.det = det
+        self.prior = np.maximum(np.asarray(det.scale_, dtype=float), TINY)
+        self.scale = self.prior * det.adapt
+        self.rows: list[np.ndarray] = []
+        self.air_s = 0.0               # s of steps in the air taken so far
+        self.last_t = math.nan         # the previous step's time
+        self.last_air = False
+        self.refreshed = -math.inf     # when the scales were last computed
+        self.frozen = False
+
+    def scales(self, t: float) -> np.ndarray:
+        det = self.det
+        if (not self.frozen and t >= self.refreshed + det.refresh_s - EDGE and self.air_s >= det.calib_min_s - EDGE
+                and self.rows):
+            own = robust_scale(np.asarray(self.rows), det.quantile)
+            own = np.where(np.isfinite(own), own, self.prior)
+            self.scale = np.clip(own, self.prior / det.adapt, self.prior * det.adapt)
+            self.refreshed = t
+            if self.air_s >= det.calib_s - EDGE:
+                self.frozen = True
+                self.rows = []
+        return self.scale
+
+    def add(self, t: float, d: np.ndarray, in_air: bool) -> None:
+        if in_air and self.last_air and math.isfinite(self.last_t):
+            self.air_s += max(0.0, t - self.last_t)
+        self.last_t, self.last_air = t, in_air
+        if in_air and not self.frozen and self.air_s <= self.det.calib_s + EDGE:
+            self.rows.append(d)
+
+
+def _score(d: np.ndarray, scale: np.ndarray, n_windows: int) -> float:
+    z = np.nan_to_num(d / scale) ** 2
+    return float(z.reshape(n_windows * 3, 2).mean(axis=1).max())
+
+
+@register("glr")
+class StepGLR(Detector):
+    """The self-normalising step test on the raw GPS innovations (see the module text)."""
+
+    param_grid = {"reference_s": [2.0, 3.0, 5.0]}
+
+    def __init__(self, windows: tuple[float, ...] = (0.2, 0.5, 1.0, 2.0, 4.0), reference_s: float = 3.0,
+                 calib_s: float = 60.0, calib_min_s: float = 20.0, refresh_s: float = 1.0,
+                 adapt: float = 4.0, quantile: float = 0.5) -> None:
+        self.windows = tuple(windows)
+        self.reference_s = reference_s
+        self.calib_s = calib_s
+        self.calib_min_s = calib_min_s
+        self.refresh_s = refresh_s
+        self.adapt = adapt
+        self.quantile = quantile
+
+    # -- fitting ------------------------------------------------------------------------
+    def _features(self, X: pd.DataFrame) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray]:
+        values = check_residues(X, list(INPUTS))
+        if "t" not in X.columns:
+            raise ValueError("glr: the rows need a time column t (seconds)")
+        t = X["t"].to_numpy(dtype=float)
+        air = self._air(X)
+        d = np.full((len(X), len(self.windows) * 6), np.nan)
+        slices = flight_slices(X)
+        for _, idx in slices:
+            if np.any(np.diff(t[idx]) < 0):
+                raise ValueError("glr: each flight's rows must be in time order")
+            d[idx] = step_features(t[idx], values[idx], self.windows, self.reference_s)
+        return slices, d, air
+
+    @staticmethod
+    def _air(X: pd.DataFrame) -> np.ndarray:
+        if AIR not in X.columns:
+            return np.ones(len(X), dtype=bool)
+        a = X[AIR].to_numpy(dtype=float)
+        return np.isfinite(a) & (a > 0.5)
+
+    def fit(self, X: pd.DataFrame, y: np.ndarray | None = None) -> "StepGLR":
+        _check_settings(self)
+        _, d, air = self._features(X)
+        keep = air.copy()
+        if y is not None:
+            keep &= np.asarray(y) == 0
+        elif "label" in X.columns:
+            keep &= X["label"].to_numpy() == 0
+        scale = robust_scale(d[keep], self.quantile)
+        if not np.isfinite(scale).all():
+            raise ValueError("glr: too few clean steps in the air to fit its scales "
+                             f"({int(keep.sum())} steps; a flight needs more than {self.reference_s + max(self.windows):g} s)")
+        self.scale_ = np.maximum(scale, TINY)
+        dt = np.diff(X["t"].to_numpy(dtype=float))
+        dt = dt[dt > 0]
+        self.rate_hz_ = float(1.0 / np.median(dt)) if len(dt) else 10.0
+        self.features_ = list(INPUTS)
+        self.fitted_ = True
+        return self
+
+    # -- scoring ------------------------------------------------------------------------
+    def decision_function(self, X: pd.DataFrame) -> np.ndarray:
+        self.check_fitted()
+        slices, d, air = self._features(X)
+        t = X["t"].to_numpy(dtype=float)
+        out = np.zeros(len(X))
+        nw = len(self.windows)
+        for _, idx in slices:
+            cal = _Calibration(self)
+            for k in idx:
+                out[k] = _score(d[k], cal.scales(t[k]), nw)
+                cal.add(t[k], d[k], bool(air[k]))
+        return out
+
+    def stream(self, n_flights: int = 1) -> "GLRStream":
+        return GLRStream(self, n_flights)
+
+    def load_state(self, state: dict) -> None:
+        super().load_state(state)
+        self.scale_ = np.asarray(self.scale_, dtype=float)
+
+
+class GLRStream(DetectorStream):
+    """The step test online: per flight, the last ``max(windows) + reference_s`` seconds of raw
+    innovations and the calibration. ``update`` takes the six raw innovation columns (a mapping
+    or an array in ``features_`` order) and, in a mapping, the time ``t`` (s) and optionally
+    ``in_air``; without ``t`` the steps are taken to come at the rate of the training data
+    (``rate_hz_``), the first at 0."""
+
+    def __init__(self, detector: StepGLR, n_flights: int):
+        super().__init__(detector, n_flights)
+        self.span = max(detector.windows) + detector.reference_s
+        self.buf: list[deque] = [deque() for _ in range(self.n)]
+        self.first_t = [math.nan] * self.n
+        self.cal = [_Calibration(detector) for _ in range(self.n)]
+        self.steps = 0
+
+    def update(self, residues) -> StreamStep:
+        x = self._matrix(residues)
+        if isinstance(residues, Mapping) and "t" in residues:
+            t = np.broadcast_to(np.asarray(residues["t"], dtype=float).reshape(-1), (self.n,))
+        else:
+            t = np.full(self.n, self.steps / float(getattr(self.detector, "rate_hz_", 10.0)))
+        self.steps += 1
+        air = np.ones(self.n, dtype=bool)
+        if isinstance(residues, Mapping) and AIR in residues:
+            a = np.broadcast_to(np.asarray(residues[AIR], dtype=float).reshape(-1), (self.n,))
+            air = np.isfinite(a) & (a > 0.5)
+        det = self.detector
+        score = np.zeros(self.n)
+        for i in range(self.n):
+            ti = float(t[i])
+            if not math.isfinite(ti):
+                raise ValueError(f"glr: a non-finite time t ({ti!r})")
+            buf = self.buf[i]
+            if buf and ti < buf[-1][0]:
+                raise ValueError(f"glr: time went back (t {ti!r} after {buf[-1][0]!r})")
+            if math.isnan(self.first_t[i]):
+                self.first_t[i] = ti
+            buf.append((ti, x[i]))
+            while buf and buf[0][0] <= ti - self.span - 1e-9:
+                buf.popleft()
+            d = self._features(i, ti)
+            score[i] = _score(d, self.cal[i].scales(ti), len(det.windows))
+            self.cal[i].add(ti, d, bool(air[i]))
+        thr = getattr(det, "threshold_", None)
+        alarm = score > thr if thr is not None else np.zeros(self.n, dtype=bool)
+        return StreamStep(score, alarm, None, None)
+
+    def _features(self, i: int, ti: float) -> np.ndarray:
+        det = self.detector
+        buf = self.buf[i]
+        ts = np.array([b[0] for b in buf])
+        xs = np.array([b[1] for b in buf])
+        k = len(ts) - 1
+        out = np.full(len(det.windows) * 6, np.nan)
+        for j, M in enumerate(det.windows):
+            lo = int(np.searchsorted(ts, ti - M + EDGE, side="left"))
+            lo2 = int(np.searchsorted(ts, ti - M - det.reference_s + EDGE, side="left"))
+            if lo > lo2 and self.first_t[i] <= ti - M - 0.5 * det.reference_s + EDGE:
+                out[6 * j:6 * j + 6] = xs[lo:k + 1].mean(axis=0) - xs[lo2:lo].mean(axis=0)
+        return out
