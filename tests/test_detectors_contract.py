@@ -109,7 +109,8 @@ def test_stream_of_several_flights_equals_offline(method, data):
     det.calibrate(float(np.percentile(offline, 70)))
     ids = test.flight_id.unique()
     n_steps = len(test) // len(ids)
-    cols = {c: test[c].to_numpy().reshape(len(ids), n_steps) for c in test.columns if c.startswith("res_")}
+    # the row as a driver gives it: residues and the fix as received (extra columns are ignored)
+    cols = {c: test[c].to_numpy().reshape(len(ids), n_steps) for c in test.columns if c.startswith(("res_", "gps_"))}
     stream = det.stream(len(ids))
     steps = [stream.update({c: v[:, j] for c, v in cols.items()}) for j in range(n_steps)]
     online = np.stack([s.score for s in steps], 1).reshape(-1)

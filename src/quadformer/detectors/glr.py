@@ -11,8 +11,11 @@ its mean over the ``reference_s`` seconds before them,
 
     d_M(t) = mean r(t - M, t]  -  mean r(t - M - reference_s, t - M],
 
-for three groups of components: horizontal position, horizontal velocity, and the vertical
-pair (position and velocity). Each component of d_M is divided by its scale sigma, the
+for four groups of components: horizontal position, horizontal velocity, the vertical pair
+(position and velocity) of the innovation, and the receiver's own consistency: its horizontal
+position change since the previous fix minus its mean velocity over the interval, which a
+position step without the matching velocity (a bias) breaks at once while a real receiver keeps
+it within centimetres. Each component of d_M is divided by its scale sigma, the
 group's squares are averaged, and the score is the largest over windows and groups: about 1
 on a clean flight's typical step, large at a spoof's onset.
 
@@ -54,7 +57,10 @@ from quadformer.detectors.streams import DetectorStream, StreamStep
 
 #: the groups of the raw GPS innovation the step test reads
 GROUPS = (("res_gps_r_px", "res_gps_r_py"), ("res_gps_r_vx", "res_gps_r_vy"), ("res_gps_r_pz", "res_gps_r_vz"))
-INPUTS = tuple(c for g in GROUPS for c in g)
+#: the fix as received, for the receiver's consistency (position change against velocity)
+FIX = ("gps_pos_x", "gps_pos_y", "gps_vel_x", "gps_vel_y")
+INPUTS = tuple(c for g in GROUPS for c in g) + FIX
+WIDTH = 8                 # components per window: the six innovations and the consistency pair
 AIR = "in_air"
 MAD_STD = 1.4826          # robust std of a normal variable per median absolute deviation
 TINY = 1e-6               # a scale is never below this (m or m/s)
@@ -75,14 +81,26 @@ def _check_settings(det: "StepGLR") -> None:
         raise ValueError(f"glr: adapt must be at least 1, got {det.adapt!r}")
 
 
+def consistency(t: np.ndarray, fix: np.ndarray) -> np.ndarray:
+    """The receiver's horizontal consistency at each fix of one flight (steps, 2): position change
+    since the previous fix minus the mean of the two velocities times the interval (0 at the first)."""
+    out = np.zeros((len(t), 2))
+    if len(t) > 1:
+        dt = np.diff(t)[:, None]
+        out[1:] = np.diff(fix[:, :2], axis=0) - 0.5 * (fix[1:, 2:] + fix[:-1, 2:]) * dt
+    return out
+
+
 def step_features(t: np.ndarray, x: np.ndarray, windows, reference_s: float) -> np.ndarray:
-    """d_M of one flight, (steps, windows x 6): for each window (in order) the six components
-    (``INPUTS`` order) of the mean over (t - M, t] minus the mean over the reference before it;
-    NaN where the reference holds less than half its length of data."""
+    """d_M of one flight, (steps, windows x WIDTH): for each window (in order) the six raw
+    innovations and the two consistency components (``x``: the ``INPUTS`` columns; the consistency
+    computed here) of the mean over (t - M, t] minus the mean over the reference before it; NaN
+    where the reference holds less than half its length of data."""
     T = len(t)
-    out = np.full((T, len(windows) * 6), np.nan)
+    out = np.full((T, len(windows) * WIDTH), np.nan)
     if T == 0:
         return out
+    x = np.hstack([x[:, :6], consistency(t, x[:, 6:])])
     c = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
     k = np.arange(T)
     for j, M in enumerate(windows):
@@ -92,7 +110,7 @@ def step_features(t: np.ndarray, x: np.ndarray, windows, reference_s: float) -> 
         ok = (nb > 0) & (t[0] <= t - M - 0.5 * reference_s + EDGE)
         a = (c[k + 1] - c[lo]) / na[:, None]
         b = (c[lo] - c[lo2]) / np.where(nb > 0, nb, 1)[:, None]
-        out[:, 6 * j:6 * j + 6] = np.where(ok[:, None], a - b, np.nan)
+        out[:, WIDTH * j:WIDTH * (j + 1)] = np.where(ok[:, None], a - b, np.nan)
     return out
 
 
@@ -116,7 +134,7 @@ class _Calibration:
         self.det = det
         self.prior = np.maximum(np.asarray(det.scale_, dtype=float), TINY)
         self.scale = self.prior * det.adapt
-        self.rows: list[np.ndarray] = []
+        self.rows: deque[tuple[float, np.ndarray]] = deque()   # (t, d) of steps in the air
         self.air_s = 0.0               # s of steps in the air taken so far
         self.last_t = math.nan         # the previous step's time
         self.last_air = False
@@ -125,28 +143,36 @@ class _Calibration:
 
     def scales(self, t: float) -> np.ndarray:
         det = self.det
-        if (not self.frozen and t >= self.refreshed + det.refresh_s - EDGE and self.air_s >= det.calib_min_s - EDGE
-                and self.rows):
-            own = robust_scale(np.asarray(self.rows), det.quantile)
+        if self.frozen or t < self.refreshed + det.refresh_s - EDGE or self.air_s < det.calib_min_s - EDGE:
+            return self.scale
+        rows = self.rows
+        if det.track_s is not None:          # a trailing window, the last guard_s left out
+            while rows and rows[0][0] < t - det.track_s - det.guard_s - EDGE:
+                rows.popleft()
+            use = [d for ti, d in rows if ti <= t - det.guard_s + EDGE]
+        else:
+            use = [d for _, d in rows]
+        if len(use) >= 2:
+            own = robust_scale(np.asarray(use), det.quantile)
             own = np.where(np.isfinite(own), own, self.prior)
             self.scale = np.clip(own, self.prior / det.adapt, self.prior * det.adapt)
             self.refreshed = t
-            if self.air_s >= det.calib_s - EDGE:
+            if det.track_s is None and self.air_s >= det.calib_s - EDGE:
                 self.frozen = True
-                self.rows = []
+                self.rows = deque()
         return self.scale
 
     def add(self, t: float, d: np.ndarray, in_air: bool) -> None:
         if in_air and self.last_air and math.isfinite(self.last_t):
             self.air_s += max(0.0, t - self.last_t)
         self.last_t, self.last_air = t, in_air
-        if in_air and not self.frozen and self.air_s <= self.det.calib_s + EDGE:
-            self.rows.append(d)
+        if in_air and not self.frozen and (self.det.track_s is not None or self.air_s <= self.det.calib_s + EDGE):
+            self.rows.append((t, d))
 
 
 def _score(d: np.ndarray, scale: np.ndarray, n_windows: int) -> float:
     z = np.nan_to_num(d / scale) ** 2
-    return float(z.reshape(n_windows * 3, 2).mean(axis=1).max())
+    return float(z.reshape(n_windows * WIDTH // 2, 2).mean(axis=1).max())
 
 
 @register("glr")
@@ -157,7 +183,8 @@ class StepGLR(Detector):
 
     def __init__(self, windows: tuple[float, ...] = (0.2, 0.5, 1.0, 2.0, 4.0), reference_s: float = 3.0,
                  calib_s: float = 60.0, calib_min_s: float = 20.0, refresh_s: float = 1.0,
-                 adapt: float = 4.0, quantile: float = 0.5) -> None:
+                 adapt: float = 10.0, quantile: float = 0.9, track_s: float | None = None,
+                 guard_s: float = 10.0) -> None:
         self.windows = tuple(windows)
         self.reference_s = reference_s
         self.calib_s = calib_s
@@ -165,6 +192,8 @@ class StepGLR(Detector):
         self.refresh_s = refresh_s
         self.adapt = adapt
         self.quantile = quantile
+        self.track_s = track_s
+        self.guard_s = guard_s
 
     # -- fitting ------------------------------------------------------------------------
     def _features(self, X: pd.DataFrame) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray]:
@@ -173,7 +202,7 @@ class StepGLR(Detector):
             raise ValueError("glr: the rows need a time column t (seconds)")
         t = X["t"].to_numpy(dtype=float)
         air = self._air(X)
-        d = np.full((len(X), len(self.windows) * 6), np.nan)
+        d = np.full((len(X), len(self.windows) * WIDTH), np.nan)
         slices = flight_slices(X)
         for _, idx in slices:
             if np.any(np.diff(t[idx]) < 0):
@@ -244,6 +273,7 @@ class GLRStream(DetectorStream):
         self.first_t = [math.nan] * self.n
         self.cal = [_Calibration(detector) for _ in range(self.n)]
         self.steps = 0
+        self.prev: list[tuple[float, np.ndarray] | None] = [None] * self.n
 
     def update(self, residues) -> StreamStep:
         x = self._matrix(residues)
@@ -267,7 +297,12 @@ class GLRStream(DetectorStream):
                 raise ValueError(f"glr: time went back (t {ti!r} after {buf[-1][0]!r})")
             if math.isnan(self.first_t[i]):
                 self.first_t[i] = ti
-            buf.append((ti, x[i]))
+            e = np.zeros(2)
+            if self.prev[i] is not None:
+                tp, fp = self.prev[i]
+                e = (x[i, 6:8] - fp[:2]) - 0.5 * (x[i, 8:10] + fp[2:]) * (ti - tp)
+            self.prev[i] = (ti, x[i, 6:10].copy())
+            buf.append((ti, np.concatenate([x[i, :6], e])))
             while buf and buf[0][0] <= ti - self.span - 1e-9:
                 buf.popleft()
             d = self._features(i, ti)
@@ -283,10 +318,10 @@ class GLRStream(DetectorStream):
         ts = np.array([b[0] for b in buf])
         xs = np.array([b[1] for b in buf])
         k = len(ts) - 1
-        out = np.full(len(det.windows) * 6, np.nan)
+        out = np.full(len(det.windows) * WIDTH, np.nan)
         for j, M in enumerate(det.windows):
             lo = int(np.searchsorted(ts, ti - M + EDGE, side="left"))
             lo2 = int(np.searchsorted(ts, ti - M - det.reference_s + EDGE, side="left"))
             if lo > lo2 and self.first_t[i] <= ti - M - 0.5 * det.reference_s + EDGE:
-                out[6 * j:6 * j + 6] = xs[lo:k + 1].mean(axis=0) - xs[lo2:lo].mean(axis=0)
+                out[WIDTH * j:WIDTH * (j + 1)] = xs[lo:k + 1].mean(axis=0) - xs[lo2:lo].mean(axis=0)
         return out

@@ -125,3 +125,81 @@ def estimate_noise(logs: list[FlightLog]) -> NoiseEstimate:
            "gyro_density": gyro_w / density, "baro_noise": baro_w, "baro_gm": baro_s, "mag_noise": mag_w}
     out = {k: max(FLOORS[k], v) if np.isfinite(v) else FLOORS[k] for k, v in raw.items()}
     return NoiseEstimate(**{k: float(v) for k, v in out.items()}, logs=len(logs), gps_fixes=fixes)
+
+
+# --------------------------------------------------------------------------- detectability
+#: the chance a spoof at the floor is detected (the floor's definition)
+FLOOR_PROBABILITY = 0.9
+
+
+@dataclass(frozen=True)
+class DetectionFloor:
+    """The smallest horizontal GPS offset and consistent drift a test on one GPS interval can
+    tell from a log's own noise at a false-alarm budget (see ``detection_floor``)."""
+    offset_m: float          # m: a position step of this size is seen with FLOOR_PROBABILITY
+    drift_ms: float          # m/s: a velocity step (a drift switched on at once) likewise
+    sigma_pos_m: float       # m: robust std of the GPS position change minus the GPS velocity's, per axis
+    sigma_vel_ms: float      # m/s: robust std of the GPS velocity change minus the IMU's, per axis
+    gps_rate_hz: float
+    intervals: int           # GPS intervals in the air the estimate rests on
+    per_hour: float          # the false-alarm budget (per in-air hour)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _step_floor(sigma: float, per_hour: float, rate_hz: float, prob: float = FLOOR_PROBABILITY) -> float:
+    """The horizontal step (2 axes, direction unknown) that a chi-square test of one interval's
+    2-d residual of per-axis std ``sigma`` detects with probability ``prob`` at ``per_hour`` false
+    alarms per hour of tests at ``rate_hz``."""
+    from scipy import optimize, stats
+
+    alpha = per_hour / (3600.0 * rate_hz)
+    gate = float(stats.chi2.isf(alpha, 2))
+    f = lambda s: float(stats.ncx2.sf(gate, 2, (s / sigma) ** 2)) - prob   # noqa: E731
+    return float(optimize.brentq(f, 1e-9 * sigma, 100.0 * sigma))
+
+
+def detection_floor(log: FlightLog, in_air: np.ndarray | None = None, per_hour: float = 1.0) -> DetectionFloor | None:
+    """The physical floor of ``log``: the smallest offset and drift detectable at ``per_hour`` false
+    alarms per in-air hour given the log's own GPS and IMU noise, with FLOOR_PROBABILITY.
+
+    Over each GPS interval in the air (``in_air``: a flag per GPS fix; default every fix), the
+    receiver's position change minus its mean velocity times the interval (a position step
+    without the velocity: an offset), and its velocity change minus the IMU's specific force
+    rotated to the world by the autopilot's attitude and integrated over the interval, gravity
+    removed (a velocity step the IMU did not feel: a drift switched on at once). Their robust
+    per-axis std (1.4826 MAD) and a chi-square test of one interval's horizontal pair, Gaussian
+    with that std, at the budget's per-interval false-alarm chance, give the floors. Heavier
+    tails than a Gaussian's raise the true floor; a test over several intervals can go below it
+    for a drift the filter absorbs slowly. None without GPS, IMU and the autopilot's attitude."""
+    from quadformer.geometry.frames import quat_rotate
+
+    g, imu, att = log.gps, log.imu, log.attitude
+    if g is None or imu is None or att is None or len(g) < 10 or len(imu) < 10 or len(att) < 2:
+        return None
+    t = g["t"].to_numpy(dtype=float)
+    p = g[["x", "y"]].to_numpy(dtype=float)
+    v = g[["vx", "vy", "vz"]].to_numpy(dtype=float)
+    air = np.ones(len(t), bool) if in_air is None else np.asarray(in_air, bool)
+    ti = imu["t"].to_numpy(dtype=float)
+    ta = att["t"].to_numpy(dtype=float)
+    q = att[["qx", "qy", "qz", "qw"]].to_numpy(dtype=float)
+    j = np.clip(np.searchsorted(ta, ti), 0, len(ta) - 1)
+    aw = quat_rotate(q[j], imu[["ax", "ay", "az"]].to_numpy(dtype=float)) + np.array([0.0, 0.0, -9.80665])
+    cum = np.concatenate([[np.zeros(3)], np.cumsum(0.5 * (aw[1:] + aw[:-1]) * np.diff(ti)[:, None], axis=0)])
+    at_fix = np.stack([np.interp(t, ti, cum[:, k]) for k in range(3)], axis=1)
+    dt = np.diff(t)
+    step = float(np.median(dt)) if len(dt) else 0.0
+    ok = (air[1:] & air[:-1] & (dt > 0) & (dt <= 1.5 * step) & (t[:-1] >= ti[0]) & (t[1:] <= ti[-1])
+          & np.isfinite(p).all(axis=1)[1:] & np.isfinite(p).all(axis=1)[:-1]
+          & np.isfinite(v[:, :2]).all(axis=1)[1:] & np.isfinite(v[:, :2]).all(axis=1)[:-1])
+    if ok.sum() < 30:
+        return None
+    e_p = (np.diff(p, axis=0) - 0.5 * (v[1:, :2] + v[:-1, :2]) * dt[:, None])[ok]
+    e_v = (np.diff(v[:, :2], axis=0) - np.diff(at_fix[:, :2], axis=0))[ok]
+    mad = lambda e: float(1.4826 * np.median(np.abs(e - np.median(e, axis=0))))   # noqa: E731
+    sp, sv = mad(e_p), mad(e_v)
+    rate = 1.0 / step
+    return DetectionFloor(_step_floor(sp, per_hour, rate), _step_floor(sv, per_hour, rate), sp, sv, rate,
+                          int(ok.sum()), per_hour)

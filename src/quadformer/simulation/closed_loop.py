@@ -324,7 +324,8 @@ def _simulate_loop(groups, progress, record_nees, record_sensors, admission, str
 
 def _admit(ekf, proposed, inn, res, pos_g, vel_g, nm, attacked, step, t, residues, rec, j):
     """One GPS step under admission control: the online step scores and decides per flight; apply."""
-    out = step.update(t, res, attacked)
+    fix = {"gps_pos": np.asarray(pos_g, dtype=float), "gps_vel": np.asarray(vel_g, dtype=float)}
+    out = step.update(t, {**res, **fix}, attacked)       # the fix as received: detectors that read it (glr)
     score, alarm, dec, admission = out.score, out.alarm, out.decision, step.admission
     scaled = dec.fuse & (dec.std_scale != 1.0)
     if bool(dec.fuse.all()) and not bool(scaled.any()):
