@@ -601,6 +601,24 @@ def test_dataflash_gates_and_sources_from_parm(tmp_path):
     assert _has(log.notes, "EK3_VEL_I_GATE 500 (default) -> 5 sigma")
 
 
+def test_ardupilot_ratio_meaning_by_estimator_and_parameters():
+    """What the test ratios sum and their gates, by family and parameters (ArduPilot's source)."""
+    from quadformer.logs.ardupilot_ratios import ratio_model
+
+    m = ratio_model("NKF", {"EK2_GPS_TYPE": 1.0, "EK2_ALT_SOURCE": 2.0, "EK2_VEL_I_GATE": 300.0})
+    assert (m.gates, m.vel_axes, m.pos_variance, m.hgt_gps) == ((3.0, 5.0, 5.0), 2, True, True)
+    m = ratio_model("XKF", {"EK3_GPS_TYPE": 2.0}, receiver_vz=True)            # before 4.1: no GPS velocity
+    assert (m.vel_axes, m.pos_variance, m.hgt_gps) == (0, True, False)
+    m = ratio_model("XKF", {}, receiver_vz=False)                               # a receiver without vertical velocity
+    assert m.vel_axes == 2 and any("GPA.VV 0" in n for n in m.notes)
+    m = ratio_model("EKF", {"EKF_GPS_TYPE": 0.0}, firmware="ArduPlane V3.2.1")    # the first EKF's plane defaults
+    assert (m.gates, m.vel_axes, m.pos_variance, m.hgt_gps) == ((6.0, 30.0, 20.0), 3, False, False)
+    m = ratio_model("EKF", {"EKF_VEL_GATE": 0.0}, firmware="ArduCopter V3.2")
+    assert m.gates[0] == 5.0 and any("EKF_VEL_GATE 0 is not a gate" in n for n in m.notes)
+    with pytest.raises(ValueError, match="unknown ArduPilot estimator family 'QKF'"):
+        ratio_model("QKF", {})
+
+
 def test_dataflash_estimator_messages_of_an_unknown_layout_are_noted_not_fatal(tmp_path):
     """An XKF4 without SH: no ratios and no variances, noted; the autopilot residues then lack the
     whitened groups and a detector reading the NIS is refused with the groups named. An XKF3

@@ -108,8 +108,10 @@ class DataflashEstimator(DataflashMessages):
     def _variances(self, values: dict, name4: str) -> None:
         """The innovation variances ArduPilot does not log, recovered from the test ratios
         (``ardupilot_ratios.recover_variances``), into ``values``."""
-        gpa = self.instance("GPA", "gps") if self.rows["GPA"] else []
-        receiver_vz = not (gpa and "VV" in gpa[0] and (col(gpa, "VV") == 0).any())
+        gpa = self.rows["GPA"]
+        first = min((r.get("I", 0) for r in gpa), default=0)          # the receiver the gps stream keeps
+        vv = col([r for r in gpa if r.get("I", 0) == first], "VV")
+        receiver_vz = not (vv == 0).any()
         model = ratio_model(self.ekf_family, self.params(), self.firmware(), receiver_vz)
         innov = np.column_stack([values[k] for k in ("pos_x", "pos_y", "pos_z", "vel_x", "vel_y", "vel_z")])
         var, empty = recover_variances(innov, values, model)
