@@ -3,6 +3,7 @@ a report per log, datasets from logs with injected spoofs, bad input."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -19,6 +20,7 @@ from quadformer.dataset import load_dataset, write_dataset
 from quadformer.detectors import load
 from quadformer.estimator.schema import ATTACK_TYPES
 from quadformer.logs import read_log
+from quadformer.logs.dataflash_writer import write_dataflash
 from quadformer.logs.replay import autopilot_rows
 
 runner = CliRunner()
@@ -54,9 +56,14 @@ def test_autopilot_residues_are_the_logged_innovations_flipped_and_whitened():
     # the samples before the autopilot fused any fix (innovations against an unset fix) are left out
     assert rows.t.iloc[0] >= log.gps.t.iloc[0] and np.abs(rows.res_gps_r_px).max() < 1.0
     assert np.isfinite(rows.filter(like="res_").to_numpy()).all()
-    # ArduPilot's XKF3 has no variances: raw innovations only
-    cols = autopilot_rows(read_log(COPTER)).columns
-    assert "res_gps_r_px" in cols and "res_gps_nis" not in cols and "res_gps_w_px" not in cols
+    # ArduPilot logs no variances: whitened by those recovered from XKF4's test ratios
+    copter = read_log(COPTER)
+    rows = autopilot_rows(copter)
+    inn = copter.innovations.set_index("t").loc[rows.t]
+    fused = inn.var_vel_x.to_numpy() > 0
+    np.testing.assert_allclose(rows.res_gps_w_vx[fused], -inn.vel_x[fused] / np.sqrt(inn.var_vel_x[fused]))
+    np.testing.assert_allclose(rows.res_gps_nis, (rows.filter(regex="res_gps_w_") ** 2).sum(axis=1))
+    assert np.isfinite(rows.filter(like="res_").to_numpy()).all()
 
 
 def test_detect_with_autopilot_residues_writes_scores_alerts_and_a_report(models, tmp_path):
@@ -86,9 +93,18 @@ def test_detect_refuses_a_detector_whose_residues_the_source_cannot_provide(mode
     assert res.output.count(str(EVENTS)) == 1                       # the path once
     assert "simulate --sensors" not in res.output                   # one remedy: the model's own sensors are not it
     assert not (tmp_path / "o" / EVENTS.name).exists()
-    res = runner.invoke(app, ["detect", str(COPTER), "--model", str(models["chi2"]), "--residues", "autopilot",
+    # a DataFlash log whose test ratios are all 0 (none known when written) holds no variance: no NIS
+    log = read_log(COPTER)
+    blank = log.innovations.copy()
+    blank.loc[:, blank.columns.str.startswith(("var_", "ratio_"))] = np.nan
+    path = write_dataflash(dataclasses.replace(log, innovations=blank), tmp_path / "no_ratios.bin")
+    res = runner.invoke(app, ["detect", str(path), "--model", str(models["chi2"]), "--residues", "autopilot",
                               "--out", str(tmp_path / "o")])
     assert res.exit_code == 2 and "reads res_gps_nis" in res.output
+    assert any("hold no variance" in n for n in read_log(path).notes)
+    res = runner.invoke(app, ["detect", str(COPTER), "--model", str(models["chi2"]), "--residues", "autopilot",
+                              "--out", str(tmp_path / "o"), "--quiet"])
+    assert res.exit_code == 0, res.output
 
 
 def test_detect_over_a_directory_keeps_going_past_a_bad_log(models, tmp_path):

@@ -8,6 +8,7 @@ only a safety net. Silence is made by moving the monitor's injected clock, never
 from __future__ import annotations
 
 import contextlib
+import math
 import csv
 import json
 import re
@@ -330,3 +331,81 @@ def test_g_a_fix_lost_in_the_air_is_a_degraded_alert_before_any_fix_returns(quie
     assert {f.admission for f in fixes} == {"fusing"}
     assert [f.phase for f in fixes if f.t > 7.0] == ["air"] * sum(f.t > 7.0 for f in fixes)
     assert any(line.endswith("GPS DEGRADED: fix lost (fix type 0), in the air, segment 0, fusing") for line in lines)
+
+
+# -- 8. the autopilot's own test ratios: decoded, recorded beside the scores, asked for -------------------------
+def _wire(msg):
+    """A message as a link carries it: packed and parsed by pymavlink (float32 fields)."""
+    mav = M.mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    return mav.decode(bytearray(msg.pack(mav)))
+
+
+def test_h_estimator_status_messages_decode_to_the_square_roots_of_the_test_ratios():
+    """ArduPilot's EKF_STATUS_REPORT (its *_variance fields: the square roots of the test ratios
+    XKF4 logs, untimed) and PX4's ESTIMATOR_STATUS (*_ratio, stamped) decode into
+    ``EstimatorRatios``; a ratio computed by ArduPilot's definition (``logs.ardupilot_ratios``) comes
+    back as the square of what the message carries. Neither is a sensor sample."""
+    from quadformer.logs.ardupilot_ratios import innovation_test_ratios
+
+    innov = np.array([[0.6, 0.8, 0.5, 0.3, 0.4, 0.2]])             # position x, y, z, velocity x, y, z
+    var = np.array([[0.5, 0.7, 1.2, 0.1, 0.12, 0.2]])
+    ratio = innovation_test_ratios(innov, var, (5.0, 5.0, 5.0))
+    ekf = _wire(M.encode_ekf_status_report(*(float(np.sqrt(ratio[f"ratio_{g}"][0])) for g in ("vel", "pos", "hgt")),
+                                           mag=0.25, terrain=0.0, airspeed=0.0, flags=0x1FF | M.EKF_GPS_GLITCHING))
+    r = M.estimator_ratios(ekf)
+    assert r.source == "EKF_STATUS_REPORT" and math.isnan(r.t) and r.gps_glitch and r.flags & 0x1FF == 0x1FF
+    for g, v in (("vel", r.vel), ("pos", r.pos_horiz), ("hgt", r.pos_vert)):
+        assert v ** 2 == pytest.approx(ratio[f"ratio_{g}"][0], rel=1e-6)
+    assert r.mag == pytest.approx(0.25) and math.isnan(r.pos_horiz_accuracy) and M.decode(ekf) == []
+    px4 = _wire(M.encode_estimator_status(12.345678, 0.4, 0.3, 0.2, mag=0.1, hagl=0.05, tas=0.0,
+                                          flags=0x3FF | M.ESTIMATOR_GPS_GLITCH))
+    r = M.estimator_ratios(px4)
+    assert r.source == "ESTIMATOR_STATUS" and r.t == pytest.approx(12.345678) and r.gps_glitch
+    assert (r.vel, r.pos_horiz, r.pos_vert, r.mag, r.terrain) == pytest.approx((0.4, 0.3, 0.2, 0.1, 0.05))
+    assert (r.pos_horiz_accuracy, r.pos_vert_accuracy) == pytest.approx((0.5, 0.8)) and M.decode(px4) == []
+    assert not M.estimator_ratios(_wire(M.encode_ekf_status_report(0.1, 0.1, 0.1))).gps_glitch
+    assert M.estimator_ratios(_wire(M.encode_attitude(1.0, np.array([0.0, 0.0, 0.0, 1.0])))) is None
+
+
+def test_h_the_autopilots_test_ratios_are_recorded_and_asked_for(quiet, tmp_path):
+    """An ArduPilot vehicle's heartbeat: with ``request_rates`` the monitor asks for its
+    EKF_STATUS_REPORT (SET_MESSAGE_INTERVAL, 10 Hz) beside the sensors. Its reports, untimed, are
+    recorded at the link's latest t; an ESTIMATOR_STATUS at its own stamp on the link's time
+    base; another system's are dropped. ``autopilot_ratios.csv`` holds one line each, the summary
+    the counts, the last and the largest; nothing is scored from them."""
+    with monitor(quiet, filter=FILTER, out=tmp_path, request_rates=True) as (mon, lines, out):
+        peer = Vehicle(mon.address[1], boot=100.0)
+        peer.send(M.mavlink2.MAVLink_heartbeat_message(M.mavlink2.MAV_TYPE_QUADROTOR,
+                                                       M.mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0,
+                                                       M.mavlink2.MAV_STATE_ACTIVE, 3))
+        asked, end = {}, time.monotonic() + 30.0
+        while M.mavlink2.MAVLINK_MSG_ID_EKF_STATUS_REPORT not in asked and time.monotonic() < end:
+            m = peer.conn.recv_match(type="COMMAND_LONG", blocking=True, timeout=0.5)
+            if m is not None and m.command == M.mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL:
+                asked[int(m.param1)] = 1e6 / m.param2
+        assert asked.get(M.mavlink2.MAVLINK_MSG_ID_EKF_STATUS_REPORT) == pytest.approx(10.0), asked
+        assert M.mavlink2.MAVLINK_MSG_ID_RAW_IMU in asked
+        peer.stream(2.0, attitude=True)                          # boot 100 s is t = 0
+        for vel in (0.2, 0.9, 0.4):
+            peer.send(M.encode_ekf_status_report(vel, 0.3, 0.1, 0.05, flags=0x1FF | (M.EKF_GPS_GLITCHING if vel > 0.5 else 0)))
+        peer.send(M.encode_estimator_status(101.0, 0.5, 0.6, 0.7))
+        other = open_link(f"udpout:{LOCAL}:{mon.address[1]}", 2, 1)
+        other.mav.send(M.encode_ekf_status_report(3.0, 3.0, 3.0))
+        other.close()
+        peer.sync()
+        now = mon.intake.now_t
+    rows = list(csv.DictReader((tmp_path / "autopilot_ratios.csv").open()))
+    assert [r["source"] for r in rows] == ["EKF_STATUS_REPORT"] * 3 + ["ESTIMATOR_STATUS"]
+    assert [float(r["vel"]) for r in rows] == pytest.approx([0.2, 0.9, 0.4, 0.5])
+    assert [int(r["gps_glitch"]) for r in rows] == [0, 1, 0, 0]
+    assert all(float(r["t"]) == pytest.approx(now) for r in rows[:3]) and 1.9 < now < 2.0
+    assert float(rows[3]["t"]) == pytest.approx(1.0) and float(rows[3]["boot_t"]) == pytest.approx(101.0)
+    assert rows[0]["pos_horiz_accuracy"] == "" and float(rows[3]["pos_vert_accuracy"]) == pytest.approx(0.8)
+    s = out["summary"]
+    ratios = s["flight"]["autopilot_ratios"]
+    assert ratios["max"] == pytest.approx({"vel": 0.9, "pos_horiz": 0.6, "pos_vert": 0.7, "mag": 0.05})
+    assert ratios["last"]["source"] == "ESTIMATOR_STATUS" and ratios["last"]["t"] == pytest.approx(1.0)
+    inputs = s["flight"]["inputs"]
+    assert (inputs["ratios_EKF_STATUS_REPORT"], inputs["ratios_ESTIMATOR_STATUS"], inputs["ratios_gps_glitch"]) == (3, 1, 1)
+    assert s["link"]["dropped"]["ratios_other_system"] == 1
+    assert s["alerts_total"] == 0 and any("EKF_STATUS_REPORT 10 Hz" in n for n in s["notes"])

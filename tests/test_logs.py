@@ -503,6 +503,140 @@ def test_dataflash_instances_primary_core_switch_and_reset(logs):
     assert _has(log.notes, "primary EKF core switched")
 
 
+def test_dataflash_variances_follow_the_primary_core_through_a_lane_switch(logs):
+    """``copter_core_switch.bin``: the variances recovered from each row's own core's XKF3 and XKF4
+    (core 1's innovations 10 m further north give it a larger recovered position variance); the
+    residues' whitened position innovations have the norm the ratio says, sqrt(2 g^2 SP^2), on
+    both sides of the switch."""
+    from quadformer.logs.replay import autopilot_rows
+
+    log = logs("copter_core_switch.bin")
+    inn = log.innovations
+    path = FIX / "copter_core_switch.bin"
+    x3 = {(r["C"], r["TimeUS"]): r for r in _dataflash(path, "XKF3")}
+    x4 = {(r["C"], r["TimeUS"]): r for r in _dataflash(path, "XKF4")}
+    us = np.round((inn["t"] + log.boot_t0) * 1e6).astype(np.int64)
+    core = np.where(us >= 40_000_000, 1, 0)                         # PI = 1 from SWITCH_US on
+    want = [(x3[c, u]["IPN"] ** 2 + x3[c, u]["IPE"] ** 2) / (x4[c, u]["SP"] ** 2 * 25.0) / 2.0
+            if x4[c, u]["SP"] > 0 and (x3[c, u]["IPN"] or x3[c, u]["IPE"]) else np.nan for c, u in zip(core, us)]
+    np.testing.assert_allclose(inn["var_pos_x"], want, rtol=1e-6)
+    np.testing.assert_array_equal(inn["var_pos_x"], inn["var_pos_y"])    # an equal share per axis
+    assert inn.loc[core == 1, "var_pos_x"].median() > 10 * inn.loc[core == 0, "var_pos_x"].median()
+    rows = autopilot_rows(log)
+    sp = np.sqrt(rows.filter(regex="res_gps_w_p[xy]").pow(2).sum(axis=1) / (2 * 25.0))
+    root = np.sqrt(inn.set_index("t").loc[rows["t"], "ratio_pos"].to_numpy())
+    fused = rows["res_gps_s_px"].to_numpy() > 0
+    np.testing.assert_allclose(sp[fused], root[fused], rtol=1e-6)
+    assert _has(log.notes, "variances recovered from the test ratios", "EK3_POS_I_GATE 500 (default) -> 5 sigma")
+
+
+def _ekf3_log(path: Path, params: dict[str, float], x4: tuple[str, str] = ("QBfffB", "TimeUS,C,SV,SP,SH,PI"),
+              x3: tuple[str, str] = ("QBffffff", "TimeUS,C,IVN,IVE,IVD,IPN,IPE,IPD"), ratios=None) -> Path:
+    """An EKF3-era DataFlash log written here: PARM ``params``, 10 s of 5 Hz GPS fixes at rest, and
+    at each fix XKF3 (innovations N, E, D of 0.3, 0.4, 0.2 m/s and 0.6, 0.8, 0.5 m) and XKF4 with
+    SV, SP, SH from ``ratios`` (a function of the step: three square roots, floats, NaN allowed)."""
+    msgs = [("PARM", [1000, name.encode(), value]) for name, value in params.items()]
+    for k in range(50):
+        us = 1_000_000 + 200_000 * k
+        msgs.append(("GPS", [us, 0, 3, 0, 0, 10, 100, int(47.3977e7), int(8.5456e7), 48_800, 0.0, 0.0, 0.0, 0.0, 1]))
+        sv, sp, sh = ratios(k) if ratios is not None else (0.2, 0.3, 0.1)
+        value = {"TimeUS": us, "C": 0, "IVN": 0.3, "IVE": 0.4, "IVD": 0.2, "IPN": 0.6, "IPE": 0.8, "IPD": 0.5,
+                 "SV": sv, "SP": sp, "SH": sh, "PI": 0}
+        msgs += [(name, [value[c] for c in columns.split(",")]) for name, (_, columns) in (("XKF3", x3), ("XKF4", x4))]
+    return write_dataflash(path, {
+        "PARM": ("QNf", "TimeUS,Name,Value"),
+        "GPS": ("QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U"),
+        "XKF3": x3, "XKF4": x4}, msgs)
+
+
+def test_dataflash_ratios_of_zero_or_nan_leave_their_group_unfused(tmp_path):
+    """Steps whose test ratio is 0 or NaN hold no variance: their group is NaN in the
+    innovations, weight 0 and std 0 in the residues (as PX4's unfused components), the other
+    groups of the step are whitened; nothing is divided by zero and the notes count them."""
+    from quadformer.logs.replay import autopilot_rows
+
+    def ratios(k):
+        return {10: (0.0, 0.3, 0.1), 11: (np.nan, 0.3, 0.1), 20: (0.2, 0.0, np.nan), 30: (0.0, 0.0, 0.0)}.get(
+            k, (0.2, 0.3, 0.1))
+    log = read_log(_ekf3_log(tmp_path / "zeros.bin", {"EK3_SRC1_POSZ": 3.0}, ratios=ratios))
+    inn = log.innovations
+    vel_gone = np.isin(np.arange(50), [10, 11, 30])
+    pos_gone = np.isin(np.arange(50), [20, 30])
+    np.testing.assert_array_equal(inn["var_vel_x"].isna(), vel_gone)
+    np.testing.assert_array_equal(inn["var_pos_x"].isna(), pos_gone)
+    np.testing.assert_array_equal(inn["var_pos_z"].isna(), pos_gone)          # the height's ratio NaN, then 0
+    # otherwise: sum(i^2) / (r g^2) per axis share, 5-sigma default gates
+    ok = ~vel_gone
+    np.testing.assert_allclose(inn.loc[ok, "var_vel_x"], (0.09 + 0.16 + 0.04) / (0.04 * 25) / 3, rtol=1e-5)
+    np.testing.assert_allclose(inn.loc[~pos_gone, "var_pos_x"], (0.36 + 0.64) / (0.09 * 25) / 2, rtol=1e-5)
+    rows = autopilot_rows(log)
+    assert np.isfinite(rows.filter(regex="res_gps_(w|s|nis)")).all().all()
+    step = np.round(rows["t"].to_numpy() / 0.2).astype(int)
+    w = rows.filter(regex="res_gps_w_").to_numpy()
+    assert (w[np.isin(step, [10, 11, 30])][:, 3:] == 0).all() and (rows["res_gps_s_vx"][np.isin(step, [10, 11])] == 0).all()
+    assert (w[step == 20][:, :3] == 0).all() and (w[step == 20][:, 3:] != 0).all()
+    # each group's NIS is n g^2 r (3 x 25 x 0.04 velocity, 2 x 25 x 0.09 position, 25 x 0.01 height)
+    np.testing.assert_allclose(rows["res_gps_nis"][~np.isin(step, [10, 11, 20, 30])], 3.0 + 4.5 + 0.25, rtol=1e-5)
+    np.testing.assert_allclose(rows["res_gps_nis"][step == 30], 0.0)
+    assert _has(log.notes, "hold no variance", "vel 3 of 50", "pos 2 of 50", "hgt 2 of 50")
+
+
+def test_dataflash_gates_and_sources_from_parm(tmp_path):
+    """Gates logged in PARM are used (EK3_*_I_GATE in hundredths of a sigma: 300 -> 3 sigma, 50 ->
+    the floor of 1 sigma); a barometric height source (EK3_SRC1_POSZ 1) leaves the vertical
+    position out; EK3_SRC1_VELZ 0 makes the velocity ratio sum N and E only."""
+    params = {"EK3_VEL_I_GATE": 300.0, "EK3_POS_I_GATE": 50.0, "EK3_HGT_I_GATE": 700.0, "EK3_SRC1_POSZ": 1.0,
+              "EK3_SRC1_VELZ": 0.0}
+    log = read_log(_ekf3_log(tmp_path / "gates.bin", params))
+    inn = log.innovations
+    np.testing.assert_allclose(inn["var_vel_x"], (0.09 + 0.16) / (0.04 * 9.0) / 2, rtol=1e-5)
+    np.testing.assert_allclose(inn["var_pos_y"], (0.36 + 0.64) / (0.09 * 1.0) / 2, rtol=1e-5)
+    assert inn["var_vel_z"].isna().all() and inn["var_pos_z"].isna().all()
+    assert _has(log.notes, "EK3_VEL_I_GATE 300 -> 3 sigma", "EK3_POS_I_GATE 50 -> 1 sigma",
+                "EK3_HGT_I_GATE 700 -> 7 sigma", "velocity ratio over N, E (", "height ratio of the height source, not GPS")
+    # without PARM: EKF3's defaults, 5 sigma, N, E, D, and the barometer as the height source
+    log = read_log(_ekf3_log(tmp_path / "defaults.bin", {}))
+    np.testing.assert_allclose(log.innovations["var_vel_z"], (0.09 + 0.16 + 0.04) / (0.04 * 25.0) / 3, rtol=1e-5)
+    assert log.innovations["var_pos_z"].isna().all()
+    assert _has(log.notes, "EK3_VEL_I_GATE 500 (default) -> 5 sigma")
+
+
+def test_ardupilot_ratio_meaning_by_estimator_and_parameters():
+    """What the test ratios sum and their gates, by family and parameters (ArduPilot's source)."""
+    from quadformer.logs.ardupilot_ratios import ratio_model
+
+    m = ratio_model("NKF", {"EK2_GPS_TYPE": 1.0, "EK2_ALT_SOURCE": 2.0, "EK2_VEL_I_GATE": 300.0})
+    assert (m.gates, m.vel_axes, m.pos_variance, m.hgt_gps) == ((3.0, 5.0, 5.0), 2, True, True)
+    m = ratio_model("XKF", {"EK3_GPS_TYPE": 2.0}, receiver_vz=True)            # before 4.1: no GPS velocity
+    assert (m.vel_axes, m.pos_variance, m.hgt_gps) == (0, True, False)
+    m = ratio_model("XKF", {}, receiver_vz=False)                               # a receiver without vertical velocity
+    assert m.vel_axes == 2 and any("GPA.VV 0" in n for n in m.notes)
+    m = ratio_model("EKF", {"EKF_GPS_TYPE": 0.0}, firmware="ArduPlane V3.2.1")    # the first EKF's plane defaults
+    assert (m.gates, m.vel_axes, m.pos_variance, m.hgt_gps) == ((6.0, 30.0, 20.0), 3, False, False)
+    m = ratio_model("EKF", {"EKF_VEL_GATE": 0.0}, firmware="ArduCopter V3.2")
+    assert m.gates[0] == 5.0 and any("EKF_VEL_GATE 0 is not a gate" in n for n in m.notes)
+    with pytest.raises(ValueError, match="unknown ArduPilot estimator family 'QKF'"):
+        ratio_model("QKF", {})
+
+
+def test_dataflash_estimator_messages_of_an_unknown_layout_are_noted_not_fatal(tmp_path):
+    """An XKF4 without SH: no ratios and no variances, noted; the autopilot residues then lack the
+    whitened groups and a detector reading the NIS is refused with the groups named. An XKF3
+    without IPD: no innovations, noted, and the autopilot residues are refused."""
+    from quadformer.detectors.classical import Chi2Gate
+    from quadformer.logs.replay import autopilot_rows, missing_features
+
+    log = read_log(_ekf3_log(tmp_path / "no_sh.bin", {}, x4=("QBffB", "TimeUS,C,SV,SP,PI")))
+    assert log.innovations.filter(regex="var_|ratio_").isna().all().all()
+    assert _has(log.notes, "XKF4 lacks SH", "test ratios and innovation variances not read")
+    rows = autopilot_rows(log)
+    assert "res_gps_nis" not in rows and missing_features(list(Chi2Gate.inputs), rows.columns) == ["res_gps_nis"]
+    log = read_log(_ekf3_log(tmp_path / "no_ipd.bin", {}, x3=("QBfffff", "TimeUS,C,IVN,IVE,IVD,IPN,IPE")))
+    assert log.innovations is None and _has(log.notes, "XKF3 lacks IPD", "innovations not read")
+    with pytest.raises(LogError, match="no GPS innovations logged"):
+        autopilot_rows(log)
+
+
 def test_dataflash_recorded_only_while_armed_splits_segments(logs):
     log = logs("copter_armed_only.bin")
     assert len(log.segments) == 2
@@ -550,6 +684,12 @@ def test_dataflash_of_arducopter_before_3_3_timed_in_milliseconds(tmp_path):
     assert len(inn) == len(est) == 50
     np.testing.assert_allclose(inn.pos_z, 0.5)                         # IPD -0.5 (down) -> up
     np.testing.assert_allclose(inn.ratio_pos, 0.36, rtol=1e-6)         # SP squared
+    # the first EKF: the velocity ratio over N, E, D and the variance with the copter's default 5-sigma gate
+    # (0.1^2 + 0.2^2) / (0.5^2 5^2) shared by 3 axes; its position ratio is over an acceptance radius and
+    # its height the barometer's: neither recovered
+    np.testing.assert_allclose(inn[["var_vel_x", "var_vel_y", "var_vel_z"]], 0.05 / (0.25 * 25) / 3, rtol=1e-5)
+    assert inn.filter(regex="var_pos_").isna().all().all()
+    assert _has(log.notes, "EKF_VEL_GATE 5 (default) -> 5 sigma", "acceptance radius")
     np.testing.assert_allclose(est.x, 0.1 * np.arange(0, 500, 10), rtol=1e-6)        # PE: east
     assert _has(log.notes, "time: messages timed in TimeMS") and _has(log.notes, "EKF1, EKF3, EKF4 of ArduPilot's first EKF")
     assert len(log.segments) == 1

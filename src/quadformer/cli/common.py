@@ -28,7 +28,8 @@ RECEIVER_HELP = ("Weight each fix by the receiver's stated accuracy (eph, epv, s
                  "alone (more sensitive where the receiver overstates its error; a receiver's own meters of error "
                  "then read as a spoof).")
 RESIDUES_HELP = ("ekf: replay the project's filter over the log's sensors; autopilot: the autopilot's own "
-                 "logged GPS innovations, whitened by its logged variances.")
+                 "logged GPS innovations, whitened by its logged variances (PX4) or by those recovered from its "
+                 "test ratios (ArduPilot).")
 BACKEND_HELP = ("Where work units run: local (processes of this machine) or ray (tasks on a Ray cluster; "
                 "pip install 'quadformer\\[ray]').")
 ADDRESS_HELP = ("With --backend ray: auto (the cluster `ray start` started here) or ray://host:port; default: a "

@@ -11,9 +11,12 @@ which PX4 Flight Review, MAVExplorer, PlotJuggler and this project's readers ope
   times and held before the first);
 * at each GPS step, the in-loop filter's attitude and position/velocity estimate after the
   update, its GPS innovations as the autopilots log them (predicted minus measured), their
-  variances (the predicted innovation variance) and test ratios (innovation^2 / (5^2
-  variance), the largest over the horizontal axes for position and over the three axes for
-  velocity), and the simulator's truth (position, velocity, attitude);
+  variances (the predicted innovation variance, the diagonal of S) and test ratios
+  (innovation^2 / (5^2 variance), the largest over the horizontal axes for position and over
+  the three axes for velocity: PX4's per-axis ratios as its reader gives them back); each
+  writer writes its own autopilot's ratios from the innovations and variances (PX4: per axis;
+  ArduPilot: summed over a group's axes, ``logs.ardupilot_ratios``), and the simulator's truth
+  (position, velocity, attitude);
 * positions geodetic about ``ORIGIN``; the receiver states the configured GPS error as its
   accuracy (eph, epv: the white and the slow error together; speed accuracy: the velocity
   noise).

@@ -34,11 +34,12 @@ MAV_CMD_SET_MESSAGE_INTERVAL = mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL      # 511
 ACK_TIMEOUT_S = 3.0            # s, a command unacknowledged this long is reported
 
 #: stream rates (Hz) the monitor needs, per autopilot; what ``--request-rates`` asks for
+#: (the estimator's status with its test ratios at the GPS rate, recorded beside the scores)
 RATES = {
     "px4": {"HIGHRES_IMU": 100.0, "GPS_RAW_INT": 10.0, "ATTITUDE": 10.0, "ODOMETRY": 30.0,
-            "GLOBAL_POSITION_INT": 5.0},
+            "GLOBAL_POSITION_INT": 5.0, "ESTIMATOR_STATUS": 10.0},
     "ardupilot": {"RAW_IMU": 100.0, "GPS_RAW_INT": 10.0, "ATTITUDE": 10.0, "SCALED_PRESSURE": 25.0,
-                  "GLOBAL_POSITION_INT": 5.0},
+                  "GLOBAL_POSITION_INT": 5.0, "EKF_STATUS_REPORT": 10.0},
 }
 
 
@@ -145,9 +146,11 @@ class VehicleLink:
 
 
 class Records:
-    """``alerts.jsonl`` (one object per alarm start and end) and ``fixes.csv`` (one line per
-    scored fix) in the output directory, appended and flushed as they happen: nothing is
-    kept in memory. ``summary.json`` is written atomically at the end by the monitor.
+    """``alerts.jsonl`` (one object per alarm start and end), ``fixes.csv`` (one line per
+    scored fix) and, once the vehicle sends them, ``autopilot_ratios.csv`` (one line per
+    EKF_STATUS_REPORT or ESTIMATOR_STATUS: the square roots of the autopilot's test ratios) in the
+    output directory, appended and flushed as they happen: nothing is kept in memory.
+    ``summary.json`` is written atomically at the end by the monitor.
 
     Times are ``t``, seconds since the link's first sensor sample (as ``detect`` counts from its
     log's start), with ``boot_t``, the vehicle's time since boot, beside it: ``boot_time`` maps one to the
@@ -155,6 +158,8 @@ class Records:
 
     FIX_COLUMNS = ("segment", "t", "boot_t", "score", "alarm", "attack_type", "admission", "phase", "nis", "gps_x",
                    "gps_y", "gps_z", "est_x", "est_y", "est_z", "ap_x", "ap_y", "ap_z", "latency_ms")
+    RATIO_COLUMNS = ("t", "boot_t", "source", "vel", "pos_horiz", "pos_vert", "mag", "terrain", "airspeed", "flags",
+                     "gps_glitch", "pos_horiz_accuracy", "pos_vert_accuracy")
 
     def __init__(self, out: Path | None, boot_time: Callable[[float | None], float | None] = lambda t: None):
         self.boot_time = boot_time
@@ -171,6 +176,9 @@ class Records:
             if new:
                 self._csv.writerow(self.FIX_COLUMNS)
         self._unflushed = 0
+        self._ratios: TextIO | None = None
+        self._ratios_csv = None
+        self._ratios_unflushed = 0
 
     def alert(self, event: dict[str, Any]) -> None:
         if self._alerts is not None:
@@ -194,8 +202,31 @@ class Records:
                 self._fixes.flush()
                 self._unflushed = 0
 
+    def ratios(self, t: float, r) -> None:
+        """The autopilot's test ratios at t (a ``sensors.samples.EstimatorRatios``): one line of
+        ``autopilot_ratios.csv``, the file opened (with its header) at the first."""
+        if self.out is None:
+            return
+        if self._ratios is None:
+            path = self.out / "autopilot_ratios.csv"
+            new = not path.exists() or path.stat().st_size == 0
+            self._ratios = open(path, "a", encoding="utf-8", newline="")
+            self._ratios_csv = csv.writer(self._ratios)
+            if new:
+                self._ratios_csv.writerow(self.RATIO_COLUMNS)
+        boot = self.boot_time(t)
+        row = [f"{t:.6f}", "" if boot is None else f"{boot:.6f}", r.source]
+        for k in self.RATIO_COLUMNS[3:]:
+            v = getattr(r, k)
+            row.append(int(v) if isinstance(v, (bool, int)) else "" if math.isnan(v) else f"{v:.6g}")
+        self._ratios_csv.writerow(row)
+        self._ratios_unflushed += 1
+        if self._ratios_unflushed >= 50:
+            self._ratios.flush()
+            self._ratios_unflushed = 0
+
     def close(self) -> None:
-        for f in (self._alerts, self._fixes):
+        for f in (self._alerts, self._fixes, self._ratios):
             if f is not None:
                 f.close()
-        self._alerts = self._fixes = self._csv = None
+        self._alerts = self._fixes = self._csv = self._ratios = self._ratios_csv = None

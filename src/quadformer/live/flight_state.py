@@ -18,6 +18,11 @@ From the followed vehicle's messages:
   GPS fixes. A barometer first heard after GPS heights is shifted onto the GPS altitude's datum
   there, so the change of datum is no climb.
 
+Beside them, the autopilot's own evidence: its innovation test ratios (``EKF_STATUS_REPORT``,
+``ESTIMATOR_STATUS``; ``sensors.mavlink.estimator_ratios``), counted with the last and the largest
+of each (``ratios``), for the summary; the monitor writes each to ``autopilot_ratios.csv``. They
+are not fed to the step: nothing scores them yet.
+
 Order. The step scores a fix's row once the IMU has passed the fix, and the other messages
 arrive around it, so the inputs wait in a queue sorted by time (at equal times: events,
 reports, heights, the order of ``step_alerts``) and are fed to the segment's step: before each
@@ -39,13 +44,14 @@ from typing import Any
 from quadformer.detectors.alarms import AlertEvent
 from quadformer.detectors.flight_phase import FlightPhase
 from quadformer.resilience.step import OnlineStep
-from quadformer.sensors.mavlink import GpsStatus, VehicleEvents
+from quadformer.sensors.mavlink import EstimatorRatios, GpsStatus, VehicleEvents
 
 __all__ = ["MAX_PENDING", "FlightState"]
 
 MAX_PENDING = 2000                         # inputs queued at most
 RANK = {"event": 0, "report": 1, "height": 2}       # order at equal times, as step_alerts feeds a log's
 REPORT = ("fix_type", "satellites", "eph", "epv", "speed_acc")   # the fields of a GpsStatus the health reads
+RATIOS = ("vel", "pos_horiz", "pos_vert", "mag")    # the test ratios (square roots) the summary keeps
 
 
 class FlightState:
@@ -65,6 +71,8 @@ class FlightState:
         self._datum = 0.0                       # m added to barometric heights (a switch from GPS heights)
         self._gps_h = math.nan
         self._arrivals = 0
+        self.last_ratios: dict[str, Any] | None = None       # the autopilot's latest test ratios
+        self.max_ratios: dict[str, float] = {}               # and the largest of each
 
     # -- inputs ---------------------------------------------------------------------------
     def message(self, t: float, msg) -> None:
@@ -94,6 +102,18 @@ class FlightState:
             self.height_source = "baro"
         self.counts[f"heights_{source}"] += 1
         self._queue(t, "height", h + self._datum if source == "baro" else h)
+
+    def ratios(self, t: float, r: EstimatorRatios) -> None:
+        """The autopilot's own test ratios at t (``EstimatorRatios``): counted, the last and the
+        largest kept; not fed to the step."""
+        self.counts[f"ratios_{r.source}"] += 1
+        self.counts["ratios_gps_glitch"] += r.gps_glitch
+        self.last_ratios = {"t": t, "source": r.source, **{k: getattr(r, k) for k in RATIOS},
+                            "gps_glitch": r.gps_glitch}
+        for k in RATIOS:
+            v = getattr(r, k)
+            if math.isfinite(v) and not v <= self.max_ratios.get(k, -math.inf):
+                self.max_ratios[k] = v
 
     def _queue(self, t: float, kind: str, value: Any) -> None:
         item = (float(t), RANK[kind], self._arrivals, (kind, value))
@@ -136,6 +156,9 @@ class FlightState:
             self.counts["inputs_dropped"] += extra
 
     def summary(self) -> dict[str, Any]:
-        """The phase and its source, the height's source and the inputs taken (summary.json)."""
+        """The phase and its source, the height's source, the inputs taken and the autopilot's
+        test ratios, the last and the largest (summary.json)."""
         return {"phase_source": self.phase.source, "height_source": self.height_source,
-                "inputs": dict(sorted(self.counts.items()))}
+                "inputs": dict(sorted(self.counts.items())),
+                "autopilot_ratios": {"what": "square roots of the autopilot's innovation test ratios (1: at its gate)",
+                                     "last": self.last_ratios, "max": dict(self.max_ratios)}}

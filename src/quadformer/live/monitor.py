@@ -31,7 +31,9 @@ What the vehicle must send (``actions.RATES``; ``request_rates`` asks with SET_M
 an IMU (HIGHRES_IMU, or RAW_IMU / SCALED_IMU*) at 50-100 Hz or more, GPS_RAW_INT (or GPS2_RAW)
 at 5-10 Hz, ATTITUDE (for the start), and for the configured aiding sensors the magnetometer
 (in the IMU message), the barometer (SCALED_PRESSURE or HIGHRES_IMU's pressure altitude) and
-ODOMETRY. ``t`` counts seconds from the link's first sensor sample, with the vehicle's boot time
+ODOMETRY; and, recorded beside the scores (``autopilot_ratios.csv``, the summary's
+``flight.autopilot_ratios``), the autopilot's estimator status with its own innovation test
+ratios, EKF_STATUS_REPORT (ArduPilot) or ESTIMATOR_STATUS (PX4), at 10 Hz. ``t`` counts seconds from the link's first sensor sample, with the vehicle's boot time
 ``boot_t`` beside it (``intake.TimeBase``). Robustness, each counted, never an exception out of
 the loop: corrupt bytes and lost, duplicate or reordered packets (``live.packets``); duplicate
 and late samples, streams slower than the filter needs (``live.intake``); a stream's clock going

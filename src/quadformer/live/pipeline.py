@@ -3,8 +3,10 @@ scored, alert events and fix records out. ``Pipeline`` is the base of ``live.mon
 and holds what it does per message (``process``: routing by kind, the vehicle's events and
 receiver reports to ``live.flight_state``, samples through ``live.intake`` to the segment), per
 residue row (score, admission, ``FixRecord``) and per segment (a restart, an IMU gap or an error
-ends one and starts the next); ``Monitor`` sets the state up in ``__init__`` and adds the clock
-and the I/O (the link loop, the periodic heartbeat and status line, the summary)."""
+ends one and starts the next); the autopilot's own test ratios (EKF_STATUS_REPORT,
+ESTIMATOR_STATUS) are recorded beside, not scored; ``Monitor`` sets the state up in ``__init__``
+and adds the clock and the I/O (the link loop, the periodic heartbeat and status line, the
+summary)."""
 
 from __future__ import annotations
 
@@ -27,7 +29,7 @@ from quadformer.live.segment import Segment
 from quadformer.live.status import STATES, Latency
 from quadformer.live.vehicle import Vehicle
 from quadformer.resilience.admission import EXCLUDED, FUSING
-from quadformer.sensors.mavlink import GPS_MESSAGES, Estimate, Origin, decode, gps_status
+from quadformer.sensors.mavlink import GPS_MESSAGES, RATIO_MESSAGES, Estimate, Origin, decode, estimator_ratios, gps_status
 
 __all__ = ["EVENT_MESSAGES", "Pipeline"]
 
@@ -94,6 +96,9 @@ class Pipeline:
             if kind in EVENT_MESSAGES:
                 self._vehicle_message(msg, src)
                 return
+            if kind in RATIO_MESSAGES:
+                self._ratios(msg, src)
+                return
             if kind == "COMMAND_ACK":
                 if self.vehicle is None or src[0] == self.vehicle:
                     line = self.link.on_ack(msg) if self.link is not None else None
@@ -137,6 +142,22 @@ class Pipeline:
             now = self.intake.now_t
             self.flight.message(now if math.isfinite(now) else 0.0, msg)
             self._advance()
+
+    def _ratios(self, msg, src) -> None:
+        """An EKF_STATUS_REPORT or ESTIMATOR_STATUS of the followed vehicle: the autopilot's own
+        test ratios, recorded (``FlightState.ratios``, ``autopilot_ratios.csv``) at their stamp on
+        the link's time base, or, untimed (EKF_STATUS_REPORT), at the link's latest t; not scored."""
+        if self.vehicle is None or src[0] != self.vehicle:
+            self.dropped["ratios_before_vehicle" if self.vehicle is None else "ratios_other_system"] += 1
+            return
+        ratios = estimator_ratios(msg)
+        t = self.intake.link_time(ratios.t) if math.isfinite(ratios.t) else None
+        if t is None:
+            now = self.intake.now_t
+            t = now if math.isfinite(now) else 0.0
+        self.flight.ratios(t, ratios)
+        if self.records is not None:
+            self.records.ratios(t, ratios)
 
     def _receiver(self, msg) -> None:
         """A GPS message: the status report of the receiver in use (receiver 0 until one is)."""

@@ -17,8 +17,13 @@ file; NED/FRD converted by ``frames``; DFReader applies the logged unit multipli
 * innovations: ``XKF3`` ``IPN/IPE/IPD``, ``IVN/IVE/IVD`` (NED -> ENU) of the primary core;
   test ratios from ``XKF4`` of the same core: ``SV``, ``SP``, ``SH`` are the square roots of
   the EKF's velocity, position and height test ratios, so ratio_* = SV^2, SP^2, SH^2.
-  Innovation variances are not logged (NaN). The primary core is ``XKF4.PI`` at each time;
-  the core index field is ``C`` (``Core`` is accepted too); without one, all rows are core 0.
+  Innovation variances are not logged: they are recovered from the ratios, the gates (PARM, else
+  the defaults) and the innovations, each group's summed variance shared equally by its axes
+  (``ardupilot_ratios``, which holds ArduPilot's definitions); NaN where a step or group holds
+  none. The primary core is ``XKF4.PI`` at each time; the core index field is ``C`` (``Core`` is
+  accepted too); without one, all rows are core 0. EKF2's ``NKF*`` and the first EKF's ``EKF*``
+  are read alike where a log has no EKF3 messages; an estimator message without the fields read
+  is noted and left out.
 * estimate: ``XKF1`` ``PN/PE/PD``, ``VN/VE/VD`` of the primary core, relative to the EKF
   origin. ``reset`` is set where the primary core changes or where ``XKF4.OFN/OFE`` (the last
   position reset, m) changes.
@@ -107,10 +112,7 @@ class _DataflashReader(DataflashEstimator):
             if text.startswith("Frame:") and "frame" not in out:
                 out["frame"] = text.split(":", 1)[1].strip()
         out["messages"] = texts[:20]
-        params: dict = {}
-        for r in self.rows["PARM"]:                              # the values at the log's start
-            if "Name" in r and "Value" in r:
-                params.setdefault(r["Name"], r["Value"])
+        params = self.params()                                   # the values at the log's start
         delay = params.get("GPS1_DELAY_MS", params.get("GPS_DELAY_MS"))
         if isinstance(delay, (int, float)) and math.isfinite(delay) and delay > 0:
             out["gps_delay_s"] = float(delay) / 1000.0      # the receiver latency EKF3 compensates

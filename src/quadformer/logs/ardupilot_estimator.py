@@ -1,5 +1,8 @@
-"""The ArduPilot reader's estimator streams: EKF3's GPS innovations and test ratios (``XKF3``,
-``XKF4``) and the position estimate (``XKF1``), both of the primary core through lane switches."""
+"""The ArduPilot reader's estimator streams: the GPS innovations and test ratios (EKF3's ``XKF3``,
+``XKF4``; EKF2's and the first EKF's ``NKF*`` and ``EKF*`` alike) with the innovation variances
+recovered from the ratios (``ardupilot_ratios``), and the position estimate (``XKF1``), both of
+the primary core through lane switches. An estimator message of a layout without the fields read
+is noted and left out, not an error."""
 
 from __future__ import annotations
 
@@ -8,6 +11,7 @@ import numpy as np
 from quadformer.geometry import frames
 from quadformer.logs._series import median_period, nearest_index, step_lookup, take
 from quadformer.logs.ardupilot_messages import DataflashMessages, col
+from quadformer.logs.ardupilot_ratios import FAMILIES, ratio_model, recover_variances
 from quadformer.logs.flightlog import make_stream
 
 __all__ = ["DataflashEstimator"]
@@ -57,25 +61,70 @@ class DataflashEstimator(DataflashMessages):
         return [r for r, k in zip(rows, keep) if k], core[keep]
 
     def innovations(self, cores: dict):
+        name3, name4 = (f"{self.ekf_family}3", f"{self.ekf_family}4")
         rows, core = self.primary_rows("XKF3", cores, "innovations")
         if not rows:
-            ekf2 = " (EKF2 NKF* messages are present but not read)" if self.rows["NKF3"] else ""
-            self.notes.append(f"innovations: no XKF3 (EKF3) messages{ekf2}")
+            self.notes.append("innovations: no XKF3, NKF3 or EKF3 messages (EKF3, EKF2 or the first EKF's "
+                              "innovations)")
             return None
-        self.require(rows, "XKF3", ("IPN", "IPE", "IPD", "IVN", "IVE", "IVD"))
+        missing = [f for f in ("IPN", "IPE", "IPD", "IVN", "IVE", "IVD") if f not in rows[0]]
+        if missing:
+            self.notes.append(f"innovations: {name3} lacks {', '.join(missing)} (has: {', '.join(sorted(rows[0]))}); "
+                              "an estimator message layout this reader does not know: innovations not read")
+            return None
         t = self.t(rows)
         pos = frames.ned_to_enu(np.column_stack([col(rows, k) for k in ("IPN", "IPE", "IPD")]))
         vel = frames.ned_to_enu(np.column_stack([col(rows, k) for k in ("IVN", "IVE", "IVD")]))
         values = {"pos_x": pos[:, 0], "pos_y": pos[:, 1], "pos_z": pos[:, 2],
                   "vel_x": vel[:, 0], "vel_y": vel[:, 1], "vel_z": vel[:, 2]}
-        x4 = self.rows["XKF4"]
-        if x4 and all(k in x4[0] for k in ("SV", "SP", "SH")):
-            j = self._same_core_nearest(t, core, x4, cores["field"]["XKF4"])
-            for src, dst in (("SP", "ratio_pos"), ("SV", "ratio_vel"), ("SH", "ratio_hgt")):
-                values[dst] = take(col(x4, src) ** 2, j)
-            self.notes.append("innovations: ratio_pos/vel/hgt = XKF4 SP^2/SV^2/SH^2 (logged as "
-                              "square roots of the test ratios); variances are not logged")
+        ratios = self._ratios(t, core, cores, name4)
+        if ratios is not None:
+            values.update(ratios)
+            self._variances(values, name4)
         return make_stream("innovations", t, values, self.notes)
+
+    def _ratios(self, t: np.ndarray, core: np.ndarray, cores: dict, name4: str) -> dict | None:
+        """The test ratios of the same core at the innovations' times: SV, SP, SH squared (the
+        square roots of the ratios; ``ardupilot_ratios``)."""
+        x4 = self.rows["XKF4"]
+        if not x4:
+            self.notes.append(f"innovations: no {name4} messages: test ratios and innovation variances not read")
+            return None
+        lacking = [f for f in ("SV", "SP", "SH") if f not in x4[0]]
+        if lacking:
+            self.notes.append(f"innovations: {name4} lacks {', '.join(lacking)} (has: {', '.join(sorted(x4[0]))}); "
+                              "test ratios and innovation variances not read")
+            return None
+        scale = 1.0
+        chars = {self.field_format(name4, f) for f in ("SV", "SP", "SH")} - {None}
+        if chars & set("bBhHiIqQ"):
+            scale = 0.01
+            self.notes.append(f"innovations: {name4} SV/SP/SH logged as unscaled integers ({''.join(sorted(chars))}), "
+                              "not ArduPilot's int16 x 0.01 ('c'): read as 100 times the square roots")
+        j = self._same_core_nearest(t, core, x4, cores["field"]["XKF4"])
+        return {dst: take((scale * col(x4, src)) ** 2, j)
+                for src, dst in (("SV", "ratio_vel"), ("SP", "ratio_pos"), ("SH", "ratio_hgt"))}
+
+    def _variances(self, values: dict, name4: str) -> None:
+        """The innovation variances ArduPilot does not log, recovered from the test ratios
+        (``ardupilot_ratios.recover_variances``), into ``values``."""
+        gpa = self.rows["GPA"]
+        first = min((r.get("I", 0) for r in gpa), default=0)          # the receiver the gps stream keeps
+        vv = col([r for r in gpa if r.get("I", 0) == first], "VV")
+        receiver_vz = not (vv == 0).any()
+        model = ratio_model(self.ekf_family, self.params(), self.firmware(), receiver_vz)
+        innov = np.column_stack([values[k] for k in ("pos_x", "pos_y", "pos_z", "vel_x", "vel_y", "vel_z")])
+        var, empty = recover_variances(innov, values, model)
+        for k, c in enumerate(("var_pos_x", "var_pos_y", "var_pos_z", "var_vel_x", "var_vel_y", "var_vel_z")):
+            values[c] = var[:, k]
+        self.notes.append(f"innovations: ratio_vel/pos/hgt = {name4} SV^2/SP^2/SH^2 (logged as the square roots of "
+                          f"{FAMILIES[self.ekf_family]}'s test ratios); variances recovered from the test ratios, "
+                          + "; ".join(model.notes)
+                          + "; each group's summed variance shared equally among its axes")
+        n = len(innov)
+        if any(empty.values()):
+            self.notes.append("innovations: steps whose ratio is 0 or NaN or whose innovations are all 0 hold no "
+                              "variance, left unfused: " + ", ".join(f"{g} {k} of {n}" for g, k in empty.items() if k))
 
     def _same_core_nearest(self, t: np.ndarray, core: np.ndarray, rows: list[dict],
                            field: str | None) -> np.ndarray:
@@ -96,7 +145,12 @@ class DataflashEstimator(DataflashMessages):
         if not rows:
             self.notes.append("estimate: no XKF1 messages")
             return None
-        self.require(rows, "XKF1", ("PN", "PE", "PD", "VN", "VE", "VD"))
+        missing = [f for f in ("PN", "PE", "PD", "VN", "VE", "VD") if f not in rows[0]]
+        if missing:
+            self.notes.append(f"estimate: {self.ekf_family}1 lacks {', '.join(missing)} (has: "
+                              f"{', '.join(sorted(rows[0]))}); an estimator message layout this reader does not "
+                              "know: the estimate not read")
+            return None
         t = self.t(rows)
         pos = frames.ned_to_enu(np.column_stack([col(rows, k) for k in ("PN", "PE", "PD")]))
         vel = frames.ned_to_enu(np.column_stack([col(rows, k) for k in ("VN", "VE", "VD")]))

@@ -39,6 +39,7 @@ WANTED = {
     "EV": ("Id",),
     "ERR": ("Subsys", "ECode"),
     "MODE": ("Mode", "ModeNum"),
+    "FMT": ("Name", "Format", "Columns"),
 }
 #: the estimator messages of older EKFs, read as XKF1/3/4 where a log has no EKF3 messages:
 #: EKF2 (``NKF*``, ArduPilot 3.4 to 4.x; core 0, other cores are other message types) and
@@ -314,6 +315,8 @@ class DataflashMessages:
                               + (", beside TimeUS in this log" if clock[0]["clock"] == "mixed" else "")
                               + "); GPS at its T (ms since boot); untimed messages (EV, ERR, MODE) at the last "
                               "timed message before them, or the first for those before any")
+        self.ekf_family = "XKF"          # whose messages are read as XKF1/3/4: EKF3's, EKF2's (NKF), the first EKF's
+        self._params: dict | None = None
         self.older_ekf()
 
     def older_ekf(self) -> None:
@@ -322,12 +325,40 @@ class DataflashMessages:
             return
         for family, names in OLDER_EKFS.items():
             if any(self.rows[n] for n in names):
+                self.ekf_family = family
                 for new, old in zip(("XKF1", "XKF3", "XKF4"), names):
                     self.rows[new] = self.rows[old]
                 what = "EKF2 (core 0)" if family == "NKF" else "ArduPilot's first EKF (before 3.4)"
                 self.notes.append(f"innovations/estimate: {', '.join(names)} of {what} read as XKF1/3/4; "
                                   "the log has no EKF3 messages")
                 return
+
+    def params(self) -> dict:
+        """The parameters (PARM) at the log's start: name -> the first value logged."""
+        if self._params is None:
+            self._params = {}
+            for r in self.rows["PARM"]:
+                if "Name" in r and "Value" in r:
+                    self._params.setdefault(r["Name"], r["Value"])
+        return self._params
+
+    def firmware(self) -> str | None:
+        """The firmware's name and version: VER.FWS, else the first MSG naming a vehicle firmware."""
+        ver = self.rows["VER"]
+        if ver and ver[0].get("FWS"):
+            return ver[0]["FWS"]
+        return next((r["Message"] for r in self.rows["MSG"]
+                     if str(r.get("Message", "")).startswith(("Ardu", "APM:", "Blimp", "AP_Periph"))), None)
+
+    def field_format(self, name: str, field: str) -> str | None:
+        """The format character of ``field`` in message ``name`` as the log's FMT defines it."""
+        for r in self.rows["FMT"]:
+            if r.get("Name") == name:
+                cols = str(r.get("Columns", "")).split(",")
+                fmt = str(r.get("Format", ""))
+                if field in cols and cols.index(field) < len(fmt):
+                    return fmt[cols.index(field)]
+        return None
 
     def us(self, rows: list[dict]) -> np.ndarray:
         """TimeUS after the first one, as float64 microseconds. The difference is taken on

@@ -5,8 +5,9 @@ Messages in ArduCopter 4.x's layout (their formats from pymavlink's ``DFReader.D
 the scaled fields carry ArduPilot's multipliers: centidegrees for ``c``/``C``, 1e-7 degrees for
 ``L``, centimetres for ``e``), at each stream's own times, in time order:
 
-* header: FMT for every message type written; PARM (``GPS_DELAY_MS`` 0, the EKF3 gates,
-  ``LOG_DISARMED`` 0 and ``LogHeader.params``); MSG (``LogHeader.text`` and the frame);
+* header: FMT for every message type written; PARM (``GPS_DELAY_MS`` 0, the EKF3 gates, GPS
+  as EKF3's position, height and velocity source (``EK3_SRC1_*`` 3), ``LOG_DISARMED`` 0 and
+  ``LogHeader.params``); MSG (``LogHeader.text`` and the frame);
   ORGN type 0 (the EKF origin: ``FlightLog.origin``); with ``LogHeader.airborne``, ARM (armed),
   EV 10 (armed), EV 28 (not landed: the flight is under way at the first sample) and MODE
   AUTO;
@@ -25,8 +26,11 @@ the scaled fields carry ArduPilot's multipliers: centidegrees for ``c``/``C``, 1
   offset, which a FlightLog does not hold);
 * innovations -> XKF3 core 0 (``IPN/IPE/IPD``, ``IVN/IVE/IVD``: predicted minus measured,
   NED, centimetres; values beyond the int16 range are clipped to +-327.67) and XKF4 core 0
-  (``SP``, ``SV``, ``SH``: square roots of ratio_pos, ratio_vel, ratio_hgt; ``PI`` 0: one core);
-  variances are not in EKF3's messages;
+  (``SV``, ``SP``, ``SH``: the square roots of EKF3's test ratios, ``ardupilot_ratios``: the
+  summed squared innovations of the velocity (N, E, D; N, E where the vertical one is not
+  known), the horizontal position and the height over their summed variances and the squared
+  5-sigma gate; where the stream has no variances, its own ratio columns; ``PI`` 0: one core);
+  variances are not in EKF3's messages (a reader recovers them from the ratios);
 * odometry -> VISP (``PX/PY/PZ`` NED, ``Roll/Pitch/Yaw`` deg) and VISV (``VX/VY/VZ`` NED);
 * truth -> SIM (``Lat``/``Lng``/``Alt``, ``Roll/Pitch/Yaw``, ``Q1..Q4`` = w, x, y, z body FRD ->
   NED) and SIM2 (``PN/PE/PD`` about the origin, ``VN/VE/VD``; airspeed not modelled, NaN).
@@ -46,6 +50,7 @@ from pymavlink import DFReader
 from quadformer.geometry import frames
 from quadformer.io import atomic_write_bytes
 from quadformer.logs._series import quat_interp
+from quadformer.logs.ardupilot_ratios import innovation_test_ratios
 from quadformer.logs.flightlog import FlightLog
 from quadformer.logs.writing import (GATE, LogHeader, clock_us, enu_to_ned, euler_ned_deg, gps_week_ms,
                                      quat_ned_wxyz, start_us, values)
@@ -75,9 +80,12 @@ FORMATS: dict[str, tuple[str, str]] = {
     "SIM2": ("Qdddffff", "TimeUS,PN,PE,PD,VN,VE,VD,As"),
 }
 #: parameters every written log carries: no receiver latency (the fixes are stamped when measured),
-#: EKF3's default innovation gates (the test ratios' scale), logging while disarmed off
+#: EKF3's default innovation gates (the test ratios' scale), GPS the source of horizontal and
+#: vertical position and velocity (EK3_SRC1_*: 3, so that XKF3.IPD and XKF4.SH are the GPS's),
+#: logging while disarmed off
 PARAMS = {"GPS_DELAY_MS": 0.0, "EK3_POS_I_GATE": 100 * GATE, "EK3_VEL_I_GATE": 100 * GATE,
-          "EK3_HGT_I_GATE": 100 * GATE, "AHRS_EKF_TYPE": 3.0, "LOG_DISARMED": 0.0}
+          "EK3_HGT_I_GATE": 100 * GATE, "EK3_SRC1_POSXY": 3.0, "EK3_SRC1_VELXY": 3.0, "EK3_SRC1_POSZ": 3.0,
+          "EK3_SRC1_VELZ": 3.0, "AHRS_EKF_TYPE": 3.0, "LOG_DISARMED": 0.0}
 FRAME = "QUAD/X"
 EV_ARMED, EV_NOT_LANDED = 10, 28      # ArduPilot's LogEvent ids
 MODE_AUTO = 3                          # ArduCopter's AUTO
@@ -254,9 +262,20 @@ def _innovations(out: _Messages, log: FlightLog, header: LogHeader) -> None:
     p, v = enu_to_ned(d, "pos_x", "pos_y", "pos_z"), enu_to_ned(d, "vel_x", "vel_y", "vel_z")
     out.add("XKF3", {"TimeUS": us, "C": 0, "IVN": v[:, 0], "IVE": v[:, 1], "IVD": v[:, 2],
                      "IPN": p[:, 0], "IPE": p[:, 1], "IPD": p[:, 2]})
-    root = {k: np.sqrt(d[c].to_numpy(dtype=float)) for k, c in (("SP", "ratio_pos"), ("SV", "ratio_vel"),
-                                                                  ("SH", "ratio_hgt"))}
-    out.add("XKF4", {"TimeUS": us, "C": 0, **root, "PI": 0})
+    out.add("XKF4", {"TimeUS": us, "C": 0, **{k: np.sqrt(r) for k, r in _test_ratios(d).items()}, "PI": 0})
+
+
+def _test_ratios(d) -> dict[str, np.ndarray]:
+    """XKF4's ratios (SV, SP, SH before their square roots) of an innovations stream: EKF3's
+    definitions (``ardupilot_ratios``) from the innovations and their variances, the vertical
+    velocity summed where it is known; where a group's variances are not known, the stream's own
+    ratio columns."""
+    innov = values(d, "pos_x", "pos_y", "pos_z", "vel_x", "vel_y", "vel_z")
+    var = values(d, "var_pos_x", "var_pos_y", "var_pos_z", "var_vel_x", "var_vel_y", "var_vel_z")
+    vz = np.isfinite(innov[:, 5]) & np.isfinite(var[:, 5])
+    ratios = innovation_test_ratios(innov, var, (GATE, GATE, GATE), np.where(vz, 3, 2))
+    return {k: np.where(np.isfinite(ratios[c]), ratios[c], d[c].to_numpy(dtype=float))
+            for k, c in (("SV", "ratio_vel"), ("SP", "ratio_pos"), ("SH", "ratio_hgt"))}
 
 
 def _odometry(out: _Messages, log: FlightLog, header: LogHeader) -> None:

@@ -10,13 +10,14 @@
   noise is the larger of a floor and the receiver's own accuracy (eph, epv, speed accuracy).
   The filter starts at the first fix of a segment, from that fix, the autopilot's attitude
   (or the accelerometer's tilt) and the configured initial uncertainty.
-- ``autopilot``: the autopilot's own logged GPS innovations, whitened by its logged
-  variances, for logs whose raw sensors are missing or too sparse. PX4 and ArduPilot define
-  an innovation as predicted minus measured; here, as everywhere in the project, it is
-  measured minus predicted (the sign is flipped). Groups the log cannot provide (whitened
-  innovations and NIS without logged variances, as in ArduPilot's XKF3; the correction
-  integral; VIO, magnetometer and barometer residues) are absent, and ``missing_features``
-  names them for a detector that needs them.
+- ``autopilot``: the autopilot's own logged GPS innovations, whitened by its variances (PX4's
+  logged ones; ArduPilot's recovered by its reader from the test ratios,
+  ``ardupilot_ratios``), for logs whose raw sensors are missing or too sparse. PX4 and
+  ArduPilot define an innovation as predicted minus measured; here, as everywhere in the
+  project, it is measured minus predicted (the sign is flipped). Groups the log cannot provide
+  (whitened innovations and NIS without variances, as from an ArduPilot log without test
+  ratios; the correction integral; VIO, magnetometer and barometer residues) are absent, and
+  ``missing_features`` names them for a detector that needs them.
 
 A spoof can be injected into the logged GPS stream before the ``ekf`` replay (``attack``):
 open loop, the recorded vehicle does not react to it (it flew on its honest estimate).
@@ -223,7 +224,8 @@ def autopilot_rows(log: FlightLog, seg: int = 0) -> pd.DataFrame:
         cols[f"res_gps_r_{a}"] = r[:, i]
     if np.isfinite(var).any():
         # a component the autopilot did not fuse (no positive variance, e.g. PX4's vertical
-        # position when the barometer is the height source) contributes zero
+        # position when the barometer is the height source; an ArduPilot group whose test ratio
+        # is 0 or NaN at that step) contributes zero
         fused = np.isfinite(var) & (var > 0)
         s = np.sqrt(np.where(fused, var, 0.0))
         w = np.where(fused, r / np.where(fused, s, 1.0), 0.0)

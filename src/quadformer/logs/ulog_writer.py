@@ -22,9 +22,10 @@ subscription classes hold them), each at its stream's own times (``timestamp`` =
   count the ``reset`` rows);
 * innovations -> ``estimator_innovations`` (``gps_hpos``, ``gps_vpos``, ``gps_hvel``,
   ``gps_vvel``: predicted minus measured, NED), ``estimator_innovation_variances`` (the same
-  fields) and ``estimator_innovation_test_ratios`` (a FlightLog holds one ratio per group:
-  ratio_pos on both horizontal axes, ratio_vel on the three velocity axes, ratio_hgt on the
-  vertical position); the other aiding sources' fields NaN;
+  fields) and ``estimator_innovation_test_ratios`` (PX4's per-axis ratios, innovation^2 /
+  (5^2 variance); where the stream has no variances, its one ratio per group: ratio_pos on both
+  horizontal axes, ratio_vel on the three velocity axes, ratio_hgt on the vertical position);
+  the other aiding sources' fields NaN;
 * odometry -> ``vehicle_visual_odometry`` (``position`` and ``velocity`` NED, ``pose_frame``
   and ``velocity_frame`` NED, ``q``);
 * truth -> ``vehicle_local_position_groundtruth`` (about the origin) and
@@ -294,9 +295,25 @@ def _innovations(out: _Topics, log: FlightLog, header: LogHeader) -> None:
                                              enu_to_ned(d, "vel_x", "vel_y", "vel_z")))
     var = {k: frames.ned_var_to_enu(values(d, *(f"var_{k}_{a}" for a in "xyz"))) for k in ("pos", "vel")}
     out.add("estimator_innovation_variances", us, gps(var["pos"], var["vel"]))
-    rp, rv, rh = (d[c].to_numpy(dtype=float) for c in ("ratio_pos", "ratio_vel", "ratio_hgt"))
-    out.add("estimator_innovation_test_ratios", us, gps(np.column_stack([rp, rp, rh]),
-                                                        np.column_stack([rv, rv, rv])))
+    ratio = _test_ratios(d)
+    out.add("estimator_innovation_test_ratios", us, gps(frames.ned_var_to_enu(ratio["pos"]),
+                                                        frames.ned_var_to_enu(ratio["vel"])))
+
+
+def _test_ratios(d) -> dict[str, np.ndarray]:
+    """PX4's per-axis test ratios (ENU, (n, 3) for position and velocity) of an innovations
+    stream: innovation^2 / (gate^2 variance), EKF2's ``setEstimatorAidStatusTestRatio`` with the
+    5-sigma gates written (EKF2_GPS_P_GATE, EKF2_GPS_V_GATE); where an axis's variance is not
+    known, its group's ratio column (ratio_pos on both horizontal axes, ratio_hgt vertically,
+    ratio_vel on the three velocity axes)."""
+    out = {}
+    for k, fallback in (("pos", ("ratio_pos", "ratio_pos", "ratio_hgt")), ("vel", ("ratio_vel",) * 3)):
+        innov = values(d, *(f"{k}_{a}" for a in "xyz"))
+        var = values(d, *(f"var_{k}_{a}" for a in "xyz"))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = innov ** 2 / (GATE ** 2 * var)
+        out[k] = np.where(np.isfinite(r), r, values(d, *fallback))
+    return out
 
 
 def _odometry(out: _Topics, log: FlightLog, header: LogHeader) -> None:

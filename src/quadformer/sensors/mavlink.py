@@ -30,6 +30,25 @@ Decoding (``decode(msg) -> list of samples``; one message may carry several):
 ``GPS2_RAW`` as ``GpsStatus`` whether or not it holds a position: a receiver without a fix still
 says so (fix_type 0/1), which ``Gps`` samples, needing a position, cannot.
 
+``estimator_ratios(msg)`` (not part of ``decode`` either: it is the autopilot's evidence, not a
+sensor) gives its innovation test ratios as ``EstimatorRatios``, each the square root of a test
+ratio (1 at the gate):
+
+- ArduPilot's ``EKF_STATUS_REPORT`` (``send_status_report`` of AP_NavEKF2/AP_NavEKF3's core, of
+  the primary core): ``velocity_variance``, ``pos_horiz_variance``, ``pos_vert_variance``,
+  ``compass_variance`` hold, despite their names, sqrt(velTestRatio), sqrt(posTestRatio),
+  sqrt(hgtTestRatio) and the largest magnetometer one (EKF2: the length of the three), the
+  values XKF4 logs as SV, SP, SH, SM (``logs.ardupilot_ratios``); ``terrain_alt_variance`` the
+  range finder's or optical flow's (0 when neither is used), ``airspeed_variance`` the
+  airspeed's; ``flags`` EKF_STATUS_FLAGS (EKF_GPS_GLITCHING 32768). The message has no time.
+- PX4's ``ESTIMATOR_STATUS`` (the primary ``estimator_status``): ``vel_ratio``,
+  ``pos_horiz_ratio``, ``pos_vert_ratio``, ``mag_ratio``, ``hagl_ratio``, ``tas_ratio`` are
+  EKF2's ``vel_test_ratio``, ... each sqrt of the largest per-axis ratio of its group
+  (``Ekf::get_innovation_test_status``; per axis innovation^2 / (gate^2 variance));
+  ``flags`` ESTIMATOR_STATUS_FLAGS (ESTIMATOR_GPS_GLITCH 1024); ``pos_horiz_accuracy``,
+  ``pos_vert_accuracy`` m; stamped ``time_usec``. The innovation check flags of
+  ``estimator_status`` are not in the MAVLink message.
+
 The vehicle's events (``VehicleEvents``, ``vehicle_heartbeat``, ``text_event``, ``TEXT_EVENTS``)
 are ``sensors.vehicle_events``'s, importable from here too.
 
@@ -57,13 +76,14 @@ from quadformer.geometry.frames import (
     wxyz_to_xyzw,
     xyzw_to_wxyz,
 )
-from quadformer.sensors.samples import Attitude, Baro, Estimate, Gps, GpsStatus, Imu, Mag, Odometry, Origin, SystemTime
+from quadformer.sensors.samples import (Attitude, Baro, Estimate, EstimatorRatios, Gps, GpsStatus, Imu, Mag, Odometry,
+                                       Origin, SystemTime)
 from quadformer.sensors.vehicle_events import (  # noqa: F401 (re-exported)
     ARMED, NOT_VEHICLES, ON_GROUND, TEXT_EVENTS, VehicleEvents, text_event, vehicle_heartbeat)
 
-__all__ = ["ARMED", "Attitude", "Baro", "Estimate", "Gps", "GpsStatus", "Imu", "Mag", "Odometry", "Origin",
-           "SystemTime", "TEXT_EVENTS", "VehicleEvents", "decode", "gps_status", "text_event", "vehicle_heartbeat",
-           "pressure_altitude", "altitude_pressure", "mavlink2"]
+__all__ = ["ARMED", "Attitude", "Baro", "Estimate", "EstimatorRatios", "Gps", "GpsStatus", "Imu", "Mag", "Odometry",
+           "Origin", "RATIO_MESSAGES", "SystemTime", "TEXT_EVENTS", "VehicleEvents", "decode", "estimator_ratios",
+           "gps_status", "text_event", "vehicle_heartbeat", "pressure_altitude", "altitude_pressure", "mavlink2"]
 
 G = 9.80665                      # m/s^2 per g (MAVLink's mG)
 P0_HPA = 1013.25                 # hPa, standard sea-level pressure
@@ -166,6 +186,31 @@ def gps_status(m) -> GpsStatus | None:
                      math.nan if m.satellites_visible == 255 else float(m.satellites_visible),
                      _acc(getattr(m, "h_acc", 0), 1e-3), _acc(getattr(m, "v_acc", 0), 1e-3),
                      _acc(getattr(m, "vel_acc", 0), 1e-3))
+
+
+#: the autopilots' estimator status messages ``estimator_ratios`` reads
+RATIO_MESSAGES = ("EKF_STATUS_REPORT", "ESTIMATOR_STATUS")
+EKF_GPS_GLITCHING = 32768            # EKF_STATUS_FLAGS bit (ArduPilot)
+ESTIMATOR_GPS_GLITCH = 1024          # ESTIMATOR_STATUS_FLAGS bit (PX4)
+
+
+def estimator_ratios(m) -> EstimatorRatios | None:
+    """The autopilot's innovation test ratios in an ``EKF_STATUS_REPORT`` (ArduPilot, untimed:
+    t NaN) or ``ESTIMATOR_STATUS`` (PX4); None for other messages."""
+    kind = m.get_type()
+    if kind == "EKF_STATUS_REPORT":
+        flags = int(m.flags)
+        return EstimatorRatios(math.nan, kind, float(m.velocity_variance), float(m.pos_horiz_variance),
+                               float(m.pos_vert_variance), float(m.compass_variance), float(m.terrain_alt_variance),
+                               float(getattr(m, "airspeed_variance", math.nan)), flags,
+                               bool(flags & EKF_GPS_GLITCHING))
+    if kind == "ESTIMATOR_STATUS":
+        flags = int(m.flags)
+        return EstimatorRatios(m.time_usec * 1e-6 if m.time_usec else math.nan, kind, float(m.vel_ratio),
+                               float(m.pos_horiz_ratio), float(m.pos_vert_ratio), float(m.mag_ratio),
+                               float(m.hagl_ratio), float(m.tas_ratio), flags, bool(flags & ESTIMATOR_GPS_GLITCH),
+                               float(m.pos_horiz_accuracy), float(m.pos_vert_accuracy))
+    return None
 
 
 def _odometry(m) -> list:
@@ -319,6 +364,20 @@ def encode_odometry(t: float, pos_enu: np.ndarray, vel_enu: np.ndarray, q_enu_fl
     return mavlink2.MAVLink_odometry_message(
         usec(t), 1, BODY_FRD, *map(float, ned_to_enu(pos_enu)), [float(v) for v in xyzw_to_wxyz(q_ned)],
         *map(float, v_body), 0.0, 0.0, 0.0, nan21, nan21, 0, mavlink2.MAV_ESTIMATOR_TYPE_VIO, 100)
+
+
+def encode_ekf_status_report(vel: float, pos_horiz: float, pos_vert: float, mag: float = 0.0, terrain: float = 0.0,
+                             airspeed: float = 0.0, flags: int = 0x1FF):
+    """ArduPilot's EKF_STATUS_REPORT: the square roots of the test ratios (float32)."""
+    return mavlink2.MAVLink_ekf_status_report_message(flags, vel, pos_horiz, pos_vert, mag, terrain, airspeed)
+
+
+def encode_estimator_status(t: float, vel: float, pos_horiz: float, pos_vert: float, mag: float = 0.0,
+                            hagl: float = 0.0, tas: float = 0.0, flags: int = 0x3FF,
+                            pos_horiz_accuracy: float = 0.5, pos_vert_accuracy: float = 0.8):
+    """PX4's ESTIMATOR_STATUS at t (s): the square roots of the test ratios (float32)."""
+    return mavlink2.MAVLink_estimator_status_message(usec(t), flags, vel, pos_horiz, pos_vert, mag, hagl, tas,
+                                                     pos_horiz_accuracy, pos_vert_accuracy)
 
 
 def encode_origin(lat: float, lon: float, alt: float, t: float = 0.0):

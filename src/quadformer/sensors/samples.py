@@ -4,11 +4,13 @@ apart from the MAVLink conversions so a reader finds the types by name."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Attitude", "Baro", "Estimate", "Gps", "GpsStatus", "Imu", "Mag", "Odometry", "Origin", "SystemTime"]
+__all__ = ["Attitude", "Baro", "Estimate", "EstimatorRatios", "Gps", "GpsStatus", "Imu", "Mag", "Odometry", "Origin",
+           "SystemTime"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,6 +80,25 @@ class Estimate:
     kind: str                # "global" (lat, lon, alt) or "local" (the autopilot's local frame)
     pos: np.ndarray          # (3,) lat deg, lon deg, alt m (global) or ENU m (local)
     vel: np.ndarray          # (3,) ENU m/s
+
+
+@dataclass(frozen=True, slots=True)
+class EstimatorRatios:
+    """The autopilot's own innovation test ratios, as its estimator status reports them: each the
+    square root of a test ratio, the innovation over the gate's acceptance (1 at the gate; NaN
+    where not sent)."""
+    t: float                 # s, the vehicle's stamp (ESTIMATOR_STATUS); NaN: the message has none
+    source: str              # "EKF_STATUS_REPORT" (ArduPilot) or "ESTIMATOR_STATUS" (PX4)
+    vel: float               # velocity (ArduPilot: summed over its axes; PX4: the largest axis)
+    pos_horiz: float         # horizontal position (likewise)
+    pos_vert: float          # vertical position (the height source's)
+    mag: float               # magnetometer, the largest axis (ArduPilot EKF2: the vector's length)
+    terrain: float           # height above terrain (ArduPilot: range finder or flow, 0 when unused)
+    airspeed: float          # true airspeed
+    flags: int               # EKF_STATUS_FLAGS (ArduPilot) or ESTIMATOR_STATUS_FLAGS (PX4)
+    gps_glitch: bool         # the flags' GPS glitch bit (EKF_GPS_GLITCHING, ESTIMATOR_GPS_GLITCH)
+    pos_horiz_accuracy: float = math.nan    # m, 1-sigma (PX4 only)
+    pos_vert_accuracy: float = math.nan     # m, 1-sigma (PX4 only)
 
 
 @dataclass(frozen=True, slots=True)
