@@ -73,6 +73,7 @@ def test_phase_from_height_climb_hold_and_disarm():
     expect = np.where(t < takeoff, "ground", np.where(t - takeoff < 5.0, "transition", "air"))
     low = t[np.argmax((t > 40) & (h <= 100.5))]         # the first sample within 0.5 m on the way down
     expect[t - low >= 3.0] = "ground"                   # land_hold_s later
+    expect[(t >= low - 10.0) & (expect == "air")] = "transition"   # the landing's land_s, up to its hold's end
     assert low == pytest.approx(49.6)
     assert list(got) == list(expect)
     fp = FlightPhase()
