@@ -145,7 +145,8 @@ class VehicleLink:
 
 
 class Records:
-    """``alerts.jsonl`` (one object per alarm start and end) and ``fixes.csv`` (one line per
+    """``alerts.jsonl`` (one object per alert event: start, end, confirmed type, relabelled
+    phase) and ``fixes.csv`` (one line per
     scored fix) in the output directory, appended and flushed as they happen: nothing is
     kept in memory. ``summary.json`` is written atomically at the end by the monitor.
 
