@@ -126,8 +126,11 @@ def detect_log(log: FlightLog | str | Path, detector=None, residues: str = "ekf"
             f"of this log do not provide (they hold {', '.join(have) or 'nothing'}); {fix}")
     scores = detector.decision_function(rows)
     alarms = scores > detector.threshold_
+    impacts = log_impacts(log)
+    if impacts is not None and len(impacts):
+        notes = [*notes, impacts_note(impacts)]
     alerts = step_alerts(rows, scores, detector, typing, config.gps_rate_hz, events=log.events,
-                         receiver=log.receiver, height=log_height(log), impacts=log_impacts(log))
+                         receiver=log.receiver, height=log_height(log), impacts=impacts)
     return LogDetection(log, residues, rows, scores, alarms, alerts, flights[0].sensors, detector, notes)
 
 
@@ -161,6 +164,14 @@ def log_impacts(log: FlightLog) -> pd.DataFrame | None:
     from quadformer.detectors.impact import impacts
 
     return impacts(log.imu) if log.imu is not None and len(log.imu) else None
+
+
+def impacts_note(impacts: pd.DataFrame, most: int = 8) -> str:
+    """The impacts of a log in a note: ``imu: 2 impact(s) at 19.9 s (impact: 3.3 g), ...``."""
+    listed = ", ".join(f"{r.t:.1f} s ({r.detail})" for r in impacts.head(most).itertuples())
+    more = f" and {len(impacts) - most} more" if len(impacts) > most else ""
+    return (f"imu: {len(impacts)} impact(s) at {listed}{more}; a crash, or an impact near the ground, is a landing "
+            "(its 10 s before and 5 s after are a transition)")
 
 
 def step_alerts(rows: pd.DataFrame, scores: np.ndarray, detector, typing: str = "shape",
