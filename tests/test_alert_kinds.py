@@ -73,6 +73,7 @@ def test_phase_from_height_climb_hold_and_disarm():
     expect = np.where(t < takeoff, "ground", np.where(t - takeoff < 5.0, "transition", "air"))
     low = t[np.argmax((t > 40) & (h <= 100.5))]         # the first sample within 0.5 m on the way down
     expect[t - low >= 3.0] = "ground"                   # land_hold_s later
+    expect[(t >= low - 10.0) & (expect == "air")] = "transition"   # the landing's land_s, up to its hold's end
     assert low == pytest.approx(49.6)
     assert list(got) == list(expect)
     fp = FlightPhase()
@@ -315,7 +316,8 @@ def test_step_alerts_with_events_and_receiver_equal_the_online_step_driven_by_ha
     assert [(a.start_s, a.kind, a.phase, a.reason) for a in got] == [
         (6.0, "spoofing", "ground", None), (21.0, "spoofing", "air", None),
         (25.0, "degraded", "air", "autopilot GPS glitch"),      # the glitch and the fix lost at 33 s: one episode
-        (60.0, "degraded", "air", "fix lost (fix type 0)")]     # after the last row: fed before the finish
+        (60.0, "degraded", "transition",                        # after the last row: fed before the finish,
+         "fix lost (fix type 0); landing at t=68.0 s (landed event)")]   # and within 10 s before the landing
     # without events, receiver or height: the alerts of the batch tracker, spoofing in the air
     plain = step_alerts(rows, scores, det, "shape")
     assert [(a.start_s, a.kind, a.phase, a.reason) for a in plain] == [
@@ -330,7 +332,7 @@ def test_step_alerts_over_segments_raise_each_episode_once_and_keep_the_phase():
         (0, 6.0, 7.0, "spoofing", "ground"), (0, 21.0, 22.0, "spoofing", "air"),
         (0, 25.0, 38.0, "degraded", "air"),                 # the glitch, then the fix lost between segments
         (1, 55.0, 56.0, "spoofing", "air"),                 # the take-off in segment 0 still holds
-        (1, 60.0, 64.0, "degraded", "air")]
+        (1, 60.0, 64.0, "degraded", "transition")]          # within 10 s before the landing at 68 s
     # a receiver's degradation comes out without any alarm of the detector
     quiet = scores.copy()
     quiet[quiet > det.threshold_] = 0.0

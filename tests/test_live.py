@@ -341,6 +341,27 @@ def test_a_simulated_spoofed_flight_scores_as_offline_detection(detector, sim_st
     assert phases.loc[5.0:9.9].eq("transition").all() and phases.loc[10.0:].eq("air").all()
 
 
+def test_a_a_landing_relabels_the_alerts_before_it_live_as_offline(detector, sim_streams, tmp_path):
+    """The flight of test_a, landing at 25 s (EXTENDED_SYS_STATE back on the ground): the degraded
+    alert of the fix lost at 20 s, raised in the air, is relabelled the landing's transition
+    when the landing is seen, live (alerts.jsonl, the alert list, the counts) as offline."""
+    sender = SenderConfig(record=True, armed=(1.0, 60.0), in_air=(5.0, 25.0), fix_lost=(20.0, 1.5))
+    fixes, summary, report, lines = run_monitor(detector, sim_streams, sender, filter=FILTER, out=tmp_path)
+    assert report.lost == report.stalls == 0
+    res = _same_as_offline(detector, fixes, summary, report.record, FILTER)
+    assert [e for _, e, _ in report.record["events"] if e != "mode"] == ["armed", "takeoff", "landed"]
+    (lost,) = [a for a in res.alerts if a.attack_type == "none"]
+    assert (lost.kind, lost.phase) == ("degraded", "transition")
+    assert lost.reason.startswith("fix lost (fix type 1); landing at t=") and lost.reason.endswith("(landed event)")
+    records = [json.loads(x) for x in (tmp_path / "alerts.jsonl").read_text().splitlines()]
+    relabels = [e for e in records if e["event"] == "alert_relabel"]
+    assert lost.start_s in {e["start_s"] for e in relabels}
+    assert all(e["phase"] == "transition" and e["was"] == "air" for e in relabels)
+    assert any("in the landing transition, not in the air" in line for line in lines)
+    counts = alert_counts(res.alerts)
+    assert {k: summary[k] for k in counts} == counts
+
+
 def test_b_a_px4_logs_sensors_score_as_offline_detection(detector):
     log = read_log(EVENTS)
     config = FilterConfig(sensors="gps+imu+mag+baro")

@@ -78,7 +78,7 @@ def detect(
             typer.echo(f"{o.path}: {res.log.source}, {res.log.duration:.1f} s, {len(res.rows)} GPS steps scored "
                        f"({residues} residues, {res.sensors}): {n['alerts']} spoofing alert(s) in the air{rate}"
                        + (f"; beside them {n['alerts_ground']} on the ground, {n['alerts_transition']} in the "
-                          f"take-off transition, {n['alerts_degraded']} of a degraded receiver"
+                          f"take-off or landing transition, {n['alerts_degraded']} of a degraded receiver"
                           if n["alerts_total"] > n["alerts"] else ""))
             print_alerts(res.alerts)
 

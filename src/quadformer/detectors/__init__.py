@@ -11,12 +11,13 @@ from quadformer.detectors.attack_types import ShapeTyper
 from quadformer.detectors.base import Detector, NotFittedError, flight_slices
 from quadformer.detectors.export import export_onnx
 from quadformer.detectors.flight_phase import FlightPhase, PhaseRule
+from quadformer.detectors.impact import ImpactDetector, ImpactRule, impacts
 from quadformer.detectors.onnx_runtime import OnnxDetector, load_model
 from quadformer.detectors.receiver_health import HealthRule, ReceiverHealth
 from quadformer.detectors.registry import available, defaults, get, load, make, register
 from quadformer.detectors.streams import DetectorStream, StreamGroup, StreamStep
 
-__all__ = ["Alert", "Detector", "DetectorStream", "FlightPhase", "HealthRule", "NotFittedError", "OnnxDetector", "PhaseRule",
-           "ReceiverHealth", "StreamGroup", "StreamStep", "alert_counts", "alerts_frame", "alerts_from_scores",
-           "available", "defaults", "export_onnx", "flight_slices", "get", "load", "load_model", "make", "register",
-           "runs", "write_alerts"]
+__all__ = ["Alert", "Detector", "DetectorStream", "FlightPhase", "HealthRule", "ImpactDetector", "ImpactRule",
+           "NotFittedError", "OnnxDetector", "PhaseRule", "ReceiverHealth", "StreamGroup", "StreamStep", "alert_counts",
+           "alerts_frame", "alerts_from_scores", "available", "defaults", "export_onnx", "flight_slices", "get",
+           "impacts", "load", "load_model", "make", "register", "runs", "write_alerts"]

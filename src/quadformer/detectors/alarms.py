@@ -9,6 +9,8 @@ An alert also carries its kind (``spoofing``, or ``degraded`` when raised while 
 was degraded: ``detectors.receiver_health``), the flight phase at its raise (``ground``,
 ``transition`` or ``air``: ``detectors.flight_phase``) and the reason for a kind that is not
 the detector's own say; ``alert_counts`` counts them apart (the headline: spoofing in the air).
+The phase of an alert raised in the air shortly before a landing is known only at the landing:
+the online step then relabels it (an ``alert_relabel`` event, ``AlertTracker.relabel``).
 
 ``AlertTracker`` is that lifecycle (raise, estimated onset, confirm the type, close) fed one
 step at a time; the live monitor, the closed loop and offline scoring (``alerts_from_scores``)
@@ -30,10 +32,26 @@ from quadformer.io import atomic_path
 
 ALERT_COLUMNS = ["flight_id", "start_s", "onset_s", "attack_type", "score", "end_s", "confirmed_type",
                  "kind", "phase", "reason"]
-ALERT_EVENTS = ("alert_start", "alert_end", "alert_type")
+ALERT_EVENTS = ("alert_start", "alert_end", "alert_type", "alert_relabel")
 ALERT_KINDS = ("spoofing", "degraded")
 #: a flight phase in words, as alerts and the live monitor say it
 PHASE_WORDS = {"ground": "on the ground", "transition": "in the take-off transition", "air": "in the air"}
+LANDING = "landing at t="      # how a landing transition's reason says the landing (flight_phase.Landing)
+
+
+def phase_words(phase: str, reason: str | None = None) -> str:
+    """An alert's flight phase in words: ``PHASE_WORDS``, and "in the landing transition" for a
+    transition whose reason names a landing."""
+    if phase == "transition" and reason is not None and LANDING in reason:
+        return "in the landing transition"
+    return PHASE_WORDS.get(phase, phase)
+
+
+def with_reason(reason: str | None, more: str | None) -> str | None:
+    """Two reasons as one (``"fix lost (fix type 1); landing at t=93.0 s (height)"``)."""
+    if more is None or (reason is not None and more in reason):
+        return reason
+    return more if reason is None else f"{reason}; {more}"
 
 
 def runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -74,7 +92,7 @@ class Alert:
         peak = f", peak score {self.score:.3g}" if np.isfinite(self.score) else ""
         confirmed = f", confirmed {self.confirmed_type}" if self.confirmed_type is not None else ""
         reason = f"; {self.reason}" if self.reason is not None else ""
-        where = PHASE_WORDS.get(self.phase, self.phase)
+        where = phase_words(self.phase, self.reason)
         return (f"flight {self.flight_id}: {what} at {self.start_s:.1f} s {where} "
                 f"(onset ~{self.onset_s:.1f} s, until {end}{peak}{confirmed}{reason})")
 
@@ -82,15 +100,17 @@ class Alert:
 @dataclass(frozen=True)
 class AlertEvent:
     """A change in an alert's life: ``alert_start`` (raised), ``alert_end`` (closed; ``alert.end_s``
-    None when the data ended under it) or ``alert_type`` (its type confirmed; ``raised_as`` the
-    type it was raised with). ``flight``: the flight's position in the tracker's batch; ``t``:
-    the step's time (None for the close at the end of the data); ``step``: the step's index."""
+    None when the data ended under it), ``alert_type`` (its type confirmed; ``raised_as`` the
+    type it was raised with) or ``alert_relabel`` (its flight phase corrected once a landing was
+    seen; ``was`` the phase it had). ``flight``: the flight's position in the tracker's batch;
+    ``t``: the step's time (None for the close at the end of the data); ``step``: the step's index."""
     event: str
     flight: int
     t: float | None
     alert: Alert
     step: int = -1
     raised_as: str | None = None
+    was: str | None = None
 
 
 class AlertTracker:
@@ -180,18 +200,28 @@ class AlertTracker:
 
     def confirm(self, i: int, start_s: float, kind: str, t: float | None = None) -> AlertEvent | None:
         """Confirm the type of flight i's alert raised at ``start_s`` (open, or among those kept)."""
+        got = self._amend(i, start_s, lambda a: dataclasses.replace(a, confirmed_type=kind))
+        return None if got is None else AlertEvent("alert_type", i, t, got[1], raised_as=None)
+
+    def relabel(self, i: int, start_s: float, phase: str, reason: str | None,
+                t: float | None = None) -> AlertEvent | None:
+        """Set the flight phase of flight i's alert raised at ``start_s`` (open, or among those
+        kept) and add ``reason`` to its own; the ``alert_relabel`` event (None: no such alert)."""
+        got = self._amend(i, start_s, lambda a: relabelled(a, phase, reason))
+        return None if got is None else AlertEvent("alert_relabel", i, t, got[1], was=got[0].phase)
+
+    def _amend(self, i: int, start_s: float, change) -> tuple[Alert, Alert] | None:
+        """(before, after) of flight i's alert raised at ``start_s`` changed by ``change``."""
         a = self.open[i]
         if a is not None and a.start_s == start_s:
-            self.open[i] = a = dataclasses.replace(a, confirmed_type=kind)
-        else:
-            for k in range(len(self.alerts) - 1, -1, -1):
-                b = self.alerts[k]
-                if self._order[k][0] == i and b.start_s == start_s:
-                    self.alerts[k] = a = dataclasses.replace(b, confirmed_type=kind)
-                    break
-            else:
-                return None
-        return AlertEvent("alert_type", i, t, a, raised_as=None)
+            self.open[i] = b = change(a)
+            return a, b
+        for k in range(len(self.alerts) - 1, -1, -1):
+            a = self.alerts[k]
+            if self._order[k][0] == i and a.start_s == start_s:
+                self.alerts[k] = b = change(a)
+                return a, b
+        return None
 
     def finish(self, flights: Sequence[int] | None = None) -> list[AlertEvent]:
         """Close the open alerts (of ``flights``, all by default) at the end of the data (end_s None)."""
@@ -203,6 +233,11 @@ class AlertTracker:
         return sorted(((i, j, a) for (i, j), a in zip(self._order, self.alerts)), key=lambda x: x[:2])
 
 
+def relabelled(a: Alert, phase: str, reason: str | None) -> Alert:
+    """``a`` in flight phase ``phase``, ``reason`` added to its own."""
+    return dataclasses.replace(a, phase=phase, reason=with_reason(a.reason, reason))
+
+
 def _of(value, i: int):
     """Flight i's value of one value or one per flight (a string is one value)."""
     return value if value is None or isinstance(value, str) else value[i]
@@ -211,8 +246,8 @@ def _of(value, i: int):
 def alert_counts(alerts: Sequence[Alert]) -> dict[str, int]:
     """Alerts counted apart: ``alerts`` the spoofing alerts raised in the air (the headline),
     ``alerts_ground`` and ``alerts_transition`` the spoofing alerts raised on the ground and in
-    the take-off transition, ``alerts_degraded`` those of a degraded receiver (any phase), and
-    ``alerts_total`` all of them."""
+    a take-off or landing transition, ``alerts_degraded`` those of a degraded receiver (any
+    phase), and ``alerts_total`` all of them."""
     spoof = [a for a in alerts if a.kind != "degraded"]
     return {"alerts": sum(a.phase == "air" for a in spoof),
             "alerts_ground": sum(a.phase == "ground" for a in spoof),

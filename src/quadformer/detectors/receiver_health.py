@@ -54,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from quadformer.detectors.alarms import Alert, AlertEvent
+from quadformer.detectors.alarms import Alert, AlertEvent, relabelled, with_reason
 
 GPS_EVENTS = ("gps_glitch", "gps_glitch_cleared", "gps_failsafe", "gps_failsafe_cleared", "gps_lost")
 REPORT_FIELDS = ("fix_type", "satellites", "eph", "epv", "speed_acc", "jamming", "noise", "spoofing")
@@ -121,11 +121,13 @@ class ReceiverHealth:
     # -- inputs ---------------------------------------------------------------------------
     def report(self, t: float, fix_type: float, satellites: float = math.nan, eph: float = math.nan,
                epv: float = math.nan, speed_acc: float = math.nan, jamming: float = math.nan,
-               noise: float = math.nan, spoofing: float = math.nan, *, phase: str = "air") -> list[AlertEvent]:
+               noise: float = math.nan, spoofing: float = math.nan, *, phase: str = "air",
+               phase_reason: str | None = None) -> list[AlertEvent]:
         """One status report at t (NaN: not reported). Fix type and eph are read for signs,
         ``spoofing`` for the receiver's verdict; satellites, epv, speed accuracy, jamming and
         noise are taken and are no sign (see the module text). ``phase``: the flight phase an
-        episode opened here is labelled with."""
+        episode opened here is labelled with, ``phase_reason`` why (a landing transition's
+        reason, added to the sign's)."""
         t, events = self._advance(t)
         fix, e, r = float(fix_type), float(eph), self.rule
         sign = None
@@ -154,7 +156,7 @@ class ReceiverHealth:
         s = float(spoofing)
         self._spoof = math.isfinite(s) and s >= r.spoof_level
         if sign is not None:
-            events += self._sign(t, sign, phase)
+            events += self._sign(t, sign, phase, phase_reason)
         return events
 
     def _capture_signs(self, t: float, values: dict[str, float]) -> list[str]:
@@ -197,17 +199,18 @@ class ReceiverHealth:
             return "autopilot"
         return self._kind if float(t) < self._last + self.rule.hold_s else None
 
-    def event(self, t: float, kind: str, *, phase: str = "air") -> list[AlertEvent]:
-        """One of the autopilot's events at t (``GPS_EVENTS``; others only advance the clock)."""
+    def event(self, t: float, kind: str, *, phase: str = "air", phase_reason: str | None = None) -> list[AlertEvent]:
+        """One of the autopilot's events at t (``GPS_EVENTS``; others only advance the clock);
+        ``phase``, ``phase_reason`` as for ``report``."""
         t, events = self._advance(t)
         if kind in _STANDING:
             key, reason = _STANDING[kind]
             self._autopilot[key] = reason
-            events += self._sign(t, reason, phase)
+            events += self._sign(t, reason, phase, phase_reason)
         elif kind in _CLEARS:
             self._autopilot.pop(_CLEARS[kind], None)
         elif kind == "gps_lost":
-            events += self._sign(t, "autopilot reports GPS lost", phase)
+            events += self._sign(t, "autopilot reports GPS lost", phase, phase_reason)
         return events
 
     def tick(self, t: float) -> list[AlertEvent]:
@@ -217,6 +220,18 @@ class ReceiverHealth:
     def finish(self) -> list[AlertEvent]:
         """The end of the data: the open episode closed (``end_s`` None)."""
         return [] if self.open is None else [self._close(None, None)]
+
+    def relabel(self, start_s: float, phase: str, reason: str | None, t: float | None = None) -> AlertEvent | None:
+        """Set the flight phase of the episode raised at ``start_s`` (open, or among those kept)
+        and add ``reason`` to its own; the ``alert_relabel`` event (None: no such episode)."""
+        if self.open is not None and self.open.start_s == start_s:
+            was, self.open = self.open, relabelled(self.open, phase, reason)
+            return AlertEvent("alert_relabel", 0, t, self.open, was=was.phase)
+        for k in range(len(self.alerts) - 1, -1, -1):
+            if self.alerts[k].start_s == start_s:
+                was, self.alerts[k] = self.alerts[k], relabelled(self.alerts[k], phase, reason)
+                return AlertEvent("alert_relabel", 0, t, self.alerts[k], was=was.phase)
+        return None
 
     # -- state ----------------------------------------------------------------------------
     def degraded(self, t: float) -> str | None:
@@ -244,13 +259,14 @@ class ReceiverHealth:
             return t, [self._close(self._last + self.rule.hold_s, t)]
         return t, []
 
-    def _sign(self, t: float, reason: str, phase: str) -> list[AlertEvent]:
+    def _sign(self, t: float, reason: str, phase: str, phase_reason: str | None = None) -> list[AlertEvent]:
         self._last, self._reason = max(self._last, t), reason
         self._kind = ("fix" if reason.startswith("fix") else "accuracy" if reason.startswith("accuracy")
                       else "autopilot")
         if self.open is not None:
             return []
-        self.open = Alert(self.flight_id, t, t, "none", math.nan, None, kind="degraded", phase=phase, reason=reason)
+        self.open = Alert(self.flight_id, t, t, "none", math.nan, None, kind="degraded", phase=phase,
+                          reason=with_reason(reason, phase_reason))
         return [AlertEvent("alert_start", 0, t, self.open)]
 
     def _close(self, end_s: float | None, t: float | None) -> AlertEvent:

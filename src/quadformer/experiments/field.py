@@ -48,7 +48,7 @@ from quadformer.experiments.field_models import shipped_detectors, shipped_files
 from quadformer.experiments.field_spoofs import inject, injected_events, log_alerts, planned_injections
 from quadformer.io import package_versions, write_json
 from quadformer.logs import LogError, read_log
-from quadformer.logs.detect import log_height, log_rows
+from quadformer.logs.detect import log_height, log_impacts, log_rows
 from quadformer.logs.flightlog import FlightLog
 from quadformer.logs.manifest import ManifestEntry, read_manifest
 from quadformer.logs.replay import ekf_flights, missing_features
@@ -139,7 +139,7 @@ def replay_logs(read: dict[Path, FlightLog | LogError], manifest: dict[str, Mani
             echo(f"  refused {p.name}: {reason}")
             continue
         rows = pd.concat([f.rows for f in flights], ignore_index=True)
-        phase = phases(rows["t"].to_numpy(dtype=float), log.events, log_height(log), rule)
+        phase = phases(rows["t"].to_numpy(dtype=float), log.events, log_height(log), rule, log_impacts(log))
         entry = None if manifest is None else manifest.get(p.name)
         if manifest is not None and entry is None:
             notes = [*notes, "not in the manifest: taken as a clean flight"]
@@ -357,7 +357,8 @@ def example_traces(plan: FieldPlan, logs: list[FieldLog], trained: dict[str, Any
             seg, (t0, batches) = next(iter(inj.items()))
             b = batches[0]
             f = ekf_flights(fl.log, seg, config, [b])[0]
-            phase = phases(f.rows["t"].to_numpy(dtype=float), fl.log.events, log_height(fl.log), plan.phase)
+            phase = phases(f.rows["t"].to_numpy(dtype=float), fl.log.events, log_height(fl.log), plan.phase,
+                           log_impacts(fl.log))
             out.append(_trace(f"{m} on {fl.path.name} with a {float(b.magnitude[0]):.1f} m bias injected (green)",
                               fl, f.rows, phase, det, rate, (float(b.onset[0]) + t0, float(b.end[0]) + t0)))
             break

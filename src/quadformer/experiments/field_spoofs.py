@@ -19,7 +19,7 @@ import pandas as pd
 
 from quadformer.config import AttackConfig
 from quadformer.estimator.filter_config import FilterConfig
-from quadformer.logs.detect import log_height, step_alerts
+from quadformer.logs.detect import log_height, log_impacts, step_alerts
 from quadformer.logs.replay import ekf_flights
 
 if TYPE_CHECKING:
@@ -34,7 +34,7 @@ def log_alerts(fl: FieldLog, rows: pd.DataFrame, scores: np.ndarray, det, rate: 
     """The alerts of a log's scored rows, raised through the online step with the log's own flight
     phase and receiver health (as ``detect`` raises them)."""
     return step_alerts(rows, scores, det, "shape", rate, events=fl.log.events, receiver=fl.log.receiver,
-                       height=log_height(fl.log))
+                       height=log_height(fl.log), impacts=log_impacts(fl.log))
 
 
 

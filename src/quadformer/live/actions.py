@@ -146,11 +146,11 @@ class VehicleLink:
 
 
 class Records:
-    """``alerts.jsonl`` (one object per alarm start and end), ``fixes.csv`` (one line per
-    scored fix) and, once the vehicle sends them, ``autopilot_ratios.csv`` (one line per
-    EKF_STATUS_REPORT or ESTIMATOR_STATUS: the square roots of the autopilot's test ratios) in the
-    output directory, appended and flushed as they happen: nothing is kept in memory.
-    ``summary.json`` is written atomically at the end by the monitor.
+    """``alerts.jsonl`` (one object per alert event: start, end, confirmed type, relabelled
+    phase), ``fixes.csv`` (one line per scored fix) and, once the vehicle sends them,
+    ``autopilot_ratios.csv`` (one line per EKF_STATUS_REPORT or ESTIMATOR_STATUS: the square roots
+    of the autopilot's test ratios) in the output directory, appended and flushed as they happen:
+    nothing is kept in memory. ``summary.json`` is written atomically at the end by the monitor.
 
     Times are ``t``, seconds since the link's first sensor sample (as ``detect`` counts from its
     log's start), with ``boot_t``, the vehicle's time since boot, beside it: ``boot_time`` maps one to the

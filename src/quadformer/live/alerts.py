@@ -1,17 +1,19 @@
 """What the live monitor says and does about its decisions: the online step's alert events
-(``resilience.step.OnlineStep``: start, end, confirmed type) and the admission's transitions
+(``resilience.step.OnlineStep``: start, end, confirmed type, relabelled phase) and the admission's transitions
 (GPS excluded, re-admitted) become console lines, STATUSTEXTs to the vehicle, records in
 ``alerts.jsonl``, ``on_alert`` calls and, with ``act``, the EKF source set switch. The last
 ``MAX_ALERTS`` ended alerts are kept for the summary (all are in ``alerts.jsonl``), and every
 alert raised is counted by kind and flight phase (``detectors.alert_counts``: the headline, the
-spoofing alerts in the air, and the others beside it).
+spoofing alerts in the air, and the others beside it). An alert raised in the air shortly before
+a landing is relabelled when the landing is seen (``alert_relabel``: a console line and a record
+in ``alerts.jsonl``, nothing to the vehicle): the alerts kept and the counts take its new phase.
 
 Each alert says its kind (``spoofing``, or ``degraded``: raised while the receiver was degraded,
 or the receiver's degraded episode itself), its flight phase and its reason. Its STATUSTEXT
 (``statustext``) is at most 50 characters: ``GPS SPOOF ALERT <type> s=<score>`` (severity ALERT)
-with ``on ground`` or ``in takeoff`` outside the air and ``GPS excluded`` when the alert excluded
-GPS, or ``GPS DEGRADED: <reason>`` (severity WARNING, the reason's words before its
-parenthesis, e.g. ``fix lost``) with ``alarm <type>`` for a detector alarm raised then; what
+with ``on ground``, ``in takeoff`` or ``in landing`` outside the air and ``GPS excluded`` when the
+alert excluded GPS, or ``GPS DEGRADED: <reason>`` (severity WARNING, the reason's words before
+its parenthesis, e.g. ``fix lost``) with ``alarm <type>`` for a detector alarm raised then; what
 does not fit is left out, the score first."""
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from collections import Counter, deque
 from datetime import datetime, timezone
 from typing import Callable
 
-from quadformer.detectors.alarms import PHASE_WORDS, Alert, alert_counts
+from quadformer.detectors.alarms import Alert, alert_counts, phase_words
 from quadformer.live.actions import STATUSTEXT_MAX, Records, VehicleLink
 from quadformer.live.config import MonitorConfig
 from quadformer.live.status import STATES
@@ -45,16 +47,23 @@ def describe(a: Alert) -> str:
     receiver (fix lost (fix type 1)) on the ground"."""
     what = "spoofing" if a.kind == "spoofing" else "degraded receiver"
     why = f" ({a.reason})" if a.reason else ""
-    return f"{what}{why} {PHASE_WORDS.get(a.phase, a.phase)}"
+    return f"{what}{why} {phase_words(a.phase, a.reason)}"
+
+
+def short_phase(a: Alert) -> str | None:
+    """An alert's flight phase in a STATUSTEXT's words (None in the air)."""
+    if phase_words(a.phase, a.reason) == "in the landing transition":
+        return "in landing"
+    return SHORT_PHASE.get(a.phase)
 
 
 def statustext(a: Alert, score: float, exclusion: bool = False) -> str:
     """The STATUSTEXT of an alert's start (see the module text), at most ``STATUSTEXT_MAX``
     characters; ``exclusion``: GPS was excluded at this alert's fix."""
-    where = SHORT_PHASE.get(a.phase)
+    where = short_phase(a)
     excluded = "GPS excluded" if exclusion else None
     if a.kind == "degraded":
-        head = f"GPS DEGRADED: {(a.reason or 'receiver').split(' (')[0]}"
+        head = f"GPS DEGRADED: {(a.reason or 'receiver').split('; ')[0].split(' (')[0]}"
         alarm = None if episode(a) else f"alarm {a.attack_type}"
         parts = [(alarm, 2), (where, 1), (excluded, 3)]          # (text, the order they are left out in, last first)
     else:
@@ -126,12 +135,18 @@ class Alerting:
                      "wall_time": now.isoformat(timespec="milliseconds"), "unix_time": now.timestamp()}
             if ev.event == "alert_type":
                 event.update(start_s=a.start_s, attack_type=a.confirmed_type, raised_as=ev.raised_as)
-                self.alerts = deque((dataclasses.replace(b, confirmed_type=a.confirmed_type)
-                                     if b.flight_id == a.flight_id and b.start_s == a.start_s else b
-                                     for b in self.alerts), maxlen=MAX_ALERTS)
+                self._amend(a, confirmed_type=a.confirmed_type)
                 kind, raised = a.confirmed_type, ev.raised_as
                 self.echo(f"[t {ev.t:.1f} s] alert of t {a.start_s:.1f} s: type {kind}"
                           + (f" (raised as {raised})" if kind != raised else " confirmed"))
+            elif ev.event == "alert_relabel":
+                event.update(start_s=a.start_s, kind=a.kind, attack_type=a.attack_type, phase=a.phase, was=ev.was,
+                             reason=a.reason)
+                self._amend(a, phase=a.phase, reason=a.reason)
+                self.counts.subtract(alert_counts([dataclasses.replace(a, phase=ev.was)]))
+                self.counts.update(alert_counts([a]))
+                self.echo(f"[t {ev.t:.1f} s] alert of t {a.start_s:.1f} s: {phase_words(a.phase, a.reason)}, "
+                          f"not {phase_words(ev.was)} ({a.reason})")
             else:
                 value = a.score if ev.event == "alert_end" or episode(a) else float(score)
                 event.update(score=value if math.isfinite(value) else None, onset_s=a.onset_s,
@@ -148,6 +163,11 @@ class Alerting:
             if self.on_alert is not None:
                 self.on_alert(event)
 
+    def _amend(self, a: Alert, **changes) -> None:
+        """The kept alert of ``a``'s flight and start, changed."""
+        self.alerts = deque((dataclasses.replace(b, **changes) if b.flight_id == a.flight_id and b.start_s == a.start_s
+                             else b for b in self.alerts), maxlen=MAX_ALERTS)
+
     def _raised(self, a: Alert, score: float, exclusion: bool) -> None:
         """An alert raised: counted, and told to the vehicle."""
         self.n_alerts += 1
@@ -163,7 +183,7 @@ class Alerting:
         tail = f"segment {segment}, {STATES[state]}"
         if episode(a):
             what = "GPS DEGRADED" if ev.event == "alert_start" else "GPS degraded episode ended"
-            return f"[{when}] {what}: {a.reason}, {PHASE_WORDS.get(a.phase, a.phase)}, {tail}"
+            return f"[{when}] {what}: {a.reason}, {phase_words(a.phase, a.reason)}, {tail}"
         what = "ALERT" if ev.event == "alert_start" else "alert ended"
         return (f"[{when}] {what}: {a.attack_type}, score {score:.3g} (threshold {self.detector.threshold_:.3g}), "
                 f"{describe(a)}, {tail}")

@@ -1,5 +1,5 @@
 """What the live monitor knows of the flight beside its sensors: the vehicle's events, its GPS
-receiver's status reports and its height, fed to the online step's flight phase and receiver
+receiver's status reports, its height and the impacts in its IMU, fed to the online step's flight phase and receiver
 health (``detectors.flight_phase``, ``detectors.receiver_health``) in time order, as ``detect``
 feeds a log's (``logs.detect.step_alerts``), so that a flight's alerts get the same kind and
 phase live and offline. Only the alerts' labels depend on them: the GPS admission does not.
@@ -16,7 +16,12 @@ From the followed vehicle's messages:
   link's time base; a report stamped at or before the previous one (a duplicate) is dropped;
 - heights: the barometer the intake uses; on a link without a barometer, the altitude of the
   GPS fixes. A barometer first heard after GPS heights is shifted onto the GPS altitude's datum
-  there, so the change of datum is no climb.
+  there, so the change of datum is no climb;
+- impacts: every IMU sample the intake accepts goes through ``detectors.impact.ImpactDetector``
+  (a 50 ms running mean of the specific force: a few float operations per sample); only an
+  impact it finds is queued, at the sample's time. A landing the phase declares from an
+  impact, a height or an event relabels the segment's alerts raised in the air before it
+  (``alert_relabel`` events, returned by ``feed`` with the receiver's).
 
 Beside them, the autopilot's own evidence: its innovation test ratios (``EKF_STATUS_REPORT``,
 ``ESTIMATOR_STATUS``; ``sensors.mavlink.estimator_ratios``), counted with the last and the largest
@@ -25,7 +30,7 @@ are not fed to the step: nothing scores them yet.
 
 Order. The step scores a fix's row once the IMU has passed the fix, and the other messages
 arrive around it, so the inputs wait in a queue sorted by time (at equal times: events,
-reports, heights, the order of ``step_alerts``) and are fed to the segment's step: before each
+reports, heights, impacts, the order of ``step_alerts``) and are fed to the segment's step: before each
 row, those at or before the row's time; between rows, those before the watermark: the latest
 receiver report (the GPS stream has passed them) or, while the GPS is silent, the link's latest
 ``t`` less ``stale_s``, but never at or after a fix still waiting for its row. A lost fix thus
@@ -43,26 +48,28 @@ from typing import Any
 
 from quadformer.detectors.alarms import AlertEvent
 from quadformer.detectors.flight_phase import FlightPhase
+from quadformer.detectors.impact import ImpactDetector
 from quadformer.resilience.step import OnlineStep
 from quadformer.sensors.mavlink import EstimatorRatios, GpsStatus, VehicleEvents
 
 __all__ = ["MAX_PENDING", "FlightState"]
 
 MAX_PENDING = 2000                         # inputs queued at most
-RANK = {"event": 0, "report": 1, "height": 2}       # order at equal times, as step_alerts feeds a log's
+RANK = {"event": 0, "report": 1, "height": 2, "impact": 3}   # order at equal times, as step_alerts feeds a log's
 REPORT = ("fix_type", "satellites", "eph", "epv", "speed_acc")   # the fields of a GpsStatus the health reads
 RATIOS = ("vel", "pos_horiz", "pos_vert", "mag")    # the test ratios (square roots) the summary keeps
 
 
 class FlightState:
-    """The vehicle's events, receiver reports and heights of one link, queued and fed to the
-    segments' online steps (see the module text). ``phase``: the flight phase, one for the
-    link, shared by its segments' steps; ``counts``: events by name, reports and heights taken,
-    inputs dropped."""
+    """The vehicle's events, receiver reports, heights and IMU impacts of one link, queued and fed
+    to the segments' online steps (see the module text). ``phase``: the flight phase, one for the
+    link, shared by its segments' steps; ``impacts``: the IMU's impact detector; ``counts``:
+    events by name, reports, heights and impacts taken, inputs dropped."""
 
     def __init__(self, stale_s: float = 1.0, max_pending: int = MAX_PENDING):
         self.stale_s, self.max_pending = stale_s, max_pending
         self.phase = FlightPhase()
+        self.impacts = ImpactDetector()
         self.vehicle_events = VehicleEvents(start="at the link's first report")
         self.pending: list[tuple[float, int, int, Any]] = []     # (t, rank, arrival, input)
         self.counts: Counter = Counter()
@@ -115,6 +122,17 @@ class FlightState:
             if math.isfinite(v) and not v <= self.max_ratios.get(k, -math.inf):
                 self.max_ratios[k] = v
 
+    def imu(self, t: float, x) -> bool:
+        """An IMU sample at t (``x``: specific force in m/s^2 first, as ``sensors.samples.Imu``);
+        whether it completed an impact (then queued)."""
+        ax, ay, az = x[:3].tolist()
+        imp = self.impacts.update(t, ax, ay, az)
+        if imp is None:
+            return False
+        self.counts["impacts"] += 1
+        self._queue(t, "impact", imp)
+        return True
+
     def _queue(self, t: float, kind: str, value: Any) -> None:
         item = (float(t), RANK[kind], self._arrivals, (kind, value))
         self._arrivals += 1
@@ -132,7 +150,8 @@ class FlightState:
 
     def feed(self, step: OnlineStep, until: float, inclusive: bool = True) -> list[AlertEvent]:
         """Feed ``step`` the inputs queued up to ``until`` (and the oldest beyond ``MAX_PENDING``),
-        in order; the alert events of the receiver's degraded episodes they open or close."""
+        in order; the alert events of the receiver's degraded episodes they open or close and of
+        the alerts a landing among them relabels."""
         events: list[AlertEvent] = []
         k, n = 0, len(self.pending)
         while k < n and (n - k > self.max_pending or self.pending[k][0] < until
@@ -142,8 +161,10 @@ class FlightState:
                 events += step.event(t, value)
             elif kind == "report":
                 events += step.receiver(t, **value)
+            elif kind == "height":
+                events += step.height(t, value)
             else:
-                step.height(t, value)
+                events += step.impact(t, value.crash, value.detail)
             k += 1
         del self.pending[:k]
         return events

@@ -7,9 +7,10 @@ segment (``live.segment``; ``detector.stream(1).update(row)`` -> the alarm ->
 ``resilience.Admission(["resilient"])``) -> actions (``live.alerts``: console, ``alerts.jsonl``,
 STATUSTEXT, and with ``act`` the EKF source set switch). Alerts say their kind and flight phase:
 the vehicle's events (HEARTBEAT arming, EXTENDED_SYS_STATE take-off and landing, STATUSTEXT GPS
-glitches and failsafes), every GPS status report (fix or not) and a height (the barometer, else
-the GPS altitude) feed the segment's flight phase and receiver health in time order
-(``live.flight_state``), as ``detect`` feeds a log's. Causal throughout; the only state is the
+glitches and failsafes), every GPS status report (fix or not), a height (the barometer, else
+the GPS altitude) and the impacts in the IMU (a landing's or a crash's) feed the segment's flight
+phase and receiver health in time order (``live.flight_state``), as ``detect`` feeds a log's; a
+landing relabels the alerts raised in the air before it (``alert_relabel``). Causal throughout; the only state is the
 residue stream's, the detector stream's (a recursion or ring buffers), the admission's,
 fixed-size counters, a fixed-size latency histogram (``live.status``) and the last fixes the
 attack typer reads (``detectors.attack_types``; ``typing="shape"``: an alert's type is the shape

@@ -1,7 +1,8 @@
 """The live monitor's pipeline: one MAVLink message in, samples fed to the segment, its rows
 scored, alert events and fix records out. ``Pipeline`` is the base of ``live.monitor.Monitor``
-and holds what it does per message (``process``: routing by kind, the vehicle's events and
-receiver reports to ``live.flight_state``, samples through ``live.intake`` to the segment), per
+and holds what it does per message (``process``: routing by kind, the vehicle's events,
+receiver reports, heights and IMU samples (for impacts) to ``live.flight_state``, samples
+through ``live.intake`` to the segment), per
 residue row (score, admission, ``FixRecord``) and per segment (a restart, an IMU gap or an error
 ends one and starts the next); the autopilot's own test ratios (EKF_STATUS_REPORT,
 ESTIMATOR_STATUS) are recorded beside, not scored; ``Monitor`` sets the state up in ``__init__``
@@ -181,7 +182,8 @@ class Pipeline:
         self._labelled(seg, self.flight.feed(seg.step, until, inclusive=False))
 
     def _labelled(self, seg: Segment, events: list) -> None:
-        """The alert events of the receiver's degraded episodes, between fixes."""
+        """The alert events of the receiver's degraded episodes and of the alerts a landing
+        relabels, between fixes."""
         if events:
             self.alerting.events(events, seg.index, seg.last_score, seg.state)
 
@@ -205,6 +207,7 @@ class Pipeline:
             self.flight.height(t, s.alt, stream)
             self._advance()
         if stream == "imu":
+            self.flight.imu(t, s.x)          # an impact is queued, fed in time order with the rows
             self._imu(seg, t, s.x, t_in)
         elif stream != "attitude" and not seg.fusable(stream, t):
             self.dropped[f"{stream}_without_imu"] += 1       # could never be fused; would only queue

@@ -136,7 +136,7 @@ def summary_text(s: dict[str, Any]) -> str:
         f"({s['messages_per_s']:.0f}/s)",
         f"  messages: {msgs or 'none'}",
         f"  fixes scored {s['fixes_scored']}, spoofing alerts in the air {s['alerts']} (beside them "
-        f"{s['alerts_ground']} on the ground, {s['alerts_transition']} in the take-off transition, "
+        f"{s['alerts_ground']} on the ground, {s['alerts_transition']} in a take-off or landing transition, "
         f"{s['alerts_degraded']} of a degraded receiver), segments {s['segments']}, errors {s['errors']}",
         f"  state at the end: {s['state']}; t counts from the link's first sensor sample, at "
         + (f"{s['time']['first_sample_boot_s']:.3f} s after the vehicle's boot"

@@ -127,8 +127,11 @@ def detect_log(log: FlightLog | str | Path, detector=None, residues: str = "ekf"
             f"of this log do not provide (they hold {', '.join(have) or 'nothing'}); {fix}")
     scores = detector.decision_function(rows)
     alarms = scores > detector.threshold_
+    impacts = log_impacts(log)
+    if impacts is not None and len(impacts):
+        notes = [*notes, impacts_note(impacts)]
     alerts = step_alerts(rows, scores, detector, typing, config.gps_rate_hz, events=log.events,
-                         receiver=log.receiver, height=log_height(log))
+                         receiver=log.receiver, height=log_height(log), impacts=impacts)
     return LogDetection(log, residues, rows, scores, alarms, alerts, flights[0].sensors, detector, notes)
 
 
@@ -147,9 +150,26 @@ def shipped_for(log: FlightLog, residues: str = "ekf", threshold: str = "budget"
     return det, (FilterConfig.matching(sim, **over) if sim else FilterConfig(**over))
 
 
+def log_impacts(log: FlightLog) -> pd.DataFrame | None:
+    """The impacts in the log's IMU (``detectors.impact.impacts``: columns t, event, detail, g,
+    crash), for its flight phase's landings; None without an IMU."""
+    from quadformer.detectors.impact import impacts
+
+    return impacts(log.imu) if log.imu is not None and len(log.imu) else None
+
+
+def impacts_note(impacts: pd.DataFrame, most: int = 8) -> str:
+    """The impacts of a log in a note: ``imu: 2 impact(s) at 19.9 s (impact: 3.3 g), ...``."""
+    listed = ", ".join(f"{r.t:.1f} s ({r.detail})" for r in impacts.head(most).itertuples())
+    more = f" and {len(impacts) - most} more" if len(impacts) > most else ""
+    return (f"imu: {len(impacts)} impact(s) at {listed}{more}; a crash, or an impact near the ground, is a landing "
+            "(its 10 s before and 5 s after are a transition)")
+
+
 def step_alerts(rows: pd.DataFrame, scores: np.ndarray, detector, typing: str = "shape",
                 gps_rate_hz: float = FilterConfig.gps_rate_hz, events: pd.DataFrame | None = None,
-                receiver: pd.DataFrame | None = None, height: pd.DataFrame | None = None) -> list:
+                receiver: pd.DataFrame | None = None, height: pd.DataFrame | None = None,
+                impacts: pd.DataFrame | None = None) -> list:
     """The alerts of ``rows`` (flights by ``flight_id``) scored in one batch (``scores``): each
     flight's rows driven through the online step (``resilience.step.OnlineStep``) that the live
     monitor and the closed loop drive, so its alert lifecycle, onsets and shape typing are the
@@ -157,12 +177,15 @@ def step_alerts(rows: pd.DataFrame, scores: np.ndarray, detector, typing: str = 
 
     With the vehicle's ``events`` (columns t, event, detail), the receiver's status reports
     (``receiver``: columns t, fix_type and any of satellites, eph, epv, speed_acc, jamming, noise,
-    spoofing) or ``height`` (columns t, h), each flight's step gets a ``FlightPhase`` and a
-    ``ReceiverHealth`` that label its alerts, and they are fed, in time order (at equal times:
-    events, reports, heights), everything up to each row's time before that row; what remains
-    after a flight's last row (up to the next flight's first row, or the end) before its
-    ``finish``. A flight's phase is fed the log from its start; its health from its first row
-    (the first flight's from the log's start), so a degraded episode is raised by one flight only."""
+    spoofing), ``height`` (columns t, h) or ``impacts`` (columns t, crash, detail:
+    ``log_impacts``), each flight's step gets a ``FlightPhase`` and a ``ReceiverHealth`` that
+    label its alerts, and they are fed, in time order (at equal times: events, reports, heights,
+    impacts), everything up to each row's time before that row; what remains after a flight's
+    last row (up to the next flight's first row, or the end) before its ``finish``. A flight's
+    phase is fed the log from its start; its health from its first row (the first flight's from
+    the log's start), so a degraded episode is raised by one flight only. A landing relabels the
+    alerts raised in the air in its ``land_s`` before (``OnlineStep``), so they end as
+    ``transition``, as ``flight_phase.phases`` labels those steps."""
     from quadformer.detectors import flight_slices
     from quadformer.detectors.alarms import onset_flags
     from quadformer.detectors.attack_types import TYPING_COLUMNS, OnlineTyper, alert_typer
@@ -171,8 +194,8 @@ def step_alerts(rows: pd.DataFrame, scores: np.ndarray, detector, typing: str = 
     from quadformer.detectors.streams import ScoredStream
     from quadformer.resilience.step import OnlineStep
 
-    labelled = any(f is not None for f in (events, receiver, height))
-    _check_columns(events, receiver, height)
+    labelled = any(f is not None for f in (events, receiver, height, impacts))
+    _check_columns(events, receiver, height, impacts)
     alarms = np.asarray(scores) > detector.threshold_
     if not alarms.any() and receiver is None and events is None:    # nothing can raise an alert
         return []
@@ -185,7 +208,8 @@ def step_alerts(rows: pd.DataFrame, scores: np.ndarray, detector, typing: str = 
     # the raw GPS innovation: whether the fix moves against the IMU (a receiver's capture)
     typed += [c for c in GROUPS["res_gps_r"].columns if c in rows.columns and c not in typed]
     t = rows["t"].to_numpy(dtype=float)
-    items = list(timeline(("events", events), ("receiver", receiver), ("height", height))) if labelled else []
+    items = list(timeline(("events", events), ("receiver", receiver), ("height", height),
+                          ("impacts", impacts))) if labelled else []
     fields = [c for c in REPORT_FIELDS if receiver is not None and c in receiver.columns]
     slices = flight_slices(rows)
     starts = sorted(t[idx[0]] for _, idx in slices)
@@ -219,17 +243,22 @@ def _feed(step, pending: deque, until: float, before: float, fields: list[str], 
                 step.phase.event(ti, str(row["event"]))
             elif name == "height":
                 step.phase.update(ti, float(row["h"]))
+            elif name == "impacts":
+                step.phase.impact(ti, bool(row["crash"]), str(row.get("detail", "impact")))
         elif name == "events":
             step.event(ti, str(row["event"]))
         elif name == "receiver":
             step.receiver(ti, **{c: row[c] for c in fields})
-        else:
+        elif name == "height":
             step.height(ti, float(row["h"]))
+        else:
+            step.impact(ti, bool(row["crash"]), str(row.get("detail", "impact")))
 
 
-def _check_columns(events: pd.DataFrame | None, receiver: pd.DataFrame | None, height: pd.DataFrame | None) -> None:
+def _check_columns(events: pd.DataFrame | None, receiver: pd.DataFrame | None, height: pd.DataFrame | None,
+                   impacts: pd.DataFrame | None = None) -> None:
     for name, frame, need in (("events", events, ("t", "event")), ("receiver", receiver, ("t", "fix_type")),
-                              ("height", height, ("t", "h"))):
+                              ("height", height, ("t", "h")), ("impacts", impacts, ("t", "crash"))):
         if frame is not None and not set(need) <= set(frame.columns):
             raise ValueError(f"{name}: columns {', '.join(c for c in need if c not in frame.columns)} missing "
                              f"(has {', '.join(map(str, frame.columns)) or 'none'})")

@@ -5,7 +5,7 @@ Per log, a folder (named after the log; replaced whole, never left half written)
 the log's first sensor sample, as the live monitor counts, ``boot_t`` the vehicle's time since
 boot beside it), ``alerts.csv`` (each alert with its kind, flight phase and reason),
 ``report.html`` and ``summary.json`` (the alerts counted apart, ``detectors.alert_counts``:
-``alerts`` the spoofing alerts in the air, those on the ground, in the take-off transition and
+``alerts`` the spoofing alerts in the air, those on the ground, in a take-off or landing transition and
 of a degraded receiver beside it, and all of them); a readable log with
 nothing to score gets ``report.html`` and ``summary.json`` saying why. Over the logs scored: ``summary.csv`` (a
 row per log) and ``alerts.csv`` (every alert, with its ``log``).

@@ -157,7 +157,7 @@ def write_field_report(results: dict[str, Any], per_log: pd.DataFrame, injection
              "simulation only (fleet noise from the clean logs); thresholds: the simulation's (<i>sim</i>) and "
              f"calibrated on the other clean logs at {results['plan']['budget_per_hour']:g} false alarm per "
              "in-air hour (<i>calibrated</i>, the scored log left out). Alerts are counted in air; ground and "
-             "take-off transition alerts, and alerts typed <i>degraded</i> (the receiver's own signs), apart.</p>"]
+             "take-off or landing transition alerts, and alerts typed <i>degraded</i> (the receiver's own signs), apart.</p>"]
     figs = []
     if len(fa):
         figs.append(false_alarm_figure(fa))

@@ -19,6 +19,11 @@ driver owns only its clock and its I/O. Per step, for ``n`` flights stepped toge
    while the receiver is degraded, else ``spoofing``. The receiver's own spoofing flag raises a
    spoofing alert (reason ``receiver reports spoofing``) without a detector alarm, and its
    degraded episodes are alerts of their own (``OnlineStep.alerts`` holds both, by time).
+6. a landing (the ``landed`` or ``disarmed`` event, the height's touchdown, or an impact fed to
+   ``impact``: ``detectors.flight_phase``) comes after the alerts raised in the air in its
+   ``land_s`` before: the step keeps those alerts and, when the phase declares the landing,
+   relabels them ``transition`` with the landing's reason (``alert_relabel`` events, returned by
+   the call that fed the landing), so a flight's alerts end with the phases ``phases`` gives.
 
 Offline scoring of a whole log (``logs.detect``) computes the same scores in one batch (every
 detector's stream equals its ``decision_function``) and runs the same ``AlertTracker`` over
@@ -34,7 +39,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
-from quadformer.detectors.alarms import AlertEvent, AlertTracker
+from quadformer.detectors.alarms import AlertEvent, AlertTracker, with_reason
 from quadformer.detectors.attack_types import OnlineTyper
 from quadformer.detectors.flight_phase import FlightPhase
 from quadformer.detectors.receiver_health import SPOOFED, ReceiverHealth
@@ -50,6 +55,8 @@ MAX_PENDING = 100          # alerts awaiting their confirmed type (one per alarm
 CAPTURE_SPEED = 1.0
 #: ... or a horizontal position innovation of this many m
 CAPTURE_JUMP = 3.0
+MAX_RECENT = 200           # alerts raised in the air a landing may still relabel
+TRACKER, HEALTH = 0, 1     # who holds an alert the step may relabel
 
 
 @dataclass(frozen=True)
@@ -116,6 +123,7 @@ class OnlineStep:
         self.phase, self.health = phase, health
         self.tracker = AlertTracker(self.n, flight_ids, keep=keep)
         self.pending: deque[tuple[float, str]] = deque(maxlen=MAX_PENDING)
+        self.recent: deque[tuple[float, int]] = deque(maxlen=MAX_RECENT)   # (start_s, holder) raised in the air
         self._zeros = np.zeros(self.n)
         self._quiet = np.zeros(self.n, dtype=bool)
 
@@ -157,7 +165,10 @@ class OnlineStep:
                 if raised[0] and self.tracker.open[0] is None:
                     kinds = np.array([self.typer.type_now()], dtype=object)
                     self.pending.append((t0, str(kinds[0])))
-        events += self.tracker.update(t, score, raised, kinds, above, **label)
+        started = self.tracker.update(t, score, raised, kinds, above, **label)
+        if self.phase is not None:
+            self._watch(started, TRACKER)
+        events += started
         if self.typer is not None:          # the open alert's type (raised with the typer's)
             a = self.tracker.open[0]
             kinds = np.array([None if a is None else a.attack_type], dtype=object)
@@ -185,6 +196,9 @@ class OnlineStep:
         makes it ``spoofing``, reason ``capture: ...``; an accuracy jump without that motion
         stays ``degraded``."""
         label: dict[str, Any] = {"phase": self._phase_at(t)}
+        landing = None if self.phase is None else self.phase.reason(t)
+        if landing is not None:
+            label["reason"] = landing
         events = []
         if self.health is not None:
             events = self.health.tick(t)
@@ -193,32 +207,98 @@ class OnlineStep:
             move = moving(cols) if sign is not None else None
             if self.health.spoof_flag(t):
                 alarm = np.ones(1, dtype=bool)
-                label.update(kind="spoofing", reason=SPOOFED)
+                label.update(kind="spoofing", reason=with_reason(SPOOFED, landing))
             elif move is not None and self.health.degraded_by(t) not in ("fix", "autopilot"):
-                label.update(kind="spoofing", reason=f"capture: {sign}; {move}")
+                label.update(kind="spoofing", reason=with_reason(f"capture: {sign}; {move}", landing))
             elif why is not None:
-                label.update(kind="degraded", reason=why)
+                label.update(kind="degraded", reason=with_reason(why, landing))
         return alarm, label, events
 
     def _phase_at(self, t: float) -> str:
         return "air" if self.phase is None else self.phase.update(t)
 
+    def _health_label(self, t: float) -> dict[str, Any]:
+        """What a degraded episode opened at t is labelled with: the phase, and a landing's reason."""
+        if self.phase is None:
+            return {"phase": "air"}
+        return {"phase": self.phase.update(t), "phase_reason": self.phase.reason(t)}
+
     def event(self, t: float, kind: str) -> list[AlertEvent]:
         """One of the vehicle's events at t (``flight_phase.VEHICLE_EVENTS``,
         ``receiver_health.GPS_EVENTS``; others are ignored) fed to the phase and the health;
-        returns the events of the degraded episodes it opens or closes."""
+        returns the events of the degraded episodes it opens or closes and of the alerts a
+        landing it declares relabels."""
+        events = []
         if self.phase is not None:
             self.phase.event(t, kind)
-        return [] if self.health is None else self.health.event(t, kind, phase=self._phase_at(t))
+            events = self._landed()
+        if self.health is not None:
+            opened = self.health.event(t, kind, **self._health_label(t))
+            self._watch(opened, HEALTH)
+            events += opened
+        return events
 
     def receiver(self, t: float, **report) -> list[AlertEvent]:
         """One status report of the receiver at t (``ReceiverHealth.report``'s fields) fed to the
         health; returns the events of the degraded episodes it opens or closes."""
-        return [] if self.health is None else self.health.report(t, **report, phase=self._phase_at(t))
+        if self.health is None:
+            return []
+        events = self.health.report(t, **report, **self._health_label(t))
+        self._watch(events, HEALTH)
+        return events
 
-    def height(self, t: float, h: float) -> str:
-        """A height sample at t (m, any datum) fed to the flight phase; the phase at t."""
-        return self._phase_at(t) if self.phase is None else self.phase.update(t, h)
+    def height(self, t: float, h: float) -> list[AlertEvent]:
+        """A height sample at t (m, any datum) fed to the flight phase; returns the events of the
+        alerts a landing it declares (the height's touchdown) relabels."""
+        if self.phase is None:
+            return []
+        self.phase.update(t, h)
+        return self._landed()
+
+    def impact(self, t: float, crash: bool = False, how: str = "impact") -> list[AlertEvent]:
+        """An impact at t (``detectors.impact``: ``crash``, ``how`` in words) fed to the flight
+        phase; returns the events of the alerts it relabels where it counts as a landing."""
+        if self.phase is None:
+            return []
+        self.phase.impact(t, crash, how)
+        return self._landed()
+
+    def _watch(self, events: list[AlertEvent], holder: int) -> None:
+        """Keep the alerts raised in the air among ``events`` for a landing to relabel (and forget
+        those no landing can reach any more)."""
+        if self.phase is None:
+            return
+        for ev in events:
+            if ev.event == "alert_start" and ev.alert.phase == "air":
+                self.recent.append((ev.alert.start_s, holder))
+                self._forget(ev.alert.start_s)
+
+    def _forget(self, t: float) -> None:
+        """Drop the alerts raised before the earliest landing not yet declared at t can reach."""
+        horizon = self.phase.touchdown(t) - self.phase.rule.land_s
+        while self.recent and self.recent[0][0] < horizon:
+            self.recent.popleft()
+
+    def _landed(self) -> list[AlertEvent]:
+        """The alerts raised in the air within ``land_s`` before each landing the phase declared
+        since the last call, up to when it was seen, relabelled ``transition`` (their events); the
+        alerts no landing can reach any more forgotten."""
+        events = []
+        land_s = self.phase.rule.land_s
+        for landing in self.phase.pop_landings():
+            kept = deque(maxlen=MAX_RECENT)
+            for start, holder in self.recent:
+                if landing.t - land_s <= start < landing.seen_t:
+                    ev = (self.tracker.relabel(0, start, "transition", landing.reason, landing.seen_t)
+                          if holder == TRACKER else
+                          self.health.relabel(start, "transition", landing.reason, landing.seen_t))
+                    if ev is not None:
+                        events.append(ev)
+                else:
+                    kept.append((start, holder))
+            self.recent = kept
+            self._forget(landing.seen_t)
+        return events
 
     def _confirm(self, t: float | None) -> list[AlertEvent]:
         """Confirm the types of alerts raised ``confirm_s`` or more before t (all at the end, t None)."""
