@@ -16,6 +16,9 @@ Signs of degradation, and only these:
   ``eph_floor_m`` and more than ``eph_ratio`` times the median eph of the reports with a fix
   over the ``window_s`` before it, until the next report. The median takes in every report, so a
   lasting rise becomes the new normal after about half the window;
+- missed fixes: a report later than ``gap_ratio`` times the running median interval between
+  reports (and at least ``gap_min_s``), at that report: a receiver that skips its own solutions
+  is struggling (ArduPilot's GPS health checks the update interval too);
 - the autopilot's ``gps_glitch`` and ``gps_failsafe``, each until its ``_cleared`` event, and
   ``gps_lost`` at its time.
 
@@ -33,8 +36,9 @@ times its running median and ``speed_acc_floor``). ``capture_sign(t)`` gives the
 within ``capture_hold_s`` (None otherwise). It is evidence, not a verdict: the online step
 (``resilience.step``) calls a detector alarm raised with such a sign ``spoofing`` (reason
 ``capture: ...``) when the fix moves against the IMU at the same time (the raw innovation, which
-the receiver's inflated accuracy cannot normalise away), and ``degraded`` only for a lost fix or
-the autopilot's glitch or failsafe.
+the receiver's inflated accuracy cannot normalise away), whatever else the receiver or the
+autopilot says then (a capture may lose the lock for a moment, and the autopilot calls the jump
+a glitch); without a capture sign an alarm while the receiver is degraded stays ``degraded``.
 
 A degraded episode runs from its first sign to ``hold_s`` after its last, and is one ``Alert``
 of kind ``degraded`` (attack type ``none``, score NaN, reason the first sign's), given as an
@@ -79,10 +83,12 @@ class HealthRule:
     speed_acc_ratio: float = 2.5  # a speed accuracy above this many times its running median is a jump ...
     speed_acc_floor: float = 0.5  # ... and above this (m/s)
     capture_hold_s: float = 5.0  # s a capture sign stands after its report
+    gap_ratio: float = 2.0       # a report later than this many times the median interval: fixes missed ...
+    gap_min_s: float = 0.3       # ... when also at least this late (s)
 
     def __post_init__(self):
         for name in ("eph_ratio", "window_s", "eph_floor_m", "hold_s", "sat_drop", "noise_rise", "jamming_rise",
-                     "speed_acc_ratio", "speed_acc_floor", "capture_hold_s"):
+                     "speed_acc_ratio", "speed_acc_floor", "capture_hold_s", "gap_ratio", "gap_min_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"HealthRule.{name} must be a finite number >= 0, got {v!r}")
@@ -117,6 +123,8 @@ class ReceiverHealth:
         self._kind: str | None = None                      # what the last sign was: fix, accuracy, autopilot
         self._history: dict[str, deque] = {k: deque() for k in ("satellites", "noise", "jamming", "speed_acc")}
         self._capture: tuple[float, str] | None = None     # (t, reason) of the last capture sign
+        self._last_report = -math.inf                      # s, the last report's time
+        self._intervals: deque[tuple[float, float]] = deque()   # (t, interval) of the reports in the window
 
     # -- inputs ---------------------------------------------------------------------------
     def report(self, t: float, fix_type: float, satellites: float = math.nan, eph: float = math.nan,
@@ -136,6 +144,9 @@ class ReceiverHealth:
                 sign = f"fix lost (fix type {int(fix)})"
         elif math.isfinite(fix):
             self._had_fix = True
+        gap = self._gap(t)
+        if gap is not None and sign is None:
+            sign = gap
         if math.isfinite(e) and not (math.isfinite(fix) and fix < r.min_fix):
             while self._eph and self._eph[0][0] < t - r.window_s:
                 self._eph.popleft()
@@ -145,7 +156,7 @@ class ReceiverHealth:
                     sign = f"accuracy jump (eph {e:.1f} m, median {median:.1f} m)"
             self._eph.append((t, e))
         self._report = sign
-        self._kind_report = "fix" if sign is not None and sign.startswith("fix") else ("accuracy" if sign else None)
+        self._kind_report = None if sign is None else "accuracy" if sign.startswith("accuracy") else "fix"
         if math.isfinite(fix) and fix >= r.min_fix:
             capture = self._capture_signs(t, {"satellites": satellites, "noise": noise, "jamming": jamming,
                                               "speed_acc": speed_acc})
@@ -158,6 +169,26 @@ class ReceiverHealth:
         if sign is not None:
             events += self._sign(t, sign, phase, phase_reason)
         return events
+
+    def _gap(self, t: float) -> str | None:
+        """A report later than ``gap_ratio`` times the running median interval between reports
+        (and at least ``gap_min_s``): the receiver missed fixes (ArduPilot's GPS health likewise
+        checks the update interval)."""
+        r = self.rule
+        last, self._last_report = self._last_report, t
+        if not math.isfinite(last) or t <= last:
+            return None
+        dt = t - last
+        ivs = self._intervals
+        while ivs and ivs[0][0] < t - r.window_s:
+            ivs.popleft()
+        out = None
+        if len(ivs) >= 5:
+            m = float(np.median([v for _, v in ivs]))
+            if dt > r.gap_ratio * m and dt >= r.gap_min_s:
+                out = f"fixes missed ({dt:.2f} s since the last report, median {m:.2f} s)"
+        ivs.append((t, dt))
+        return out
 
     def _capture_signs(self, t: float, values: dict[str, float]) -> list[str]:
         """The capture signs of a report with a fix (see the module text), against the running
@@ -261,8 +292,8 @@ class ReceiverHealth:
 
     def _sign(self, t: float, reason: str, phase: str, phase_reason: str | None = None) -> list[AlertEvent]:
         self._last, self._reason = max(self._last, t), reason
-        self._kind = ("fix" if reason.startswith("fix") else "accuracy" if reason.startswith("accuracy")
-                      else "autopilot")
+        self._kind = ("fix" if reason.startswith(("fix lost", "fixes missed")) else "accuracy"
+                      if reason.startswith("accuracy") else "autopilot")
         if self.open is not None:
             return []
         self.open = Alert(self.flight_id, t, t, "none", math.nan, None, kind="degraded", phase=phase,

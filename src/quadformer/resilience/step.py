@@ -190,11 +190,11 @@ class OnlineStep:
         """The alarm the tracker raises on (the detector's, or the receiver's spoofing flag), what
         a new alert is labelled with, and the receiver's episodes the step's time closes.
 
-        A receiver degraded by a lost fix or by the autopilot's glitch or failsafe makes an alarm
-        ``degraded``. A capture sign of the receiver (its satellites, noise, jamming or accuracy
-        jumping: ``ReceiverHealth.capture_sign``) while the fix moves against the IMU (``moving``)
-        makes it ``spoofing``, reason ``capture: ...``; an accuracy jump without that motion
-        stays ``degraded``."""
+        A capture sign of the receiver (its satellites, noise, jamming or accuracy jumping:
+        ``ReceiverHealth.capture_sign``) while the fix moves against the IMU (``moving``) makes an
+        alarm ``spoofing``, reason ``capture: ...``, whatever else the receiver says (a capture may
+        lose the lock for a moment); otherwise a degraded receiver (a lost or missed fix, an
+        accuracy jump, the autopilot's glitch or failsafe) makes it ``degraded``."""
         label: dict[str, Any] = {"phase": self._phase_at(t)}
         landing = None if self.phase is None else self.phase.reason(t)
         if landing is not None:
@@ -208,7 +208,7 @@ class OnlineStep:
             if self.health.spoof_flag(t):
                 alarm = np.ones(1, dtype=bool)
                 label.update(kind="spoofing", reason=with_reason(SPOOFED, landing))
-            elif move is not None and self.health.degraded_by(t) not in ("fix", "autopilot"):
+            elif move is not None:
                 label.update(kind="spoofing", reason=with_reason(f"capture: {sign}; {move}", landing))
             elif why is not None:
                 label.update(kind="degraded", reason=with_reason(why, landing))
