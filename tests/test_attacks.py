@@ -373,7 +373,8 @@ def test_capture_pulls_off_with_the_matching_velocity_then_drifts():
         np.testing.assert_allclose(v, dp, atol=1e-6, err_msg=str(t))
     c = a.capture_s
     d_end = np.linalg.norm(_offsets(a, 10.0 + 2.0, 40)[0], axis=1)
-    np.testing.assert_allclose(d_end, a.magnitude + 0.5 * a.rate * c, atol=1e-9)   # the pull-off and the drift ramping in
+    # the pull-off, and the drift ramping in with it
+    np.testing.assert_allclose(d_end, a.magnitude + 0.5 * a.rate * c, atol=1e-9)
     speed = np.linalg.norm(_offsets(a, 11.0, 40)[1], axis=1)                       # mid pull-off: 1.5 M / C + rate / 2
     np.testing.assert_allclose(speed, 1.5 * a.magnitude / c + 0.5 * a.rate, atol=1e-9)
     np.testing.assert_allclose(np.linalg.norm(_offsets(a, 25.0, 40)[1], axis=1), a.rate, atol=1e-12)  # then drifts
@@ -439,7 +440,8 @@ def test_spoofed_reports_apply_the_capture_to_a_receiver_frame():
     assert set(np.unique(out["satellites"])) <= set(range(12))             # counts stay whole
     assert out["noise"].max() == np.round(100 * (1 + a.noise_rise[0]))
     lost = out["t"][out["fix_type"] == 1.0].to_numpy()
-    assert len(lost) and lost.min() >= 110.0 and lost.max() < 110.5 and (out["fix_type"][~out.t.isin(lost)] == 3.0).all()
+    assert len(lost) and lost.min() >= 110.0 and lost.max() < 110.5
+    assert (out["fix_type"][~out.t.isin(lost)] == 3.0).all()
     assert out["jamming"].isna().all()
     with pytest.raises(ValueError, match="one flight"):
         spoofed_reports(frame, _batch(AttackConfig(kind="capture"), B=2), 0.0)

@@ -62,7 +62,8 @@ def simulate(
         fail(str(e))
     atk = {"kind": attack, "fraction": attack_fraction, "onset": pair("--onset", onset),
            "duration": pair("--attack-duration", attack_duration), "magnitude": pair("--magnitude", magnitude),
-           "rate": pair("--rate", rate), "accel": pair("--accel", accel), "onset_step": onset_step, "axes": axes, "mix": mix.split(",") if mix is not None else None}
+           "rate": pair("--rate", rate), "accel": pair("--accel", accel), "onset_step": onset_step, "axes": axes,
+           "mix": mix.split(",") if mix is not None else None}
     fitted = None
     if noise_from:
         from quadformer.logs import LogError, read_log
