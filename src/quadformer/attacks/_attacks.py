@@ -195,6 +195,24 @@ class AttackBatch:
                 "fix_lost": on & (tau < np.where(cap, self.lock_loss_s, 0.0))}
 
 
+def inject_fixes(attack: AttackBatch, tau: np.ndarray, pos: np.ndarray, vel: np.ndarray, rate_hz: float):
+    """Recorded fixes spoofed by ``attack`` (one flight): ``attack.apply`` at each fix time tau
+    (s on the attack's clock, (n,)) on the fixes pos, vel (n, 3), their history the recorded
+    fixes (replay and freeze read it); ``rate_hz``: the fixes' rate, for a replay's delay.
+    Returns (pos, vel, label (n,) bool, d_pos (n, 3))."""
+    n = len(tau)
+    history = torch.as_tensor(np.c_[pos, vel])[None]
+    out_p, out_v = np.array(pos, dtype=float), np.array(vel, dtype=float)
+    label = np.zeros(n, dtype=bool)
+    d_pos = np.zeros((n, 3))
+    for j in range(n):
+        p, v, active, d, _ = attack.apply(float(tau[j]), j, torch.tensor(pos[j:j + 1]),
+                                          torch.tensor(vel[j:j + 1]), history, rate_hz)
+        out_p[j], out_v[j] = p[0].numpy(), v[0].numpy()
+        label[j], d_pos[j] = bool(active[0]), d[0]
+    return out_p, out_v, label, d_pos
+
+
 def concat_attacks(parts: list[AttackBatch]) -> AttackBatch:
     """The flights of several ``AttackBatch`` in one, in order (each flight keeps its kind)."""
     return AttackBatch(*(np.concatenate([getattr(p, f.name) for p in parts])

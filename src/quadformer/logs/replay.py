@@ -235,7 +235,7 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
     by its spoofed accuracies (eph, epv, speed accuracy; the other flights keep the log's), its
     rows' receiver columns (``RECEIVER``) from them, and the fixes its receiver lost not fused:
     flights that fuse different fixes are replayed as separate batches."""
-    from quadformer.attacks import spoofed_reports
+    from quadformer.attacks import inject_fixes, spoofed_reports
     from quadformer.estimator.online import CALL_ORDER, ResidueStream
 
     part = log.segment(seg) if len(log.segments) > 1 else log
@@ -278,7 +278,7 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
                        f"at least {config.min_segment_s:g} s (--min-segment)")
     pos, vel = gps[["x", "y", "z"]].to_numpy(), gps[["vx", "vy", "vz"]].to_numpy()
     fixes = [(pos, vel, np.zeros(len(gt), bool), np.zeros((len(gt), 3))) if a is None
-             else _inject(a, gt - gt[0], pos, vel, config.gps_rate_hz) for a in attacks]
+             else inject_fixes(a, gt - gt[0], pos, vel, config.gps_rate_hz) for a in attacks]
     # each flight's receiver: the log's, or its reports under the attack (a capture's accuracies,
     # satellites and lost lock); a fix the receiver lost is not fused
     receivers = [gps if a is None or not _changes_receiver(a) else spoofed_reports(gps, a, gt[0]) for a in attacks]
@@ -356,24 +356,6 @@ def _drive(stream, events: list, log: FlightLog, seg: int) -> list[dict[str, Any
     if not out:
         raise LogError(f"{log.path}: segment {seg}: no fix was fused (no IMU samples after the first fix?)")
     return out
-
-
-def _inject(attack, tau: np.ndarray, pos: np.ndarray, vel: np.ndarray, rate_hz: float):
-    """The spoofed fixes: ``attack`` (one flight) applied at each fix time tau (s from the
-    segment's first fix), on the logged fixes."""
-    import torch
-
-    n = len(tau)
-    history = torch.as_tensor(np.c_[pos, vel])[None]
-    out_p, out_v = pos.copy(), vel.copy()
-    label = np.zeros(n, dtype=bool)
-    d_pos = np.zeros((n, 3))
-    for j in range(n):
-        p, v, active, d, _ = attack.apply(float(tau[j]), j, torch.tensor(pos[j:j + 1]),
-                                          torch.tensor(vel[j:j + 1]), history, rate_hz)
-        out_p[j], out_v[j] = p[0].numpy(), v[0].numpy()
-        label[j], d_pos[j] = bool(active[0]), d[0]
-    return out_p, out_v, label, d_pos
 
 
 def residue_columns(rows: pd.DataFrame) -> list[str]:
