@@ -73,13 +73,15 @@ class AttackConfig:
 
     ``kind="mix"``: each attacked flight draws its kind uniformly from ``mix``, then its
     parameters from that kind's ranges: a range given here applies to every kind, one left
-    at None takes each kind's own default (``ranges(kind)``)."""
+    at None takes each kind's own default (``ranges(kind)``). The ranges only drift and capture
+    draw (``KIND_FIELDS``: accel, capture_s, lock_loss_s) stay None in a configuration none of
+    whose kinds draws them."""
     kind: str = "none"                                 # one of ATTACK_KINDS, or "mix"
     fraction: float = 0.5                              # share of flights attacked (one window each)
     onset: tuple[float, float] = (10.0, 40.0)          # s
     duration: tuple[float, float] | None = None        # s (per-kind default)
-    magnitude: tuple[float, float] | None = None       # m, offset norm (bias, sinusoid, intermittent)
-    rate: tuple[float, float] | None = None            # m/s, drift rate (ramp)
+    magnitude: tuple[float, float] | None = None       # m, offset norm (bias, sinusoid, intermittent, capture)
+    rate: tuple[float, float] | None = None            # m/s, drift rate (ramp, drift, capture)
     frequency: tuple[float, float] | None = None       # Hz (sinusoid)
     period: tuple[float, float] | None = None          # s, on/off period (intermittent)
     delay: tuple[float, float] | None = None           # s, replay delay
