@@ -291,3 +291,194 @@ def test_simulate_mix_cli_labels_each_flight_with_its_own_kind(tmp_path):
     res = CliRunner().invoke(app, ["simulate", "--attack", "mix", "--mix", "bias,jam", "--out", str(tmp_path / "x"),
                                    "--quiet"])
     assert res.exit_code == 2 and "attack.mix: unknown attack kind 'jam'" in res.output
+
+
+# -- drift and capture ------------------------------------------------------------------------
+
+def _offsets(a, t, B):
+    """(d_pos, d_vel, label) of batch ``a`` at time t (no history needed: neither kind reads it)."""
+    zero = torch.zeros(B, 3, dtype=torch.float64)
+    _, _, lab, d, dv = a.apply(float(t), 0, zero, zero, torch.zeros(B, 1, 6, dtype=torch.float64), 10.0)
+    return d, dv, lab
+
+
+def test_existing_kinds_draw_what_they_drew_before_drift_and_capture():
+    """Every kind that existed before draws the same values for the same seed: digests of the
+    draws recorded at the commit before drift and capture were added."""
+    import hashlib
+
+    recorded = {"bias": "e07a17c88abace19", "ramp": "01f7abb1fafc172e", "sinusoid": "acdc640113e31088",
+                "intermittent": "e4c9f6b2a152486a", "replay": "4834bacb8e1c799a", "freeze": "21de0ff1dffbde0c",
+                "mix": "ec763ec09c633d81"}
+    for kind, want in recorded.items():
+        gens = batch_generators(3, np.arange(40), Stream.SCENARIO)
+        a = sample_attacks(gens, AttackConfig(kind=kind), np.arange(40) % 3 != 0, 60.0)
+        h = hashlib.sha256()
+        for f in ("onset", "end", "magnitude", "rate", "frequency", "period", "delay", "direction"):
+            h.update(np.ascontiguousarray(getattr(a, f), dtype=np.float64).tobytes())
+        h.update("|".join(map(str, a.axes)).encode())
+        h.update("|".join(map(str, a.kind)).encode())
+        assert h.hexdigest()[:16] == want, kind
+
+
+def test_drift_switched_on_at_once_is_the_ramp():
+    """A drift with onset_step draws the ramp's onset, rate and direction and injects its offsets,
+    bit for bit."""
+    ramp = _batch(AttackConfig(kind="ramp"), B=60)
+    drift = _batch(AttackConfig(kind="drift", onset_step=True), B=60)
+    for f in ("onset", "end", "rate", "direction", "axes"):
+        assert np.array_equal(getattr(ramp, f), getattr(drift, f)), f
+    assert drift.onset_step.all() and set(drift.kind) == {"drift"}
+    for t in (9.0, 15.3, 27.7, 41.2, 55.0, 69.0):
+        d1, v1, l1 = _offsets(ramp, t, 60)
+        d2, v2, l2 = _offsets(drift, t, 60)
+        assert np.array_equal(l1, l2) and np.array_equal(d1, d2) and np.array_equal(v1, v2), t
+
+
+def test_accelerating_drift_has_no_velocity_step_and_its_velocity_is_its_derivative():
+    a = _batch(AttackConfig(kind="drift", onset_step=False, onset=(10.0, 10.0), duration=(40.0, 40.0)), B=40)
+    assert not a.onset_step.any() and np.all((a.accel >= 0.05) & (a.accel <= 0.5))
+    assert np.all(a.direction[:, 2] == 0.0)                          # horizontal, as a ramp
+    h = 1e-4                                                         # s, central differences
+    for t in (10.0 + 2 * h, 10.5, 12.0, 14.0, 17.0, 25.0, 40.0, 49.9):
+        d, v, lab = _offsets(a, t, 40)
+        assert lab.all()
+        dp = (_offsets(a, t + h, 40)[0] - _offsets(a, t - h, 40)[0]) / (2 * h)
+        np.testing.assert_allclose(v, dp, atol=1e-6, err_msg=str(t))  # the offset's derivative
+        tau = t - 10.0
+        speed = np.linalg.norm(v, axis=1)
+        np.testing.assert_allclose(speed, np.minimum(a.accel * tau, a.rate), atol=1e-9)
+    _, v0, _ = _offsets(a, 10.0, 40)
+    assert np.all(v0 == 0.0)                                         # no step at the onset
+    # s = accel tau^2 / 2 until the rate is reached, then linear at the rate
+    tau = 30.0
+    top = a.rate / a.accel
+    want = np.where(tau < top, 0.5 * a.accel * tau ** 2, 0.5 * a.rate * top + a.rate * (tau - top))
+    np.testing.assert_allclose(np.linalg.norm(_offsets(a, 10.0 + tau, 40)[0], axis=1), want, atol=1e-9)
+    # None: each flight draws its onset style, about half each
+    mixed = _batch(AttackConfig(kind="drift"), B=400)
+    assert 0.4 < mixed.onset_step.mean() < 0.6
+
+
+def test_capture_pulls_off_with_the_matching_velocity_then_drifts():
+    a = _batch(AttackConfig(kind="capture", onset=(10.0, 10.0), duration=(30.0, 30.0)), B=40)
+    assert np.all((a.magnitude >= 5.0) & (a.magnitude <= 15.0)) and np.all((a.rate >= 0.5) & (a.rate <= 3.0))
+    assert np.all(a.capture_s == 2.0) and np.all((a.lock_loss_s >= 0.0) & (a.lock_loss_s <= 0.6))
+    assert np.all(a.direction[:, 2] == 0.0)
+    h = 1e-4
+    for t in np.arange(10.0 + 2 * h, 39.9, 0.137):
+        d, v, lab = _offsets(a, t, 40)
+        dp = (_offsets(a, t + h, 40)[0] - _offsets(a, t - h, 40)[0]) / (2 * h)
+        # position and velocity agree: the central difference's error is h^2 |d'''| / 6 < 1e-6 m/s
+        np.testing.assert_allclose(v, dp, atol=1e-6, err_msg=str(t))
+    c = a.capture_s
+    d_end = np.linalg.norm(_offsets(a, 10.0 + 2.0, 40)[0], axis=1)
+    # the pull-off, and the drift ramping in with it
+    np.testing.assert_allclose(d_end, a.magnitude + 0.5 * a.rate * c, atol=1e-9)
+    speed = np.linalg.norm(_offsets(a, 11.0, 40)[1], axis=1)                       # mid pull-off: 1.5 M / C + rate / 2
+    np.testing.assert_allclose(speed, 1.5 * a.magnitude / c + 0.5 * a.rate, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(_offsets(a, 25.0, 40)[1], axis=1), a.rate, atol=1e-12)  # then drifts
+    assert np.all(_offsets(a, 10.0, 40)[1] == 0.0)                                 # continuous at the onset
+
+
+def test_capture_receiver_effects_have_their_shapes():
+    B = 30
+    cfg = AttackConfig(kind="capture", onset=(10.0, 10.0), duration=(30.0, 30.0))
+    a = _batch(cfg, B=B)
+    t = np.arange(0.0, 45.0, 0.05)
+    fx = a.receiver_effects(t)
+    assert set(fx) == {"satellites", "eph", "epv", "speed_acc", "noise", "fix_lost"}
+    assert all(v.shape == (len(t), B) for v in fx.values())
+    before, after = t < 10.0, t >= 40.0
+    for k in ("satellites", "eph", "epv", "speed_acc", "noise"):
+        assert np.all(fx[k][before] == 1.0) and np.all(fx[k][after] == 1.0), k
+    assert not fx["fix_lost"][before | after].any()
+    sat = fx["satellites"]
+    np.testing.assert_allclose(sat.min(0), a.sat_share, atol=0.01)          # drop to about 45 %
+    assert np.all(sat.min(0) < 0.51) and np.all(sat.min(0) > 0.39)
+    deepest = t[np.argmin(sat, 0)]
+    assert np.all((deepest > 10.5) & (deepest < 13.0))                      # at the end of the pull-off
+    recovered = t[np.array([np.flatnonzero(sat[:, b] < 1.0).max() for b in range(B)])]
+    assert np.all(recovered <= 10.0 + 2.0 + a.recover_s + 0.05) and np.all(recovered - 12.0 <= 6.0)
+    for k, lo, hi in (("eph", 3.0, 4.5), ("speed_acc", 8.0, 14.0)):
+        peak = fx[k].max(0)
+        assert np.all((peak > lo - 0.05) & (peak <= hi)), k
+        inflated = (fx[k] > 2.0).sum(0) * 0.05                               # s above twice the clean value
+        assert np.all((inflated > 2.0) & (inflated < 7.0)), (k, inflated)
+    np.testing.assert_array_equal(fx["eph"], fx["epv"])
+    noise = fx["noise"]
+    assert np.all((noise.max(0) >= 1.3) & (noise.max(0) <= 1.4))            # +30 to +40 %
+    assert np.all(noise[(t > 13.0) & (t < 40.0)] == noise.max(0))           # while the spoofer transmits
+    lost = fx["fix_lost"].sum(0) * 0.05
+    assert np.all(lost <= 0.6 + 0.05) and np.all(np.abs(lost - a.lock_loss_s) <= 0.05 + 1e-9)
+    assert np.all(t[fx["fix_lost"].argmax(0)][lost > 0] >= 10.0)            # lost at the capture's start
+    # every other kind leaves the receiver alone; scalar time: one value per flight
+    b = _batch(AttackConfig(kind="drift", onset=(10.0, 10.0)), B=5)
+    fx = b.receiver_effects(12.0)
+    assert all(v.shape == (5,) for v in fx.values())
+    assert all(np.all(fx[k] == 1.0) for k in ("satellites", "eph", "speed_acc", "noise")) and not fx["fix_lost"].any()
+
+
+def test_spoofed_reports_apply_the_capture_to_a_receiver_frame():
+    import dataclasses
+
+    import pandas as pd
+
+    from quadformer.attacks import spoofed_reports
+
+    a = _flight(_batch(AttackConfig(kind="capture", onset=(10.0, 10.0), duration=(30.0, 30.0)), B=3), 0)
+    a = dataclasses.replace(a, lock_loss_s=np.array([0.5]))
+    t = np.arange(100.0, 150.0, 0.2)                                      # the frame's clock: the attack's + 100 s
+    frame = pd.DataFrame({"t": t, "fix_type": 3.0, "satellites": 11.0, "eph": 1.6, "epv": 2.5, "speed_acc": 0.3,
+                          "noise": 100.0, "jamming": np.nan})
+    out = spoofed_reports(frame, a, t0=100.0)
+    assert list(out.columns) == list(frame.columns) and (frame["satellites"] == 11.0).all()   # a new frame
+    fx = a.receiver_effects(t - 100.0)
+    np.testing.assert_allclose(out["eph"], 1.6 * fx["eph"][:, 0])
+    np.testing.assert_allclose(out["speed_acc"], 0.3 * fx["speed_acc"][:, 0])
+    assert out["satellites"].min() == np.round(11 * a.sat_share[0]) and out["satellites"].iloc[-1] == 11.0
+    assert set(np.unique(out["satellites"])) <= set(range(12))             # counts stay whole
+    assert out["noise"].max() == np.round(100 * (1 + a.noise_rise[0]))
+    lost = out["t"][out["fix_type"] == 1.0].to_numpy()
+    assert len(lost) and lost.min() >= 110.0 and lost.max() < 110.5
+    assert (out["fix_type"][~out.t.isin(lost)] == 3.0).all()
+    assert out["jamming"].isna().all()
+    with pytest.raises(ValueError, match="one flight"):
+        spoofed_reports(frame, _batch(AttackConfig(kind="capture"), B=2), 0.0)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"kind": "drift", "accel": (-0.1, 0.5)}, r"attack.accel: must be > 0 \(m/s\^2\), got \(-0.1, 0.5\)"),
+    ({"kind": "drift", "accel": (0.0, 0.5)}, "attack.accel: must be > 0"),
+    ({"kind": "capture", "capture_s": (0.0, 2.0)}, r"attack.capture_s: must be > 0 \(s\), got \(0.0, 2.0\)"),
+    ({"kind": "capture", "capture_s": (-1.0, -1.0)}, "attack.capture_s: must be > 0"),
+    ({"kind": "capture", "lock_loss_s": (-0.1, 0.3)}, "attack.lock_loss_s: must be >= 0 s"),
+    ({"kind": "capture", "capture_s": (0.5, 1.0)}, "attack.lock_loss_s: the fix must be back within the capture"),
+    ({"kind": "drift", "onset_step": "yes"}, "attack.onset_step: must be true, false or unset"),
+    ({"kind": "drift", "axes": "xz"}, "attack.axes: a drift drifts along a horizontal direction"),
+    ({"kind": "capture", "axes": "z"}, "attack.axes"),
+    ({"kind": "mix", "mix": ("bias", "capture"), "axes": "xyz"}, "attack.axes: a capture"),
+    ({"kind": "hijack"}, "attack.kind: unknown attack 'hijack'; choose from .*drift, capture"),
+    ({"kind": "mix", "mix": ("drift", "jam")}, "attack.mix: unknown attack kind 'jam'; choose from .*capture"),
+])
+def test_bad_drift_and_capture_settings_name_the_field(kwargs, message):
+    with pytest.raises(ConfigError, match=message):
+        AttackConfig(**kwargs)
+
+
+def test_drift_and_capture_in_a_mix_and_their_defaults():
+    from quadformer.config import MIX_KINDS
+
+    assert "drift" not in MIX_KINDS and "capture" not in MIX_KINDS          # the default mix is unchanged
+    cfg = AttackConfig(kind="mix", mix="bias,drift,capture")
+    assert cfg.accel is None and cfg.capture_s is None                       # per kind, from its own defaults
+    assert cfg.ranges("drift")["accel"] == (0.05, 0.5) and cfg.ranges("capture")["magnitude"] == (5.0, 15.0)
+    a = _batch(cfg, B=300)
+    assert set(a.kind) == {"bias", "drift", "capture"}
+    cap, drift = a.kind == "capture", a.kind == "drift"
+    assert np.all(np.isfinite(a.capture_s[cap])) and np.all(np.isnan(a.capture_s[~cap]))
+    assert np.all(np.isfinite(a.accel[drift])) and np.all(np.isnan(a.accel[~drift]))
+    assert np.all(a.direction[cap | drift, 2] == 0.0)
+    assert not a.onset_step[~drift].any()
+    # a single other kind leaves the new ranges unset (its cache key is the one it had)
+    assert AttackConfig(kind="bias").accel is None and AttackConfig(kind="drift").capture_s is None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -101,13 +102,17 @@ def test_field_benchmark_counts_false_alarms_degradation_and_injected_spoofs(fie
     assert sign["covered"] and sign["delay_s"] <= 0.2 and sign["sign_s"] == pytest.approx(12.0)
     for r in res["troubles"]:
         assert r["windows"] == 1 and r["in_window_degraded"] >= 1
-    # one bias and one ramp injected into each clean log, scored by each method at both thresholds
+    # one spoof of each kind injected into each clean log, scored by each method at both thresholds
     inj = pd.read_csv(out / "injections.csv")
-    assert len(inj) == 2 * 2 * 2 * 2 and set(inj["kind"]) == {"bias", "ramp"}
-    assert ((inj.loc[inj.kind == "bias", "size"] >= 1.0) & (inj.loc[inj.kind == "bias", "size"] <= 10.0)).all()
-    assert ((inj.loc[inj.kind == "ramp", "size"] >= 0.05) & (inj.loc[inj.kind == "ramp", "size"] <= 2.0)).all()
+    kinds = {"bias": (1.0, 10.0), "ramp": (0.05, 2.0), "drift": (0.2, 2.0), "drift-accel": (0.2, 2.0),
+             "capture": (5.0, 15.0)}
+    assert len(inj) == 5 * 2 * 2 * 2 and set(inj["kind"]) == set(kinds)
+    for kind, (lo, hi) in kinds.items():
+        size = inj.loc[inj.kind == kind, "size"]
+        assert ((size >= lo) & (size <= hi)).all(), kind
+    assert {r["kind"] for r in res["injection"]} == set(kinds)
     hit = inj[inj.detected]
-    assert (hit["delay_s"] >= 0).all()
+    assert (hit["delay_s"] >= 0).all() and (hit["offset_at_detection_m"] >= 0).all()
     # the tuned detectors are cached with the simulation they were fit on (detect replays with its tuning)
     from quadformer.detectors import load
 
@@ -129,3 +134,37 @@ def test_field_cli_refuses_what_it_cannot_run(tmp_path):
     res = run(app, ["benchmark", "--profile", "field", "--logs", str(FIX / "sim_copter.bin"), "--manifest",
                     str(tmp_path / "none.csv")])
     assert res.exit_code != 0 and "is not a file" in res.output
+
+
+def test_an_injected_capture_is_labelled_with_its_spoofed_receiver():
+    """A capture injected into a clean log: its alerts are labelled with the receiver's spoofed
+    reports (satellites dropping, eph inflating, the lock lost at its start), which raise a
+    degraded episode at the capture; the log's own clean reports raise none there."""
+    from quadformer.detectors import make
+    from quadformer.detectors.flight_phase import PhaseRule
+    from quadformer.estimator.filter_config import FilterConfig
+    from quadformer.experiments.field import FieldPlan, _with_threshold, replay_logs
+    from quadformer.experiments.field_spoofs import inject, log_alerts
+    from quadformer.logs import read_log
+
+    path = FIX / "sim_copter.bin"
+    log = read_log(path)
+    log = dataclasses.replace(log, receiver=log.receiver.assign(satellites=11.0))   # the writer logged none
+    (fl,), _ = replay_logs({path: log}, None, FilterConfig(), PhaseRule(), echo=lambda s: None)
+    plan = FieldPlan(("chi2",), injections=2, kinds=("capture",))
+    injected = inject(plan, fl, 0, FilterConfig())
+    assert len(injected) == 2 and {i.kind for i in injected} == {"capture"}
+    det = _with_threshold(make("chi2").fit(fl.rows), float("inf"))       # only the receiver raises alerts
+    for inj in injected:
+        rec, clean = inj.receiver, fl.log.receiver
+        during = (rec.t >= inj.onset) & (rec.t < inj.onset + 4.0)
+        assert rec.loc[during, "satellites"].min() < 0.55 * clean["satellites"].max()
+        assert rec.loc[during, "eph"].max() > 2.9 * clean["eph"].max()
+        assert (rec.loc[rec.t >= inj.onset + 10.0, "eph"] == clean.loc[rec.t >= inj.onset + 10.0, "eph"]).all()
+        spoofed = [a for a in log_alerts(fl, inj.rows, np.zeros(len(inj.rows)), det, 10.0, receiver=rec)
+                   if a.kind == "degraded" and inj.onset <= a.start_s < inj.onset + 4.0]
+        honest = [a for a in log_alerts(fl, inj.rows, np.zeros(len(inj.rows)), det, 10.0)
+                  if a.kind == "degraded" and inj.onset <= a.start_s < inj.onset + 4.0]
+        assert spoofed and not honest
+    with pytest.raises(ValueError, match="FieldPlan.kinds: unknown injection 'jam'"):
+        FieldPlan(("chi2",), kinds=("bias", "jam"))

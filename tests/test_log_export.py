@@ -277,3 +277,48 @@ def test_simulate_export_writes_the_logs_beside_the_same_dataset(tmp_path):
     assert res.exit_code == 2 and "unknown log format 'csv'" in res.output and "ulog, dataflash" in res.output
     assert not (tmp_path / "bad").exists()
     assert export_formats(["dataflash", "ulog,dataflash"]) == ("ulog", "dataflash")
+
+
+def test_an_exported_capture_carries_the_receivers_signature(tmp_path):
+    """A captured flight exported both ways: read back, its receiver stream shows the satellites
+    dropping and recovering, eph and speed accuracy inflating for seconds, the noise rising (PX4's
+    noise_per_ms; ArduPilot's GPS messages have no noise field) and the reports of the lost lock
+    (fix type 1, no fix in the gps stream); ``detect`` labels the alert at the capture degraded."""
+    out = tmp_path / "cap"
+    res = runner.invoke(app, ["simulate", "--flights", "1", "--duration", "16", "--attack", "capture", "--onset",
+                              "3,3", "--attack-fraction", "1", "--sensors", "gps+imu+mag+baro", "--seed", "2",
+                              "--set", "attack.lock_loss_s=[0.25, 0.25]", "--export", "ulog,dataflash",
+                              "--out", str(out), "--quiet"])
+    assert res.exit_code == 0, res.output
+    note = json.loads((out / "logs" / "flight_0000.attack.json").read_text())
+    assert note["attack_type"] == "capture" and note["lock_loss_s"] == 0.25 and 5.0 <= note["magnitude_m"] <= 15.0
+    onset = BOOT_T0 + note["onset_s"]
+    for suffix in (".ulg", ".bin"):
+        log = read_log(out / "logs" / f"flight_0000{suffix}")
+        rec = log.receiver.assign(t=log.receiver.t + log.boot_t0)          # the vehicle's clock
+        before, during = rec[rec.t < onset], rec[(rec.t >= onset) & (rec.t < onset + 4.0)]
+        after = rec[rec.t >= onset + 2.0 + note["recover_s"] + 0.1]
+        assert (before.satellites == 12).all() and (after.satellites == 12).all()
+        assert during.satellites.min() == round(12 * note["satellites_share"]) <= 6
+        assert during.eph.max() > 3.0 * before.eph.max() and (after.eph - before.eph.iloc[0]).abs().max() < 0.01
+        assert during.speed_acc.max() > 8.0 * before.speed_acc.max()
+        lost = rec[rec.fix_type < 2]
+        assert len(lost) == 3 and lost.t.min() == pytest.approx(onset, abs=0.1) and lost.t.max() < onset + 0.25
+        assert (rec.fix_type[rec.fix_type >= 2] == 3).all() and len(log.gps) == len(rec) - 3
+        assert not np.isin(np.round(log.gps.t + log.boot_t0, 3), np.round(lost.t, 3)).any()
+        if suffix == ".ulg":
+            assert (before.noise == 100).all() and during.noise.max() == round(100 * (1 + note["noise_rise"]))
+        else:
+            assert rec.noise.isna().all()
+    # detect: an alert at the capture is typed degraded (the receiver says its fix is lost or worse)
+    log = out / "logs" / "flight_0000.ulg"
+    flights, _ = log_rows(read_log(log), "ekf")
+    rows = pd.concat([f.rows for f in flights], ignore_index=True)
+    det = make("chi2").fit(rows[rows.t + read_log(log).boot_t0 < onset - 0.5])
+    det.calibrate(1e9, 1e9)                                               # only the receiver raises alerts
+    model = det.save(tmp_path / "chi2.json")
+    res = runner.invoke(app, ["detect", str(log), "--model", str(model), "--out", str(tmp_path / "det"), "--quiet"])
+    assert res.exit_code == 0, res.output
+    alerts = pd.read_csv(tmp_path / "det" / log.name / "alerts.csv")
+    deg = alerts[alerts.kind == "degraded"]
+    assert len(deg) and (deg.start_s.min() + read_log(log).boot_t0) == pytest.approx(onset, abs=0.2)

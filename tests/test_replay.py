@@ -176,3 +176,93 @@ def test_a_fix_before_the_imu_waits_and_the_filter_starts_at_the_vehicles_headin
         assert ("autopilot's attitude" in note) == (heading == "attitude")
         assert ("magnetic heading" in note) == (heading == "mag")
         assert "1 earlier fix(es) waited" in note
+
+
+# -- a log replayed with injected spoofs whose receivers report differently ------------------
+
+def _capture(onset: float = 20.0, **over):
+    """A one-flight capture at ``onset`` (s from the segment's first fix), seed 0."""
+    import dataclasses
+
+    from quadformer.attacks import sample_attacks
+    from quadformer.rng import Stream, batch_generators
+
+    a = sample_attacks(batch_generators(0, np.arange(1), Stream.SCENARIO),
+                       AttackConfig(kind="capture", onset=(onset, onset), duration=(30.0, 30.0), fraction=1.0),
+                       np.ones(1, bool), 60.0)
+    return dataclasses.replace(a, **{k: np.array([v]) for k, v in over.items()})
+
+
+@pytest.fixture(scope="module")
+def copter():
+    from pathlib import Path
+
+    from quadformer.logs import read_log
+
+    return read_log(Path(__file__).parent / "fixtures" / "logs" / "sim_copter.bin")
+
+
+def test_per_flight_accuracies_equal_the_shared_ones_when_the_flights_share_them(copter):
+    """``ekf_flights`` hands the filter one accuracy per flight when an injection changes its
+    receiver; when they all equal the log's (a capture whose receiver effects are neutral), the
+    clean flight's rows equal those of the call with the log's accuracies for every flight, and
+    ``ResidueStream.gps`` given (n,) arrays equals it given the shared scalars."""
+    import pandas as pd
+
+    from quadformer.estimator.filter_config import FilterConfig
+    from quadformer.estimator.online import ResidueStream
+    from quadformer.logs.replay import ekf_flights
+
+    neutral = _capture(eph_gain=1.0, speed_acc_gain=1.0, sat_share=1.0, noise_rise=0.0, lock_loss_s=0.0)
+    shared = ekf_flights(copter, 0, FilterConfig(), [None, None])
+    own = ekf_flights(copter, 0, FilterConfig(), [None, neutral])
+    pd.testing.assert_frame_equal(shared[0].rows, own[0].rows, check_exact=True)
+    assert (own[1].rows["gps_eph"] == copter.gps["eph"].iloc[0]).all()
+    # the stream itself: scalars and per-flight arrays of the same values
+    g, imu = copter.gps.iloc[:80], copter.imu
+    imu = imu[imu.t <= g.t.iloc[-1] + 0.05]
+    pos, vel, acc = (g[c].to_numpy() for c in (["x", "y", "z"], ["vx", "vy", "vz"], ["eph", "epv", "speed_acc"]))
+    x = imu[["ax", "ay", "az", "gx", "gy", "gz"]].to_numpy()
+    order = sorted([(t, 0, i) for i, t in enumerate(g.t)] + [(t, 1, i) for i, t in enumerate(imu.t)])
+    out = []
+    for per_flight in (False, True):
+        s = ResidueStream(FilterConfig(), "gps+imu", n=2)
+        rows = []
+        for t, kind, i in order:
+            if kind == 0:
+                s.gps(t, pos[i], vel[i], *(np.full(2, v) if per_flight else v for v in acc[i]))
+            else:
+                rows += s.imu(t, x[i])
+        out.append(rows + s.flush())
+    assert len(out[0]) == len(out[1]) > 50
+    for a, b in zip(*out):
+        assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k], equal_nan=True) for k in a)
+    with pytest.raises(ValueError, match=r"an accuracy shaped \(3,\), expected one value or \(2,\)"):
+        ResidueStream(FilterConfig(), "gps+imu", n=2).gps(0.0, np.zeros(3), np.zeros(3), np.ones(3), 1.0, 1.0)
+
+
+def test_an_injected_capture_replays_with_its_spoofed_receiver(copter):
+    """A capture injected into a log: its fixes weighted by the inflated accuracies (the
+    filter's predicted innovation std grows with them), its rows' receiver columns the spoofed
+    reports, the fixes its receiver lost not fused; the clean flight beside it unchanged."""
+    from quadformer.estimator.filter_config import FilterConfig
+    from quadformer.logs.replay import ekf_flights
+
+    a = _capture(lock_loss_s=0.25)
+    clean, spoofed = ekf_flights(copter, 0, FilterConfig(), [None, a])
+    alone = ekf_flights(copter, 0, FilterConfig(), [None])[0]
+    assert clean.rows.equals(alone.rows)
+    t0 = float(copter.gps["t"].iloc[0])
+    c, s = clean.rows, spoofed.rows
+    lost = (c.t - t0 >= 20.0) & (c.t - t0 < 20.25)
+    assert lost.sum() >= 2 and len(s) == len(c) - lost.sum() and not s.t.isin(c.t[lost]).any()
+    assert "lock" in spoofed.notes[-1]
+    peak = s.loc[(s.t - t0 > 20.0) & (s.t - t0 < 30.0)]
+    assert peak["gps_eph"].max() > 3.0 * copter.gps["eph"].iloc[0]
+    assert peak["gps_speed_acc"].max() > 8.0 * copter.gps["speed_acc"].iloc[0]
+    assert (s["gps_satellites"] <= c["gps_satellites"].max()).all()
+    ratio = (peak.set_index("t")["res_gps_s_px"] / c.set_index("t")["res_gps_s_px"]).dropna()
+    assert ratio.max() > 2.5                      # the filter weighs the inflated eph
+    after = s.t - t0 > 30.0                       # recovered: the log's accuracy again
+    assert np.allclose(s.loc[after, "gps_eph"], copter.gps["eph"].iloc[0])
+    assert set(s.attack_type[s.label == 1]) == {"capture"} and s.label[s.t - t0 < 20.0].eq(0).all()

@@ -29,7 +29,12 @@ def simulate(
     onset: Optional[str] = typer.Option(None, help="Attack onset range 'low,high' in s."),
     attack_duration: Optional[str] = typer.Option(None, help="Attack duration range 'low,high' in s."),
     magnitude: Optional[str] = typer.Option(None, help="Offset norm range 'low,high' in m."),
-    rate: Optional[str] = typer.Option(None, help="Ramp drift rate range 'low,high' in m/s."),
+    rate: Optional[str] = typer.Option(None, help="Drift rate range 'low,high' in m/s (ramp, drift, capture)."),
+    accel: Optional[str] = typer.Option(None, help="Drift acceleration range 'low,high' in m/s^2 while an "
+                                        "accelerating drift ramps in (drift; default 0.05,0.5)."),
+    onset_step: Optional[bool] = typer.Option(None, "--onset-step/--accelerating",
+                                              help="Drift: the velocity steps to the rate at the onset, or ramps in "
+                                              "at --accel (default: drawn per flight, half each)."),
     axes: Optional[str] = typer.Option(None, help="Fixed attacked axes, e.g. 'x' or 'xy'."),
     config: Optional[Path] = typer.Option(None, "--config", help="TOML file with any SimConfig fields."),
     noise_from: list[Path] = typer.Option([], "--noise-from", help="Clean flight log(s) whose GPS, IMU, "
@@ -57,7 +62,8 @@ def simulate(
         fail(str(e))
     atk = {"kind": attack, "fraction": attack_fraction, "onset": pair("--onset", onset),
            "duration": pair("--attack-duration", attack_duration), "magnitude": pair("--magnitude", magnitude),
-           "rate": pair("--rate", rate), "axes": axes, "mix": mix.split(",") if mix is not None else None}
+           "rate": pair("--rate", rate), "accel": pair("--accel", accel), "onset_step": onset_step, "axes": axes,
+           "mix": mix.split(",") if mix is not None else None}
     fitted = None
     if noise_from:
         from quadformer.logs import LogError, read_log

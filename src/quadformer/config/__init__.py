@@ -14,14 +14,15 @@ import dataclasses
 from dataclasses import dataclass, field, fields
 from typing import Any, Mapping
 
-from quadformer.config.base import (ATTACK_CHOICES, ATTACK_KINDS, MISSION_KINDS, MIX, MIX_KINDS, MODELS,
-                                    NOISE_SHAPES, SENSOR_CONFIGS, SENSOR_NAMES, ConfigError, _positive, _range,
-                                    _require, parse_sensors)
+from quadformer.config.base import (ATTACK_CHOICES, ATTACK_KINDS, MISSION_KINDS, MIX, MIX_KINDS, MIXABLE_KINDS,
+                                    MODELS, NOISE_SHAPES, SENSOR_CONFIGS, SENSOR_NAMES, SHAPE_KINDS, ConfigError,
+                                    _positive, _range, _require, parse_sensors)
 from quadformer.config.sensors import BaroConfig, GPSConfig, IMUConfig, MagConfig, VIOConfig
 
-__all__ = ["ATTACK_CHOICES", "ATTACK_KINDS", "MISSION_KINDS", "MIX", "MIX_KINDS", "MODELS", "NOISE_SHAPES",
-           "SENSOR_CONFIGS", "SENSOR_NAMES", "AttackConfig", "BaroConfig", "ConfigError", "EKFConfig", "GPSConfig",
-           "IMUConfig", "MagConfig", "MissionConfig", "SimConfig", "VIOConfig", "merge", "parse_sensors"]
+__all__ = ["ATTACK_CHOICES", "ATTACK_KINDS", "HORIZONTAL_KINDS", "KIND_FIELDS", "MISSION_KINDS", "MIX", "MIX_KINDS",
+           "MIXABLE_KINDS", "MODELS", "NOISE_SHAPES", "SENSOR_CONFIGS", "SENSOR_NAMES", "SHAPE_KINDS", "AttackConfig", "BaroConfig", "ConfigError", "EKFConfig", "GPSConfig",
+           "IMUConfig", "MagConfig", "MissionConfig", "SimConfig", "VIOConfig", "merge", "parse_sensors",
+           "unset_kind_fields"]
 
 
 @dataclass(frozen=True)
@@ -51,10 +52,19 @@ _ATTACK_DEFAULTS: dict[str, dict[str, tuple[float, float]]] = {
     "intermittent": {"duration": (10.0, 30.0), "magnitude": (1.5, 6.0), "period": (2.0, 6.0)},
     "replay": {"duration": (10.0, 30.0), "delay": (3.0, 10.0)},
     "freeze": {"duration": (5.0, 20.0)},
+    "drift": {"duration": (10.0, 30.0), "rate": (0.2, 1.0), "accel": (0.05, 0.5)},
+    "capture": {"duration": (10.0, 30.0), "magnitude": (5.0, 15.0), "rate": (0.5, 3.0), "capture_s": (2.0, 2.0),
+                "lock_loss_s": (0.0, 0.6)},
     "none": {},
 }
 _GENERIC = {"duration": (5.0, 20.0), "magnitude": (1.5, 6.0), "rate": (0.2, 1.0),
             "frequency": (0.05, 0.5), "period": (2.0, 6.0), "delay": (3.0, 10.0)}
+#: the ranges only some kinds draw, and those kinds: left at None by a configuration none of whose
+#: kinds draws them (so configurations made before they existed keep their cache keys)
+KIND_FIELDS = {"accel": ("drift",), "capture_s": ("capture",), "lock_loss_s": ("capture",)}
+_KIND_GENERIC = {"accel": (0.05, 0.5), "capture_s": (2.0, 2.0), "lock_loss_s": (0.0, 0.6)}
+#: kinds whose offset runs along a horizontal direction (their axes hold no z)
+HORIZONTAL_KINDS = ("ramp", "drift", "capture")
 
 
 @dataclass(frozen=True)
@@ -63,18 +73,25 @@ class AttackConfig:
 
     ``kind="mix"``: each attacked flight draws its kind uniformly from ``mix``, then its
     parameters from that kind's ranges: a range given here applies to every kind, one left
-    at None takes each kind's own default (``ranges(kind)``)."""
+    at None takes each kind's own default (``ranges(kind)``). The ranges only drift and capture
+    draw (``KIND_FIELDS``: accel, capture_s, lock_loss_s) stay None in a configuration none of
+    whose kinds draws them."""
     kind: str = "none"                                 # one of ATTACK_KINDS, or "mix"
     fraction: float = 0.5                              # share of flights attacked (one window each)
     onset: tuple[float, float] = (10.0, 40.0)          # s
     duration: tuple[float, float] | None = None        # s (per-kind default)
-    magnitude: tuple[float, float] | None = None       # m, offset norm (bias, sinusoid, intermittent)
-    rate: tuple[float, float] | None = None            # m/s, drift rate (ramp)
+    magnitude: tuple[float, float] | None = None       # m, offset norm (bias, sinusoid, intermittent, capture)
+    rate: tuple[float, float] | None = None            # m/s, drift rate (ramp, drift, capture)
     frequency: tuple[float, float] | None = None       # Hz (sinusoid)
     period: tuple[float, float] | None = None          # s, on/off period (intermittent)
     delay: tuple[float, float] | None = None           # s, replay delay
     axes: str | None = None    # fixed attacked axes, e.g. "x" or "xz"; None: random sparse subset
     mix: tuple[str, ...] = MIX_KINDS                   # kinds a mixed attack draws from (kind "mix")
+    accel: tuple[float, float] | None = None           # m/s^2, a drift's acceleration while it ramps in (drift)
+    onset_step: bool | None = None     # drift: True the velocity steps to the rate at the onset, False it ramps
+                                       # in at accel; None: drawn per flight (half the flights each)
+    capture_s: tuple[float, float] | None = None       # s, a capture's pull-off time (capture)
+    lock_loss_s: tuple[float, float] | None = None     # s, the fix lost at a capture's start (capture)
 
     def __post_init__(self) -> None:
         _require(self.kind in ATTACK_CHOICES, "attack.kind",
@@ -87,7 +104,8 @@ class AttackConfig:
                  f"must name at least one attack kind, got {self.mix!r}")
         mix = tuple(str(k).strip() for k in mix)
         for k in mix:
-            _require(k in MIX_KINDS, "attack.mix", f"unknown attack kind {k!r}; choose from {', '.join(MIX_KINDS)}")
+            _require(k in MIXABLE_KINDS, "attack.mix",
+                     f"unknown attack kind {k!r}; choose from {', '.join(MIXABLE_KINDS)}")
         _require(len(set(mix)) == len(mix), "attack.mix", f"a kind is named twice in {self.mix!r}")
         object.__setattr__(self, "mix", mix)
         defaults = _ATTACK_DEFAULTS.get(self.kind, {})
@@ -99,14 +117,37 @@ class AttackConfig:
                 value = defaults.get(name, generic)
             lo = 1e-6 if name in ("duration", "frequency", "period", "delay") else 0.0
             object.__setattr__(self, name, _range(f"attack.{name}", value, lo=lo))
+        kinds = mix if self.kind == MIX else (self.kind,)
+        for name, users in KIND_FIELDS.items():
+            value = getattr(self, name)
+            if value is None:
+                if self.kind == MIX or self.kind not in users:
+                    continue          # resolved per flight (ranges()), or drawn by no kind of this config
+                value = defaults[name]
+            value = _range(f"attack.{name}", value)
+            if name == "lock_loss_s":
+                _require(value[0] >= 0.0, f"attack.{name}", f"must be >= 0 s, got {getattr(self, name)!r}")
+            else:
+                _require(value[0] > 0.0, f"attack.{name}", f"must be > 0 ({'m/s^2' if name == 'accel' else 's'}), "
+                         f"got {getattr(self, name)!r}")
+            object.__setattr__(self, name, value)
+        _require(self.onset_step is None or isinstance(self.onset_step, bool), "attack.onset_step",
+                 f"must be true, false or unset (drawn per flight), got {self.onset_step!r}")
+        if "capture" in kinds:
+            r = self.ranges("capture")
+            _require(r["lock_loss_s"][1] <= r["capture_s"][0], "attack.lock_loss_s",
+                     f"the fix must be back within the capture: the longest lock loss ({r['lock_loss_s'][1]} s) "
+                     f"must not exceed the shortest capture (attack.capture_s {r['capture_s'][0]} s)")
         if self.axes is not None:
             axes = str(self.axes).lower()
             _require(len(axes) > 0 and set(axes) <= set("xyz") and len(set(axes)) == len(axes),
                      "attack.axes", f"must be a subset of 'xyz' such as 'x' or 'xy', got {self.axes!r}")
             _require(("x" in axes) or ("y" in axes), "attack.axes",
                      f"must include a horizontal axis (x or y), got {self.axes!r}")
-            if self.kind == "ramp" or (self.kind == MIX and "ramp" in mix):
-                _require("z" not in axes, "attack.axes", "a ramp drifts along a horizontal direction: use x and/or y")
+            horizontal = [k for k in kinds if k in HORIZONTAL_KINDS]
+            if horizontal:
+                _require("z" not in axes, "attack.axes", f"a {horizontal[0]} drifts along a horizontal direction: "
+                         "use x and/or y")
             object.__setattr__(self, "axes", axes)
 
     @property
@@ -124,10 +165,20 @@ class AttackConfig:
         _require(kind in ATTACK_KINDS, "attack.kind", f"ranges of a single kind, got {kind!r}")
         defaults = _ATTACK_DEFAULTS[kind]
         out = {}
-        for name, generic in _GENERIC.items():
+        for name, generic in {**_GENERIC, **_KIND_GENERIC}.items():
             value = getattr(self, name)
             out[name] = value if value is not None else defaults.get(name, generic)
         return out
+
+
+def unset_kind_fields(attack: dict[str, Any]) -> dict[str, Any]:
+    """An ``AttackConfig`` as a dict (``dataclasses.asdict``) without the kind-specific fields it
+    leaves unset (``KIND_FIELDS`` and ``onset_step`` at None), in place: what a configuration made
+    before those fields existed holds, so hashes of it (cache keys) stay as they were."""
+    for name in (*KIND_FIELDS, "onset_step"):
+        if name in attack and attack[name] is None:
+            attack.pop(name)
+    return attack
 
 
 @dataclass(frozen=True)

@@ -8,11 +8,19 @@ from typing import Any
 
 MODELS = ("I", "II")
 NOISE_SHAPES = ("gaussian", "exponential", "laplace")
-ATTACK_KINDS = ("none", "bias", "ramp", "sinusoid", "intermittent", "replay", "freeze")
+#: the attack shapes the shape typer fits and alerts are typed as (``estimator.schema.ATTACK_TYPES``)
+SHAPE_KINDS = ("bias", "ramp", "sinusoid", "intermittent", "replay", "freeze")
+#: every attack kind: the shapes, and two a real spoofer makes: ``drift`` (a consistent drift switched
+#: on at once or accelerating in) and ``capture`` (an SDR capture: a pull-off with the receiver's
+#: signature, then a drift)
+ATTACK_KINDS = ("none", *SHAPE_KINDS, "drift", "capture")
 #: a mixed attack: each attacked flight draws its own kind from ``AttackConfig.mix``
 MIX = "mix"
-#: the kinds a mixed attack may draw (every kind but "none"), the default of ``AttackConfig.mix``
-MIX_KINDS = tuple(k for k in ATTACK_KINDS if k != "none")
+#: the kinds a mixed attack may draw (every kind but "none")
+MIXABLE_KINDS = tuple(k for k in ATTACK_KINDS if k != "none")
+#: the default of ``AttackConfig.mix``: the shapes (drift and capture only where named, so the
+#: default mixed datasets draw what they drew before those kinds existed)
+MIX_KINDS = SHAPE_KINDS
 #: the values of ``AttackConfig.kind``
 ATTACK_CHOICES = (*ATTACK_KINDS, MIX)
 MISSION_KINDS = ("hover", "circle", "lissajous", "minsnap")

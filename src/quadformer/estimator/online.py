@@ -167,22 +167,27 @@ class ResidueStream:
         self._bin.append((t, x))
         return rows
 
-    def gps(self, t: float, pos: np.ndarray, vel: np.ndarray, eph: float = math.nan, epv: float = math.nan,
-            speed_acc: float = math.nan) -> None:
+    def gps(self, t: float, pos: np.ndarray, vel: np.ndarray, eph: float | np.ndarray = math.nan,
+            epv: float | np.ndarray = math.nan, speed_acc: float | np.ndarray = math.nan) -> None:
         """A fix: ENU position (n, 3) about the local origin and ENU velocity (n, 3; NaN where
-        the receiver gives none), with the receiver's accuracies (m, m, m/s; NaN: none). A
-        missing velocity component is the change of position since the previous fused fix, with
-        the std of that difference (both fixes' position std over the interval) when larger
-        than the velocity floor; at the first fix it is 0 (the start's velocity uncertainty)."""
+        the receiver gives none), with the receiver's accuracies (m, m, m/s; NaN: none), one for
+        every flight or one per flight (n,) (flights whose receivers report differently, as
+        injected spoofs make them). A missing velocity component is the change of position since
+        the previous fused fix, with the std of that difference (both fixes' position std over the
+        interval) when larger than the velocity floor; at the first fix it is 0 (the start's
+        velocity uncertainty)."""
         pos = per_flight(pos, self.n, 3)
         vel = np.array(per_flight(vel, self.n, 3))
         if self._last_fix is not None and not spaced(t - self._last_fix[0], self.config.gps_rate_hz):
             return                                         # at most gps_rate_hz fixes per second
         c = self.config
-        use = c.receiver_accuracy
-        acc = lambda v: v if use and math.isfinite(v) else 0.0   # noqa: E731
-        std = np.array([max(acc(eph), c.gps_pos_noise)] * 2 + [max(acc(epv), c.gps_alt_noise)]
-                       + [max(acc(speed_acc), c.gps_vel_noise)] * 3)
+        if all(np.ndim(v) == 0 for v in (eph, epv, speed_acc)):
+            use = c.receiver_accuracy
+            acc = lambda v: v if use and math.isfinite(v) else 0.0   # noqa: E731
+            std = np.array([max(acc(eph), c.gps_pos_noise)] * 2 + [max(acc(epv), c.gps_alt_noise)]
+                           + [max(acc(speed_acc), c.gps_vel_noise)] * 3)
+        else:
+            std = self._stds(eph, epv, speed_acc)
         bad = ~np.isfinite(vel)
         std_n = None
         if bad.any():                                      # velocity from the change of position
@@ -193,7 +198,7 @@ class ResidueStream:
                 vel[bad] = ((pos - pos1) / (t - t1))[bad]
                 # the difference of two fixes carries both fixes' position noise: its std, not the
                 # velocity floor (a receiver without vertical velocity, e.g. MAVLink GPS_RAW_INT)
-                derived = np.hypot(std1[:3], std[:3]) / (t - t1)
+                derived = np.hypot(std1[..., :3], std[..., :3]) / (t - t1)
                 std_n = np.array(np.broadcast_to(std, (self.n, 6)))
                 std_n[:, 3:] = np.where(bad, np.maximum(std_n[:, 3:], derived), std_n[:, 3:])
         self._last_fix = (t, pos.copy(), std)
@@ -254,6 +259,20 @@ class ResidueStream:
         return rows + (self._step() if self._bin else [])
 
     # -- internals ----------------------------------------------------------------------
+    def _stds(self, eph, epv, speed_acc) -> np.ndarray:
+        """Per flight (n, 6), each fix's noise std: the larger of the receiver's accuracy (where
+        used and finite) and the floor, as for one accuracy shared by every flight."""
+        c = self.config
+        out = []
+        for v, floor, k in ((eph, c.gps_pos_noise, 2), (epv, c.gps_alt_noise, 1), (speed_acc, c.gps_vel_noise, 3)):
+            v = np.asarray(v, dtype=float)
+            if v.shape not in ((), (self.n,)):
+                raise ValueError(f"gps: an accuracy shaped {v.shape}, expected one value or ({self.n},)")
+            v = np.broadcast_to(v, (self.n,))
+            a = np.where(np.isfinite(v), v, 0.0) if c.receiver_accuracy else np.zeros(self.n)
+            out += [np.maximum(a, floor)] * k
+        return np.stack(out, axis=1)
+
     def _keep(self, key: str, t: float, v: np.ndarray) -> None:
         q = self._recent[key]
         q.append((t, v))
@@ -305,11 +324,15 @@ class ResidueStream:
                 how = f"the accelerometer's tilt, yaw unknown: 0 (std {yaw_std:g} deg)"
         yaw = math.degrees(math.atan2(2 * (q0[3] * q0[2] + q0[0] * q0[1]), 1 - 2 * (q0[1] ** 2 + q0[2] ** 2)))
         self.notes.append(f"filter: started at t = {t0:.3f} s from {how}, yaw {yaw:.0f} deg ENU{waited}")
-        std0 = np.r_[std[:3], [c.init_vel_std] * 3, np.deg2rad([c.init_att_std_deg] * 2 + [yaw_std]),
-                     [c.accel_bias_std] * 3, [c.gyro_bias_std] * 3]
         n = self.n
+        rest = np.r_[[c.init_vel_std] * 3, np.deg2rad([c.init_att_std_deg] * 2 + [yaw_std]), [c.accel_bias_std] * 3,
+                     [c.gyro_bias_std] * 3]
         p0, v0 = fix[:, :3], fix[:, 3:]
-        q0n, P0 = np.broadcast_to(q0, (n, 4)), np.broadcast_to(np.diag(std0 ** 2), (n, 15, 15))
+        q0n = np.broadcast_to(q0, (n, 4))
+        if std.ndim == 1:
+            P0 = np.broadcast_to(np.diag(np.r_[std[:3], rest] ** 2), (n, 15, 15))
+        else:                                           # each flight's receiver accuracy
+            P0 = np.stack([np.diag(np.r_[s[:3], rest] ** 2) for s in std])
         imu_t = [s for s, _ in self._recent["imu"]]
         dt = float(np.median(np.diff(imu_t))) if len(imu_t) > 2 else 1.0 / c.imu_rate_hz
         dt = max(dt, 1.0 / c.imu_rate_hz)               # the filter's step after averaging

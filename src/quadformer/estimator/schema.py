@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from quadformer.config import ATTACK_KINDS, parse_sensors
+from quadformer.config import SHAPE_KINDS, parse_sensors
 
 XYZ = ("x", "y", "z")
 GPS_AXES = ("px", "py", "pz", "vx", "vy", "vz")      # GPS innovation: position then velocity
@@ -24,8 +24,10 @@ VIO_AXES = ("vx", "vy", "vz", "thx", "thy", "thz")   # VIO innovation: velocity 
 CORR_TAU = 20.0
 CORR_TAUS = {"res_gps_corr5": 5.0, "res_gps_corr120": 120.0}
 
-#: attack types a flight's ``attack_type`` column may hold besides "none" (the label vocabulary)
-ATTACK_TYPES = tuple(k for k in ATTACK_KINDS if k != "none")
+#: the attack shapes alerts are typed as (the shape typer's and QUADFormer's classes); a flight's
+#: ``attack_type`` column holds "none" or its attack kind (``config.ATTACK_KINDS``: these, or a
+#: drift or capture, which show as a ramp)
+ATTACK_TYPES = SHAPE_KINDS
 
 
 @dataclass(frozen=True)

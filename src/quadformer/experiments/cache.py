@@ -39,7 +39,7 @@ from typing import Any
 
 import pandas as pd
 
-from quadformer.config import MIX, SimConfig
+from quadformer.config import MIX, SimConfig, unset_kind_fields
 from quadformer.dataset import FORMAT_VERSION, DatasetError, load_dataset, write_dataset
 from quadformer.evaluation.protocol import TrainingBudget, Tuned, tune
 from quadformer.experiments.grid import Profile, dataset_summary, profile_configs
@@ -65,6 +65,7 @@ def dataset_key(cfg: SimConfig) -> str:
         d.pop("sensors")
     if cfg.attack.kind != MIX:
         d["attack"].pop("mix")   # the kinds of a mixed attack: nothing to a single kind
+    unset_kind_fields(d["attack"])
     d["format_version"] = FORMAT_VERSION   # what the simulator writes
     if not cfg.has("vio"):
         # without a camera the GPS-free reference is reset every few seconds, and how a reset

@@ -22,10 +22,11 @@ For each method (the benchmark's defaults), on the logs given:
 6. Logs with GPS trouble (manifest windows): alerts inside the windows by kind, spoofing alerts
    outside them, and whether the receiver health raised a ``degraded`` alert within
    ``DEGRADED_WITHIN_S`` of each first sign.
-7. Spoofs injected into the clean logs in air (bias and ramp, onset after take-off has settled,
-   position and the matching velocity): event recall (a spoofing alert raised in air between the
-   onset and the end of the injection), median and p95 delay, offset at detection, and recall on
-   the offsets of at least 2 m and drifts of at least 0.2 m/s.
+7. Spoofs injected into the clean logs in air (bias, ramp, a drift switched on at once, an
+   accelerating drift and an SDR capture, whose receiver reports are spoofed too; onset after
+   take-off has settled, position and the matching velocity): event recall (a spoofing alert
+   raised in air between the onset and the end of the injection), median and p95 delay, offset at
+   detection, and recall on the offsets of at least 2 m and drifts of at least 0.2 m/s.
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ from quadformer.detectors.calibration import budget_threshold
 from quadformer.detectors.flight_phase import PhaseRule, phases
 from quadformer.estimator.filter_config import FilterConfig
 from quadformer.experiments.field_models import shipped_detectors, shipped_files, tune_methods
-from quadformer.experiments.field_spoofs import inject, injected_events, log_alerts, planned_injections
+from quadformer.experiments.field_spoofs import INJECTED, inject, injected_events, log_alerts, planned_injections
 from quadformer.io import package_versions, write_json
 from quadformer.logs import LogError, read_log
 from quadformer.logs.detect import log_height, log_impacts, log_rows
@@ -71,6 +72,16 @@ class FieldPlan:
     bias: tuple[float, float] = (1.0, 10.0)       # m
     ramp: tuple[float, float] = (0.05, 2.0)       # m/s
     phase: PhaseRule = PhaseRule()
+    drift: tuple[float, float] = (0.2, 2.0)       # m/s, a drift's rate (switched on at once or accelerating in)
+    drift_accel: tuple[float, float] = (0.05, 0.5)  # m/s^2, an accelerating drift's acceleration
+    capture: tuple[float, float] = (5.0, 15.0)    # m, a capture's pull-off
+    capture_rate: tuple[float, float] = (0.5, 3.0)  # m/s, the drift after a capture
+    kinds: tuple[str, ...] = tuple(INJECTED)      # the spoofs injected (names of field_spoofs.INJECTED)
+
+    def __post_init__(self) -> None:
+        unknown = [k for k in self.kinds if k not in INJECTED]
+        if unknown:
+            raise ValueError(f"FieldPlan.kinds: unknown injection {unknown[0]!r}; choose from {', '.join(INJECTED)}")
 
     def sim_config(self, noise_overrides: dict[str, Any]) -> SimConfig:
         return SimConfig.from_dict(merge(noise_overrides, {

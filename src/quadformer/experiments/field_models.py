@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
-from quadformer.config import SimConfig
+from quadformer.config import SimConfig, unset_kind_fields
 from quadformer.io import atomic_write_text
 
 if TYPE_CHECKING:
@@ -27,7 +27,9 @@ def tune_methods(plan: FieldPlan, cfg: SimConfig, out: Path, echo: Callable[[str
 
     models = out / "models"
     models.mkdir(parents=True, exist_ok=True)
-    key = json.dumps(dataclasses.asdict(cfg), sort_keys=True, default=str) + f"|{plan.label_fraction}"
+    d = dataclasses.asdict(cfg)
+    unset_kind_fields(d["attack"])          # a configuration's key as before drift and capture existed
+    key = json.dumps(d, sort_keys=True, default=str) + f"|{plan.label_fraction}"
     stamp = models / "config.json"
     if not stamp.exists() or stamp.read_text() != key:
         for f in models.glob("*.qfm*"):

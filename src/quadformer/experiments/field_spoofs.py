@@ -1,11 +1,14 @@
 """Spoofs injected into real flights in air, and whether a detector's alerts catch them (the field
 benchmark's third measure, ``experiments.field``).
 
-Each clean log segment gets bias and ramp spoofs, the position and the matching velocity falsified,
-with an onset drawn in the segment's longest stretch in air; the segment is replayed through the
-filter with each spoof (the replays of one segment as one batch), scored, and its alerts raised with
-the log's flight phase and receiver health. A spoof is detected when a spoofing alert is raised in
-the air between its onset and its end.
+Each clean log segment gets spoofs of each kind in ``INJECTED`` (bias, ramp, a drift switched on at
+once, an accelerating drift, an SDR capture), the position and the matching velocity falsified, with
+an onset drawn in the segment's longest stretch in air; the segment is replayed through the filter
+with each spoof (the replays of one segment as one batch), scored, and its alerts raised with the
+log's flight phase and receiver health. A capture also changes the receiver's reports
+(``attacks.spoofed_reports``): the replay weighs its fixes by the spoofed accuracies and skips the
+fixes it lost, and its alerts are labelled with the spoofed reports, not the log's clean ones. A
+spoof is detected when a spoofing alert is raised in the air between its onset and its end.
 """
 
 from __future__ import annotations
@@ -25,21 +28,43 @@ from quadformer.logs.replay import ekf_flights
 if TYPE_CHECKING:
     from quadformer.experiments.field import FieldLog, FieldPlan
 
-__all__ = ["INJECT_BEFORE_END_S", "Injected", "inject", "injected_events", "log_alerts", "planned_injections"]
+__all__ = ["INJECTED", "INJECT_BEFORE_END_S", "Injected", "inject", "injected_events", "log_alerts",
+           "planned_injections"]
 
 INJECT_BEFORE_END_S = 12.0  # s of air kept after an injected onset
 
 
-def log_alerts(fl: FieldLog, rows: pd.DataFrame, scores: np.ndarray, det, rate: float) -> list:
+@dataclass(frozen=True)
+class Injection:
+    """One kind of spoof the field benchmark injects."""
+    kind: str                    # the attack kind (``config.ATTACK_KINDS``)
+    seed_offset: int             # added to the injection's flight index (each kind its own draws)
+    onset_step: bool | None = None   # a drift's onset style
+    size: str = "rate"           # the AttackBatch field its size is (m or m/s)
+
+
+#: the spoofs injected, by the name their results rows carry; bias and ramp keep the flight indices
+#: (and so the draws) they had before the others existed, the others are offset far beyond them
+INJECTED = {"bias": Injection("bias", 0, size="magnitude"), "ramp": Injection("ramp", 500),
+            "drift": Injection("drift", 100_000_000, onset_step=True),
+            "drift-accel": Injection("drift", 200_000_000, onset_step=False),
+            "capture": Injection("capture", 300_000_000, size="magnitude")}
+
+
+def log_alerts(fl: FieldLog, rows: pd.DataFrame, scores: np.ndarray, det, rate: float,
+               receiver: pd.DataFrame | None = None) -> list:
     """The alerts of a log's scored rows, raised through the online step with the log's own flight
-    phase and receiver health (as ``detect`` raises them)."""
-    return step_alerts(rows, scores, det, "shape", rate, events=fl.log.events, receiver=fl.log.receiver,
-                       height=log_height(fl.log), impacts=log_impacts(fl.log))
+    phase and receiver health (as ``detect`` raises them); ``receiver``: the receiver's reports to
+    label them with instead of the log's (an injected capture's spoofed reports)."""
+    return step_alerts(rows, scores, det, "shape", rate, events=fl.log.events,
+                       receiver=fl.log.receiver if receiver is None else receiver, height=log_height(fl.log),
+                       impacts=log_impacts(fl.log))
 
 
 
 def planned_injections(plan: FieldPlan, fl: FieldLog, li: int, kind: str):
-    """The attacks injected into each segment of a clean log in air: {segment: (t0, [AttackBatch])},
+    """The attacks of ``kind`` (a name of ``INJECTED``) injected into each segment of a clean log in
+    air: {segment: (t0, [AttackBatch])},
     their times counting from the segment's first fix (t0 on the log's clock), as the replay counts
     them. The onsets fall in the segment's longest stretch in air (a segment may hold a landing and a
     second take-off), from the first step in air to ``INJECT_BEFORE_END_S`` before its last."""
@@ -64,12 +89,15 @@ def planned_injections(plan: FieldPlan, fl: FieldLog, li: int, kind: str):
         lo, hi = air_t[0] - t0, air_t[-1] - t0 - INJECT_BEFORE_END_S
         if hi <= lo:
             continue
-        ranges = {"magnitude": plan.bias} if kind == "bias" else {"rate": plan.ramp}
-        cfg = AttackConfig(kind=kind, fraction=1.0, onset=(lo, hi), duration=(hi - lo + INJECT_BEFORE_END_S,) * 2,
-                           **ranges)
+        spec = INJECTED[kind]
+        ranges = {"bias": {"magnitude": plan.bias}, "ramp": {"rate": plan.ramp},
+                  "drift": {"rate": plan.drift, "accel": plan.drift_accel, "onset_step": spec.onset_step},
+                  "capture": {"magnitude": plan.capture, "rate": plan.capture_rate}}[spec.kind]
+        cfg = AttackConfig(kind=spec.kind, fraction=1.0, onset=(lo, hi),
+                           duration=(hi - lo + INJECT_BEFORE_END_S,) * 2, **ranges)
         batches = []
         for k in range(plan.injections):
-            gen = flight_generator(plan.seed, 100_000 * (li + 1) + 1000 * int(seg) + k + (500 if kind == "ramp" else 0),
+            gen = flight_generator(plan.seed, 100_000 * (li + 1) + 1000 * int(seg) + k + spec.seed_offset,
                                    Stream.SCENARIO)
             b = sample_attacks([gen], cfg, np.ones(1, bool), air_t[-1] - t0)
             b = dataclasses.replace(b, end=np.minimum(b.end, air_t[-1] - t0))
@@ -81,24 +109,30 @@ def planned_injections(plan: FieldPlan, fl: FieldLog, li: int, kind: str):
 @dataclass
 class Injected:
     """One spoof injected into a clean log's segment in air, and the replay's rows."""
-    kind: str
+    kind: str               # a name of ``INJECTED``
     segment: int
     onset: float            # s, on the log's clock
     end: float
-    size: float             # m (bias) or m/s (ramp)
+    size: float             # m (bias, capture: the pull-off) or m/s (ramp, drift: the rate)
     rows: pd.DataFrame
+    receiver: pd.DataFrame | None = None   # the receiver's reports under the spoof (None: the log's)
 
 
 def inject(plan: FieldPlan, fl: FieldLog, li: int, config: FilterConfig) -> list[Injected]:
     """The spoofs injected into a clean log in air, each replayed through the filter (the replays of
-    one segment together, as one batch)."""
+    one segment together, as one batch, or as several where captures lose different fixes)."""
+    from quadformer.attacks import spoofed_reports
+
     out = []
-    for kind in ("bias", "ramp"):
+    for kind in plan.kinds:
+        spec = INJECTED[kind]
         for seg, (t0, batches) in planned_injections(plan, fl, li, kind).items():
             for k, (f, b) in enumerate(zip(ekf_flights(fl.log, seg, config, batches), batches)):
-                size = float(b.magnitude[0]) if kind == "bias" else float(b.rate[0])
-                out.append(Injected(kind, seg, float(b.onset[0]) + t0, float(b.end[0]) + t0, size,
-                                    f.rows.assign(flight_id=np.int32(k))))
+                receiver = None
+                if spec.kind == "capture" and fl.log.receiver is not None:
+                    receiver = spoofed_reports(fl.log.receiver, b, t0)
+                out.append(Injected(kind, seg, float(b.onset[0]) + t0, float(b.end[0]) + t0,
+                                    float(getattr(b, spec.size)[0]), f.rows.assign(flight_id=np.int32(k)), receiver))
     return out
 
 
@@ -110,12 +144,24 @@ def injected_events(fl: FieldLog, injected: list[Injected], method: str, dets: d
     for inj in injected:
         scores = np.asarray(next(iter(dets.values())).decision_function(inj.rows), dtype=float)
         for thr_name, det in dets.items():
-            alerts = log_alerts(fl, inj.rows, scores, det, rate)
+            alerts = log_alerts(fl, inj.rows, scores, det, rate, receiver=inj.receiver)
             hit = [a.start_s for a in alerts if a.kind == "spoofing" and a.phase == "air"
                    and inj.onset <= a.start_s < inj.end]
             delay = (min(hit) - inj.onset) if hit else None
-            offset = None if delay is None else (inj.size if inj.kind == "bias" else inj.size * delay)
+            offset = None if delay is None else _offset_at(inj, min(hit), delay)
             rows_out.append({"log": fl.path.name, "segment": inj.segment, "kind": inj.kind, "size": inj.size,
                              "method": method, "threshold": thr_name, "detected": bool(hit),
                              "delay_s": delay, "offset_at_detection_m": offset})
     return rows_out
+
+
+def _offset_at(inj: Injected, t: float, delay: float) -> float:
+    """The spoof's position offset (m) when it was detected: a bias's size, a ramp's rate x delay;
+    for the others the injected offset of the row the alert was raised at."""
+    if inj.kind == "bias":
+        return inj.size
+    if inj.kind == "ramp":
+        return inj.size * delay
+    at = inj.rows[inj.rows["t"].to_numpy() >= t - 1e-9]
+    d = at[["atk_d_x", "atk_d_y", "atk_d_z"]].to_numpy(dtype=float)
+    return float(np.linalg.norm(d[0])) if len(d) else float("nan")

@@ -19,7 +19,12 @@ which PX4 Flight Review, MAVExplorer, PlotJuggler and this project's readers ope
   (position, velocity, attitude);
 * positions geodetic about ``ORIGIN``; the receiver states the configured GPS error as its
   accuracy (eph, epv: the white and the slow error together; speed accuracy: the velocity
-  noise).
+  noise), ``SATELLITES`` satellites and a noise level of ``NOISE`` (PX4's ``noise_per_ms``), and
+  reports each fix in the ``receiver`` stream too. Under a capture the receiver reports what a
+  captured receiver does (``AttackBatch.receiver_effects``): its satellites drop and recover, its
+  accuracies inflate for seconds, its noise rises, and the fixes of its brief loss of lock are
+  reports without a fix (fix type 1, in the receiver stream only; the simulated vehicle fused
+  them, the simulation has no receiver of its own to lose them).
 
 The flights start airborne (the simulator starts each flight in the air at its mission's
 first point): each log starts armed and flying. The vehicle's clock reads ``BOOT_T0`` at the
@@ -46,12 +51,14 @@ from quadformer.logs.flightlog import make_stream
 from quadformer.logs.ulog_writer import write_ulog
 from quadformer.logs.writing import GATE, LogHeader
 
-__all__ = ["BOOT_T0", "EXPORT_FORMATS", "ORIGIN", "SUFFIX", "UTC0", "LogExport", "attack_note", "export_formats",
-           "flight_log", "simulate_with_logs"]
+__all__ = ["BOOT_T0", "EXPORT_FORMATS", "NOISE", "ORIGIN", "SATELLITES", "SUFFIX", "UTC0", "LogExport", "attack_note",
+           "export_formats", "flight_log", "simulate_with_logs"]
 
 ORIGIN = (47.397742, 8.545594, 488.0)   # lat deg, lon deg, alt m (AMSL) of the simulator's ENU origin
 BOOT_T0 = 10.0                          # s, the vehicle's clock (time since boot) at the flight's t = 0
 UTC0 = 1_704_067_200.0                  # s, UNIX time at t = 0 (2024-01-01 00:00 UTC), for GPS times
+SATELLITES = 12                         # satellites a clean simulated receiver uses
+NOISE = 100                             # its noise level (PX4 noise_per_ms)
 EXPORT_FORMATS = ("ulog", "dataflash")
 SUFFIX = {"ulog": ".ulg", "dataflash": ".bin"}
 WRITERS = {"ulog": write_ulog, "dataflash": write_dataflash}
@@ -98,17 +105,19 @@ def flight_log(cfg: SimConfig, r, i: int, origin: tuple[float, float, float] = O
 
 def _sensors(cfg: SimConfig, r, i: int, origin: tuple[float, float, float]) -> dict:
     """The raw sensor streams of flight i: IMU, GPS as received, and the configured aiding sensors."""
-    s, g = r["sensors"], cfg.gps
+    s = r["sensors"]
     t_gps = np.asarray(s["gps_t"], dtype=float)
     gps = _np(s["gps"][i]).astype(float)
     lla = frames.enu_to_geodetic(gps[:, :3], origin)
     imu = _np(s["imu"][i]).astype(float)
+    status = _receiver(cfg, r, i, t_gps)
+    fix = status["fix_type"] >= 2
     out = {
         "imu": make_stream("imu", s["imu_t"], dict(zip(("ax", "ay", "az", "gx", "gy", "gz"), imu.T))),
-        "gps": make_stream("gps", t_gps, {
-            **_xyz("", gps[:, :3]), **_xyz("v", gps[:, 3:]), "lat": lla[:, 0], "lon": lla[:, 1], "alt": lla[:, 2],
-            "fix_type": 3.0, "eph": math.hypot(g.pos_std_h, g.gm_std), "epv": math.hypot(g.pos_std_v, g.gm_std),
-            "speed_acc": g.vel_std}),
+        "gps": make_stream("gps", t_gps[fix], {
+            **_xyz("", gps[fix, :3]), **_xyz("v", gps[fix, 3:]), "lat": lla[fix, 0], "lon": lla[fix, 1],
+            "alt": lla[fix, 2], **{k: v[fix] for k, v in status.items() if k != "noise"}}),
+        "receiver": make_stream("receiver", t_gps, status),
     }
     if "mag" in s:
         out["mag"] = make_stream("mag", s["mag_t"], dict(zip(("mx", "my", "mz"), _np(s["mag"][i]).astype(float).T)))
@@ -120,6 +129,17 @@ def _sensors(cfg: SimConfig, r, i: int, origin: tuple[float, float, float]) -> d
         pos = np.column_stack([np.interp(vt, t_gps, r["vio_pos"][i][:, k]) for k in range(3)])
         out["odometry"] = make_stream("odometry", vt, {**_xyz("", pos), **_xyz("v", vio[:, :3]), **_quat(vio[:, 3:7])})
     return out
+
+
+def _receiver(cfg: SimConfig, r, i: int, t_gps: np.ndarray) -> dict[str, np.ndarray]:
+    """What the receiver of flight i reports at each GPS step: a clean receiver's constant
+    values, changed by a capture's effects (``AttackBatch.receiver_effects``)."""
+    g = cfg.gps
+    fx = {k: v[:, i] for k, v in r["attacks"].receiver_effects(t_gps).items()}
+    eph, epv = math.hypot(g.pos_std_h, g.gm_std), math.hypot(g.pos_std_v, g.gm_std)
+    return {"fix_type": np.where(fx["fix_lost"], 1.0, 3.0), "satellites": np.round(SATELLITES * fx["satellites"]),
+            "eph": eph * fx["eph"], "epv": epv * fx["epv"], "speed_acc": g.vel_std * fx["speed_acc"],
+            "noise": np.round(NOISE * fx["noise"])}
 
 
 def _filter_and_truth(r, i: int) -> dict:
@@ -147,15 +167,21 @@ def _innovations(r, i: int, t_gps: np.ndarray):
     return make_stream("innovations", t_gps, values)
 
 
-#: the parameter of its own each attack kind has, beside onset, end, magnitude and axes
-KIND_PARAMETER = {"ramp": ("rate", "rate_m_s"), "sinusoid": ("frequency", "frequency_hz"),
-                  "intermittent": ("period", "period_s"), "replay": ("delay", "delay_s")}
+#: the parameters of its own each attack kind has, beside onset, end, magnitude and axes
+KIND_PARAMETER = {"ramp": (("rate", "rate_m_s"),), "sinusoid": (("frequency", "frequency_hz"),),
+                  "intermittent": (("period", "period_s"),), "replay": (("delay", "delay_s"),),
+                  "drift": (("rate", "rate_m_s"), ("accel", "accel_m_s2"), ("onset_step", "onset_step")),
+                  "capture": (("rate", "rate_m_s"), ("capture_s", "capture_s"), ("lock_loss_s", "lock_loss_s"),
+                              ("sat_share", "satellites_share"), ("eph_gain", "eph_gain"),
+                              ("speed_acc_gain", "speed_acc_gain"), ("noise_rise", "noise_rise"),
+                              ("recover_s", "recover_s"))}
 
 
 def attack_note(r, i: int) -> dict | None:
     """The attack on flight ``i`` of batch ``r`` (None when it is not attacked): kind, onset, end
     (s from the flight's start, and on the logs' clock), magnitude, axes, direction and the
-    kind's own parameter (a ramp's rate, a sinusoid's frequency, ...)."""
+    kind's own parameters (a ramp's rate, a sinusoid's frequency, a capture's pull-off time and
+    receiver effects, ...)."""
     a = r["attacks"]
     if not bool(a.attacked[i]):
         return None
@@ -164,9 +190,9 @@ def attack_note(r, i: int) -> dict | None:
             "end_s": float(a.end[i]), "onset_boot_s": BOOT_T0 + float(a.onset[i]),
             "end_boot_s": BOOT_T0 + float(a.end[i]), "magnitude_m": float(a.magnitude[i]), "axes": str(a.axes[i]),
             "direction": [float(v) for v in a.direction[i]]}
-    if kind in KIND_PARAMETER:
-        field, key = KIND_PARAMETER[kind]
-        note[key] = float(getattr(a, field)[i])
+    for field, key in KIND_PARAMETER.get(kind, ()):
+        v = getattr(a, field)[i]
+        note[key] = bool(v) if field == "onset_step" else float(v)
     note["gps"] = "the GPS in the logs is the spoofed fix the vehicle received"
     note["time"] = "onset_s/end_s count from the flight's start; *_boot_s are the logs' clock (time since boot)"
     return note

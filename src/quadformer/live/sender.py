@@ -3,7 +3,9 @@
 ``VehicleStreams`` holds what a vehicle would stream (SI units, ENU world, FLU body): a
 recorded log's sensors (``VehicleStreams.from_log``, any object with a ``FlightLog``'s
 DataFrames) or a simulated flight's (``from_simulation``, the ``sensors`` entry of
-``simulate_batch(..., record_sensors=True)``). ``send(streams, connect, config)`` plays them as
+``simulate_batch(..., record_sensors=True)``), optionally with a spoof injected into its GPS
+(``with_attack``: an ``AttackBatch`` of one flight; a capture also changes the receiver fields
+GPS_RAW_INT carries: eph, epv, vel_acc, satellites_visible, fix_type). ``send(streams, connect, config)`` plays them as
 HIGHRES_IMU (IMU, and the magnetometer in the same message when stamped alike),
 GPS_RAW_INT, ATTITUDE, SCALED_PRESSURE, ODOMETRY (with VIO) and a HEARTBEAT per vehicle
 second (armed within ``armed``; with ``in_air``, EXTENDED_SYS_STATE beside it), in stamp

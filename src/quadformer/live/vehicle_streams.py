@@ -1,14 +1,17 @@
 """What a vehicle streams, for the test sender: a recorded log's or a simulated flight's sensors,
-and those streams as encoded MAVLink messages in sending order, loop after loop; and what the
-vehicle says of its state once a second (HEARTBEAT, EXTENDED_SYS_STATE)."""
+optionally spoofed (``VehicleStreams.with_attack``), and those streams as encoded MAVLink messages
+in sending order, loop after loop; and what the vehicle says of its state once a second
+(HEARTBEAT, EXTENDED_SYS_STATE)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import pandas as pd
 
 from quadformer.estimator.online import CALL_ORDER
 from quadformer.geometry.frames import enu_to_geodetic
@@ -24,11 +27,15 @@ from quadformer.sensors.mavlink import (
     usec,
 )
 
+if TYPE_CHECKING:
+    from quadformer.attacks import AttackBatch
+
 __all__ = ["RANK", "SIM_ORIGIN", "VehicleStreams", "events", "state_messages"]
 
 #: a default geodetic origin for simulated flights (deg, deg, m)
 SIM_ORIGIN = (47.3977418, 8.5455939, 488.0)
 RANK = {name: i for i, name in enumerate(CALL_ORDER)}
+SATELLITES = 10          # satellites_visible sent when the streams do not say (gps_sats None)
 
 
 @dataclass
@@ -43,6 +50,7 @@ class VehicleStreams:
     gps_acc: np.ndarray | None = None        # (K, 3) eph, epv m, speed accuracy m/s (NaN: not given)
     gps_fix: np.ndarray | None = None        # (K,) fix type (default 3)
     gps_geo: np.ndarray | None = None        # (K, 3) lat, lon, alt as recorded (used when given)
+    gps_sats: np.ndarray | None = None       # (K,) satellites (default SATELLITES; NaN: not known, sent as 255)
     mag_t: np.ndarray | None = None
     mag: np.ndarray | None = None            # (M, 3) gauss, FLU
     baro_t: np.ndarray | None = None
@@ -84,11 +92,13 @@ class VehicleStreams:
         origin = tuple(float(v) for v in log.origin)
         has_origin = all(math.isfinite(v) for v in origin)
         geo = gps[["lat", "lon", "alt"]].to_numpy()
+        sats = gps["satellites"].to_numpy(dtype=float)
         out = cls(imu_t=log.imu["t"].to_numpy(), imu=log.imu[["ax", "ay", "az", "gx", "gy", "gz"]].to_numpy(),
                   gps_t=gps["t"].to_numpy(), gps_enu=gps[["x", "y", "z"]].to_numpy(),
                   gps_vel=gps[["vx", "vy", "vz"]].to_numpy(), origin=origin if has_origin else tuple(geo[0]),
                   gps_acc=gps[["eph", "epv", "speed_acc"]].to_numpy(),
-                  gps_fix=np.nan_to_num(gps["fix_type"].to_numpy(), nan=3.0), gps_geo=geo, send_origin=has_origin)
+                  gps_fix=np.nan_to_num(gps["fix_type"].to_numpy(), nan=3.0), gps_geo=geo, send_origin=has_origin,
+                  gps_sats=sats if (np.isfinite(sats) & (sats > 0)).all() else None)
         if log.mag is not None:
             out.mag_t, out.mag = log.mag["t"].to_numpy(), log.mag[["mx", "my", "mz"]].to_numpy()
         if log.baro is not None:
@@ -99,6 +109,36 @@ class VehicleStreams:
         if log.attitude is not None:
             out.att_t, out.att = log.attitude["t"].to_numpy(), log.attitude[["qx", "qy", "qz", "qw"]].to_numpy()
         return out
+
+    def with_attack(self, attack: AttackBatch, t0: float | None = None, rate_hz: float | None = None
+                    ) -> "VehicleStreams":
+        """These streams with ``attack`` (an ``AttackBatch`` of one flight, its times counting from
+        ``t0`` on these streams' clock; default the first fix, as a log replay counts them) injected
+        into the GPS: the position and velocity of every fix (``attacks.inject_fixes``; ``rate_hz``,
+        the fixes' rate for a replay's delay, default from their median interval) and, for a capture,
+        what GPS_RAW_INT says of the receiver (``attacks.spoofed_reports``: eph, epv, vel_acc and
+        satellites_visible scaled, fix_type 1 while the lock is lost). A new object; the recorded
+        geodetic fixes are dropped (the spoofed positions are sent about ``origin``)."""
+        from quadformer.attacks import inject_fixes, spoofed_reports
+
+        if len(attack.kind) != 1:
+            raise ValueError(f"with_attack takes the AttackBatch of one flight, got {len(attack.kind)} flights")
+        t0 = float(self.gps_t[0]) if t0 is None else float(t0)
+        if rate_hz is None:
+            rate_hz = 1.0 / float(np.median(np.diff(self.gps_t))) if len(self.gps_t) > 1 else 1.0
+        vel = np.where(np.isfinite(self.gps_vel), self.gps_vel, 0.0)
+        pos, v, _, _ = inject_fixes(attack, self.gps_t - t0, self.gps_enu, vel, rate_hz)
+        v = np.where(np.isfinite(self.gps_vel), v, np.nan)                 # a velocity not given stays so
+        n = len(self.gps_t)
+        acc = self.gps_acc if self.gps_acc is not None else np.full((n, 3), np.nan)
+        fix = self.gps_fix if self.gps_fix is not None else np.full(n, 3.0)
+        sats = self.gps_sats if self.gps_sats is not None else np.full(n, float(SATELLITES))
+        reports = spoofed_reports(pd.DataFrame({"t": self.gps_t, "fix_type": fix, "satellites": sats,
+                                                "eph": acc[:, 0], "epv": acc[:, 1], "speed_acc": acc[:, 2]}),
+                                  attack, t0)
+        return dataclasses.replace(self, gps_enu=pos, gps_vel=v, gps_geo=None,
+                                   gps_acc=reports[["eph", "epv", "speed_acc"]].to_numpy(),
+                                   gps_fix=reports["fix_type"].to_numpy(), gps_sats=reports["satellites"].to_numpy())
 
     @property
     def start(self) -> float:
@@ -124,6 +164,8 @@ def events(s: VehicleStreams, cfg: SenderConfig):
         n_gps = len(s.gps_t)
         acc = s.gps_acc if s.gps_acc is not None else np.full((n_gps, 3), np.nan)
         fix = s.gps_fix if s.gps_fix is not None else np.full(n_gps, 3.0)
+        sats = (np.full(n_gps, SATELLITES) if s.gps_sats is None
+                else np.where(np.isfinite(s.gps_sats), np.clip(s.gps_sats, 0, 254), 255).astype(int))
         if cfg.fix_lost is not None:
             a, n = cfg.fix_lost
             fix = np.where((s.gps_t + dt_k >= a) & (s.gps_t + dt_k < a + n), 1.0, fix)
@@ -164,7 +206,8 @@ def events(s: VehicleStreams, cfg: SenderConfig):
             elif stream == "vio":
                 yield tv, stamp, "vio", encode_odometry(te, np.zeros(3), s.vio[i, :3], s.vio[i, 3:7])
             elif stream == "gps":
-                yield tv, stamp, "gps", encode_gps_raw_int(te, *geo[i], s.gps_vel[i], *acc[i], fix_type=int(fix[i]))
+                yield tv, stamp, "gps", encode_gps_raw_int(te, *geo[i], s.gps_vel[i], *acc[i], fix_type=int(fix[i]),
+                                                           satellites=int(sats[i]))
             else:
                 yield tv, stamp, "attitude", encode_attitude(te, s.att[i])
             j += 1

@@ -15,7 +15,9 @@ the scaled fields carry ArduPilot's multipliers: centidegrees for ``c``/``C``, 1
 * gps -> GPS (``Status`` = fix_type, 3 when not logged; ``Lat``/``Lng``, ``Alt`` AMSL in cm;
   ``Spd``, ``GCrs``, ``VZ`` down; GPS week/time from ``LogHeader.utc0``) and GPA of the same
   ``TimeUS`` (``HAcc`` eph, ``VAcc`` epv, ``SAcc`` speed accuracy, cm; ``VV`` 1 where vz is
-  known); satellites and dilution are not modelled: NSats 0 unless logged, HDop/VDop 1;
+  known); NSats as logged (0 when not), dilution not modelled (HDop/VDop 1); with a receiver
+  stream, its reports without a fix too (``writing.gps_reports``: the last fix repeated, its
+  Status below 2); the receiver's noise has no field in these messages;
 * baro -> BARO instance 0 (``Alt``: height above the origin, as ArduPilot logs altitude above
   its ground calibration; ``Press`` and ``Temp`` from the standard atmosphere at origin
   altitude + Alt);
@@ -52,8 +54,8 @@ from quadformer.io import atomic_write_bytes
 from quadformer.logs._series import quat_interp
 from quadformer.logs.ardupilot_ratios import innovation_test_ratios
 from quadformer.logs.flightlog import FlightLog
-from quadformer.logs.writing import (GATE, LogHeader, clock_us, enu_to_ned, euler_ned_deg, gps_week_ms,
-                                     quat_ned_wxyz, start_us, values)
+from quadformer.logs.writing import (GATE, LogHeader, clock_us, enu_to_ned, euler_ned_deg, gps_reports,
+                                     gps_week_ms, quat_ned_wxyz, start_us, values)
 
 __all__ = ["FORMATS", "write_dataflash"]
 
@@ -188,7 +190,7 @@ def _imu(out: _Messages, log: FlightLog, header: LogHeader) -> None:
 
 
 def _gps(out: _Messages, log: FlightLog, header: LogHeader) -> None:
-    d = log.gps
+    d = gps_reports(log)
     if d is None:
         return
     t = d["t"].to_numpy()

@@ -20,7 +20,9 @@
   ``missing_features`` names them for a detector that needs them.
 
 A spoof can be injected into the logged GPS stream before the ``ekf`` replay (``attack``):
-open loop, the recorded vehicle does not react to it (it flew on its honest estimate).
+open loop, the recorded vehicle does not react to it (it flew on its honest estimate). A
+capture also changes what the receiver reports of itself (accuracies, satellites, a lost lock):
+the replay weights each spoofed fix by the spoofed accuracies and skips the fixes it lost.
 """
 
 from __future__ import annotations
@@ -249,9 +251,13 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
                 attacks: list = (None,), backend: str = "numeric") -> list[LogFlight]:
     """``ekf_rows`` for several injections into the same segment (None: none), replayed
     together as one batch of flights sharing the log's timestamps: the segment's samples go,
-    in time order, through the same ``ResidueStream`` a live link feeds."""
+    in time order, through the same ``ResidueStream`` a live link feeds. An injection that
+    changes the receiver's reports (a capture: ``attacks.spoofed_reports``) has each fix weighted
+    by its spoofed accuracies (eph, epv, speed accuracy; the other flights keep the log's), its
+    rows' receiver columns (``RECEIVER``) from them, and the fixes its receiver lost not fused:
+    flights that fuse different fixes are replayed as separate batches."""
+    from quadformer.attacks import inject_fixes, spoofed_reports
     from quadformer.estimator.online import CALL_ORDER, ResidueStream
-    from quadformer.estimator.feed import GapError
 
     part = log.segment(seg) if len(log.segments) > 1 else log
     sensors = _sensors_of(part, config)
@@ -293,35 +299,78 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
                        f"at least {config.min_segment_s:g} s (--min-segment)")
     pos, vel = gps[["x", "y", "z"]].to_numpy(), gps[["vx", "vy", "vz"]].to_numpy()
     fixes = [(pos, vel, np.zeros(len(gt), bool), np.zeros((len(gt), 3))) if a is None
-             else _inject(a, gt - gt[0], pos, vel, config.gps_rate_hz) for a in attacks]
-    B = len(fixes)
-    P = np.stack([f[0] for f in fixes], axis=1)          # (fixes, B, 3)
-    V = np.stack([f[1] for f in fixes], axis=1)
-    stream = ResidueStream(config, sensors, n=B, backend=backend)
-    acc = gps[["eph", "epv", "speed_acc"]].to_numpy()
-    events: list[tuple[float, int, Any]] = []          # (time, order on ties, call)
+             else inject_fixes(a, gt - gt[0], pos, vel, config.gps_rate_hz) for a in attacks]
+    # each flight's receiver: the log's, or its reports under the attack (a capture's accuracies,
+    # satellites and lost lock); a fix the receiver lost is not fused
+    receivers = [gps if a is None or not _changes_receiver(a) else spoofed_reports(gps, a, gt[0]) for a in attacks]
+    kept = [np.asarray(r["fix_type"].isna() | (r["fix_type"] >= 2)) for r in receivers]
+    events: list[tuple[float, int, str, tuple]] = []          # (time, order on ties, call, args)
     add = events.extend
     rank = {name: i for i, name in enumerate(CALL_ORDER)}
     if part.attitude is not None:
         q = part.attitude[["qx", "qy", "qz", "qw"]].to_numpy()
-        add((t, rank["attitude"], (stream.attitude, (q[i],))) for i, t in enumerate(part.attitude["t"].to_numpy()))
+        add((t, rank["attitude"], "attitude", (q[i],)) for i, t in enumerate(part.attitude["t"].to_numpy()))
     if "mag" in sensors:
         m = part.mag[["mx", "my", "mz"]].to_numpy()
-        add((t, rank["mag"], (stream.mag, (m[i],))) for i, t in enumerate(part.mag["t"].to_numpy()))
+        add((t, rank["mag"], "mag", (m[i],)) for i, t in enumerate(part.mag["t"].to_numpy()))
     if "baro" in sensors:
         b = part.baro["alt"].to_numpy()
-        add((t, rank["baro"], (stream.baro, (b[i],))) for i, t in enumerate(part.baro["t"].to_numpy()))
+        add((t, rank["baro"], "baro", (b[i],)) for i, t in enumerate(part.baro["t"].to_numpy()))
     if "vio" in sensors:
         o = part.odometry[["vx", "vy", "vz", "qx", "qy", "qz", "qw"]].to_numpy()
-        add((t, rank["vio"], (stream.vio, (o[i],))) for i, t in enumerate(part.odometry["t"].to_numpy()))
-    add((t, rank["gps"], (stream.gps, (P[i], V[i], *acc[i]))) for i, t in enumerate(gt))
+        add((t, rank["vio"], "vio", (o[i],)) for i, t in enumerate(part.odometry["t"].to_numpy()))
     x = imu[["ax", "ay", "az", "gx", "gy", "gz"]].to_numpy()
-    add((t, rank["imu"], (stream.imu, (x[i],))) for i, t in enumerate(imu["t"].to_numpy()))
-    events.sort(key=lambda e: (e[0], e[1]))
+    add((t, rank["imu"], "imu", (x[i],)) for i, t in enumerate(imu["t"].to_numpy()))
+    # flights that fuse the same fixes are replayed together, one batch sharing the timestamps
+    groups: dict[bytes, list[int]] = {}
+    for b, k in enumerate(kept):
+        groups.setdefault(k.tobytes(), []).append(b)
+    flights: list[LogFlight | None] = [None] * len(attacks)
+    for members in groups.values():
+        k = kept[members[0]]
+        P = np.stack([fixes[b][0][k] for b in members], axis=1)          # (fixes, flights, 3)
+        V = np.stack([fixes[b][1][k] for b in members], axis=1)
+        if all(receivers[b] is gps for b in members):                      # the log's accuracies, shared
+            acc = [tuple(a) for a in gps[["eph", "epv", "speed_acc"]].to_numpy()[k]]
+        else:                                                              # each flight's own (n,)
+            A = np.stack([receivers[b][["eph", "epv", "speed_acc"]].to_numpy()[k] for b in members], axis=1)
+            acc = [tuple(a.T) for a in A]
+        gps_events = [(t, rank["gps"], "gps", (P[i], V[i], *acc[i])) for i, t in enumerate(gt[k])]
+        stream = ResidueStream(config, sensors, n=len(members), backend=backend)
+        out = _drive(stream, sorted(events + gps_events, key=lambda e: (e[0], e[1])), log, seg)
+        t_rows = np.array([r["t"] for r in out])
+        idx = np.searchsorted(gt, t_rows)                   # the fixes fused, in the decimated list
+        air = in_air(log, t_rows)
+        for j, b in enumerate(members):
+            attack, (_, _, label, d_pos) = attacks[b], fixes[b]
+            rows = _base_rows(seg, t_rows, receivers[b], part)
+            rows["in_air"] = air
+            rows.update(as_columns({name: np.stack([r[name][j] for r in out]) for name in out[0] if name != "t"}))
+            for i, a in enumerate("xyz"):
+                rows[f"atk_d_{a}"] = d_pos[idx, i]
+            rows["label"] = label[idx].astype(np.int8)
+            rows["attack_type"] = np.where(label[idx], str(attack.kind[0]) if attack is not None else "none",
+                                           "none").astype(object)
+            lost = int((~k).sum())
+            flight_notes = notes + stream.notes + ([f"gps: {lost} fixes not fused (the spoofed receiver lost its "
+                                                    "lock)"] if lost else [])
+            flights[b] = LogFlight(seg, pd.DataFrame(rows), sensors, flight_notes)
+    return flights
+
+
+def _changes_receiver(attack) -> bool:
+    """Whether an injected attack (one flight) changes the receiver's reports (a capture)."""
+    return bool(attack.attacked[0]) and str(attack.kind[0]) == "capture"
+
+
+def _drive(stream, events: list, log: FlightLog, seg: int) -> list[dict[str, Any]]:
+    """The rows of a residue stream fed ``events`` (time, order, method name, args) in order."""
+    from quadformer.estimator.feed import GapError
+
     out: list[dict[str, Any]] = []
     try:
-        for t, _, (call, args) in events:
-            rows = call(t, *args)
+        for t, _, name, args in events:
+            rows = getattr(stream, name)(t, *args)
             if rows:
                 out += rows
         out += stream.flush()
@@ -329,39 +378,7 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
         raise LogError(f"{log.path}: segment {seg}: {e}") from None
     if not out:
         raise LogError(f"{log.path}: segment {seg}: no fix was fused (no IMU samples after the first fix?)")
-    notes += stream.notes
-    t_rows = np.array([r["t"] for r in out])
-    base = _base_rows(seg, t_rows, gps, part)
-    base["in_air"] = in_air(log, t_rows)
-    idx = np.searchsorted(gt, t_rows)                   # the fixes fused, in the decimated list
-    flights = []
-    for b, (attack, (_, _, label, d_pos)) in enumerate(zip(attacks, fixes)):
-        rows = dict(base)
-        rows.update(as_columns({name: np.stack([r[name][b] for r in out]) for name in out[0] if name != "t"}))
-        for i, a in enumerate("xyz"):
-            rows[f"atk_d_{a}"] = d_pos[idx, i]
-        rows["label"] = label[idx].astype(np.int8)
-        rows["attack_type"] = np.where(label[idx], str(attack.kind[0]) if attack is not None else "none", "none").astype(object)
-        flights.append(LogFlight(seg, pd.DataFrame(rows), sensors, list(notes)))
-    return flights
-
-
-def _inject(attack, tau: np.ndarray, pos: np.ndarray, vel: np.ndarray, rate_hz: float):
-    """The spoofed fixes: ``attack`` (one flight) applied at each fix time tau (s from the
-    segment's first fix), on the logged fixes."""
-    import torch
-
-    n = len(tau)
-    history = torch.as_tensor(np.c_[pos, vel])[None]
-    out_p, out_v = pos.copy(), vel.copy()
-    label = np.zeros(n, dtype=bool)
-    d_pos = np.zeros((n, 3))
-    for j in range(n):
-        p, v, active, d, _ = attack.apply(float(tau[j]), j, torch.tensor(pos[j:j + 1]),
-                                          torch.tensor(vel[j:j + 1]), history, rate_hz)
-        out_p[j], out_v[j] = p[0].numpy(), v[0].numpy()
-        label[j], d_pos[j] = bool(active[0]), d[0]
-    return out_p, out_v, label, d_pos
+    return out
 
 
 def residue_columns(rows: pd.DataFrame) -> list[str]:

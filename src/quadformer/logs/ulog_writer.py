@@ -10,8 +10,10 @@ subscription classes hold them), each at its stream's own times (``timestamp`` =
 * gps -> ``vehicle_gps_position`` (what EKF2 fuses and the reader prefers): ``latitude_deg``,
   ``longitude_deg``, ``altitude_msl_m``, ``vel_n/e/d_m_s``, ``fix_type`` (3 when not logged),
   ``eph``, ``epv``, ``s_variance_m_s`` (speed accuracy), ``time_utc_usec`` from
-  ``LogHeader.utc0``; satellites 0 unless logged, dilution 1, jamming and spoofing states as
-  logged (0, unknown, when not);
+  ``LogHeader.utc0``; ``satellites_used`` and ``noise_per_ms`` as logged (0 when not: the noise
+  from the receiver stream), dilution 1, jamming and spoofing states as logged (0, unknown, when
+  not); with a receiver stream, its reports without a fix too (``writing.gps_reports``: the last
+  fix repeated, its fix type below 2);
 * baro -> ``vehicle_air_data`` (``baro_alt_meter`` = origin altitude + height above the origin:
   PX4 logs the barometric altitude above mean sea level; pressure and temperature from the
   standard atmosphere);
@@ -51,7 +53,8 @@ from pyulog import ULog
 from quadformer.geometry import frames
 from quadformer.io import atomic_path
 from quadformer.logs.flightlog import FlightLog
-from quadformer.logs.writing import (GATE, LogHeader, clock_us, enu_to_ned, quat_ned_wxyz, start_us, values)
+from quadformer.logs.writing import (GATE, LogHeader, clock_us, enu_to_ned, gps_reports, quat_ned_wxyz, start_us,
+                                     values)
 
 __all__ = ["TOPICS", "write_ulog"]
 
@@ -208,7 +211,7 @@ def _imu(out: _Topics, log: FlightLog, header: LogHeader) -> None:
 
 
 def _gps(out: _Topics, log: FlightLog, header: LogHeader) -> None:
-    d = log.gps
+    d = gps_reports(log)
     if d is None:
         return
     t = d["t"].to_numpy()
@@ -224,6 +227,7 @@ def _gps(out: _Topics, log: FlightLog, header: LogHeader) -> None:
         "heading": np.nan, "heading_offset": np.nan, "heading_accuracy": np.nan,
         "fix_type": np.where(np.isfinite(col["fix_type"]), col["fix_type"], 3),
         "satellites_used": np.nan_to_num(col["satellites"]), "jamming_state": np.nan_to_num(col["jamming"]),
+        "noise_per_ms": np.nan_to_num(d["noise"].to_numpy(dtype=float)),
         "spoofing_state": np.nan_to_num(col["spoofing"]), "vel_ned_valid": np.isfinite(v).all(axis=1)})
 
 

@@ -26,8 +26,8 @@ import pandas as pd
 from quadformer.geometry import frames
 from quadformer.logs.flightlog import FlightLog
 
-__all__ = ["BOOT_S", "GATE", "LogHeader", "clock_us", "enu_to_ned", "euler_ned_deg", "first_t", "gps_week_ms",
-           "quat_ned_wxyz", "start_us", "values"]
+__all__ = ["BOOT_S", "GATE", "LogHeader", "clock_us", "enu_to_ned", "euler_ned_deg", "first_t", "gps_reports",
+           "gps_week_ms", "quat_ned_wxyz", "start_us", "values"]
 
 BOOT_S = 1.0             # s, the vehicle's clock at the first sample when the log does not say
 GATE = 5.0               # innovation gate (standard deviations) of the autopilots' test ratios
@@ -81,6 +81,35 @@ def clock_us(log: FlightLog, t) -> np.ndarray:
 def start_us(log: FlightLog) -> int:
     """The vehicle's clock at the log's first sample (microseconds since boot)."""
     return int(clock_us(log, [first_t(log)])[0])
+
+
+def gps_reports(log: FlightLog) -> pd.DataFrame | None:
+    """What the receiver reported, one row per GPS message to write: the ``gps`` stream's fixes
+    and the ``receiver`` stream's reports without a fix (a lost lock), in time order, with the
+    ``gps`` columns and ``noise``. At a fix's time its own values stand and the receiver's report
+    adds only its noise; a report without a fix holds the last fix's position and velocity (the
+    first fix's before any), as a receiver repeats its last solution. None without a gps stream."""
+    gps = log.gps
+    if gps is None:
+        return None
+    out = gps.assign(noise=np.nan)
+    rec = log.receiver
+    if rec is None or not len(rec):
+        return out
+    t, rt = gps["t"].to_numpy(), rec["t"].to_numpy()
+    j = np.clip(np.searchsorted(t, rt), 0, len(t) - 1)
+    k = np.clip(np.searchsorted(t, rt, side="right") - 1, 0, len(t) - 1)
+    same = np.abs(t[j] - rt) <= 1e-9
+    noise = out["noise"].to_numpy(dtype=float, copy=True)
+    noise[j[same]] = rec["noise"].to_numpy()[same]
+    out["noise"] = noise
+    if same.all():
+        return out
+    extra = gps.iloc[k[~same]].reset_index(drop=True)         # the last solution, repeated
+    extra["t"] = rt[~same]
+    for c in ("fix_type", "satellites", "eph", "epv", "speed_acc", "jamming", "spoofing", "noise"):
+        extra[c] = rec[c].to_numpy()[~same]
+    return pd.concat([out, extra], ignore_index=True).sort_values("t", kind="stable").reset_index(drop=True)
 
 
 def gps_week_ms(utc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

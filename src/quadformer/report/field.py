@@ -20,6 +20,7 @@ from quadformer.report.html import img, page, png, table
 
 BIG_OFFSET_M = 2.0          # the targets' offsets and drifts
 BIG_DRIFT_MPS = 0.2
+OFFSET_KINDS = ("bias", "capture")      # injections sized by an offset (m); the others by a drift rate (m/s)
 PHASE_COLOURS = {"ground": "#dddddd", "transition": "#ffe9b3"}
 
 
@@ -58,7 +59,7 @@ def injection_summary(df: pd.DataFrame) -> pd.DataFrame:
     """Event recall, delays and offsets by method, threshold and attack kind."""
     out = []
     for (m, thr, kind), g in df.groupby(["method", "threshold", "kind"], sort=False):
-        big = g[g["size"] >= (BIG_OFFSET_M if kind == "bias" else BIG_DRIFT_MPS)]
+        big = g[g["size"] >= (BIG_OFFSET_M if kind in OFFSET_KINDS else BIG_DRIFT_MPS)]
         d = g["delay_s"].dropna().to_numpy(dtype=float)
         off = g["offset_at_detection_m"].dropna().to_numpy(dtype=float)
         out.append({"method": m, "threshold": thr, "kind": kind, "injected": len(g),
@@ -98,8 +99,9 @@ def false_alarm_figure(fa: pd.DataFrame):
 def delay_figure(fa: pd.DataFrame, inj: pd.DataFrame):
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
-    for ax, kind in zip(axes, ("bias", "ramp")):
+    kinds = list(dict.fromkeys(inj["kind"]))
+    fig, axes = plt.subplots(1, len(kinds), figsize=(5 * len(kinds), 3.8), squeeze=False)
+    for ax, kind in zip(axes[0], kinds):
         for thr, marker in (("sim", "o"), ("calibrated", "s")):
             for _, r in inj[(inj["kind"] == kind) & (inj["threshold"] == thr)].iterrows():
                 f = fa[(fa["method"] == r["method"]) & (fa["threshold"] == thr)]
@@ -168,8 +170,9 @@ def write_field_report(results: dict[str, Any], per_log: pd.DataFrame, injection
         parts.append(img(png(f)))
         plt.close(f)
     parts.append("<h2>False alarms on clean flights</h2>" + (table(fa) if len(fa) else "<p>no clean log</p>"))
-    parts.append("<h2>Spoofs injected in air</h2><p>recall_big: offsets of at least 2 m (bias) and drifts "
-                 "of at least 0.2 m/s (ramp).</p>" + (table(inj) if len(inj) else "<p>none</p>"))
+    parts.append("<h2>Spoofs injected in air</h2><p>recall_big: offsets of at least 2 m (bias, capture) and "
+                 "drifts of at least 0.2 m/s (ramp, drift switched on at once, drift-accel accelerating in).</p>"
+                 + (table(inj) if len(inj) else "<p>none</p>"))
     trouble = pd.DataFrame(results.get("troubles", []))
     parts.append("<h2>Logs with GPS trouble</h2>" + (table(trouble) if len(trouble) else "<p>none</p>"))
     rec = pd.DataFrame(results.get("receiver", []))

@@ -11,6 +11,7 @@ from typing import Callable, Sequence
 import numpy as np
 import pandas as pd
 
+from quadformer.attacks import CAPTURE_RECEIVER
 from quadformer.config import SimConfig
 from quadformer.dataset import FORMAT_VERSION, Dataset, summarize
 from quadformer.estimator.schema import groups_for
@@ -45,6 +46,15 @@ def _batch_frames(cfg: SimConfig, r: BatchResult) -> tuple[pd.DataFrame, pd.Data
         "delay": a.delay,
         "dir_x": a.direction[:, 0], "dir_y": a.direction[:, 1], "dir_z": a.direction[:, 2],
     })
+    # the parameters of drift and capture, only where the configuration may draw them (the
+    # scenarios of every other configuration keep their columns)
+    drawn = set(cfg.attack.kinds)
+    if "drift" in drawn:
+        scen["accel"] = a.accel
+        scen["onset_step"] = a.onset_step
+    if "capture" in drawn:
+        for name in ("capture_s", "lock_loss_s", *CAPTURE_RECEIVER):
+            scen[name] = getattr(a, name)
     return flights, scen
 
 
