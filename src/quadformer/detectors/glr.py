@@ -16,8 +16,11 @@ for four groups of components: horizontal position, horizontal velocity, the ver
 position change since the previous fix minus its mean velocity over the interval, which a
 position step without the matching velocity (a bias) breaks at once while a real receiver keeps
 it within centimetres. Each component of d_M is divided by its scale sigma, the
-group's squares are averaged, and the score is the largest over windows and groups: about 1
-on a clean flight's typical step, large at a spoof's onset.
+group's squares are averaged, and the score is the largest over windows and the groups named in
+``groups``: about 1 on a clean flight's typical step, large at a spoof's onset. The vertical
+group is left out by default: on real vehicles without a barometer in the logs it fires on every
+brisk climb (a return-to-launch's 90 against about 50 for the largest horizontal step of the
+same clean flights), and spoofers move the horizontal fix.
 
 The raw innovation, not the whitened one: a receiver under capture inflates its own accuracy
 estimates, and a test whitened by them is normalised away by the very numbers the attacker
@@ -61,6 +64,8 @@ GROUPS = (("res_gps_r_px", "res_gps_r_py"), ("res_gps_r_vx", "res_gps_r_vy"), ("
 FIX = ("gps_pos_x", "gps_pos_y", "gps_vel_x", "gps_vel_y")
 INPUTS = tuple(c for g in GROUPS for c in g) + FIX
 WIDTH = 8                 # components per window: the six innovations and the consistency pair
+#: the four groups' names, in the order of their component pairs
+GROUP_NAMES = ("position", "velocity", "vertical", "consistency")
 AIR = "in_air"
 MAD_STD = 1.4826          # robust std of a normal variable per median absolute deviation
 TINY = 1e-6               # a scale is never below this (m or m/s)
@@ -77,6 +82,9 @@ def _check_settings(det: "StepGLR") -> None:
             raise ValueError(f"glr: {name} must be a positive number, got {v!r}")
     if not (isinstance(det.calib_min_s, (int, float)) and 0 <= det.calib_min_s <= det.calib_s):
         raise ValueError(f"glr: calib_min_s must be from 0 to calib_s ({det.calib_s!r}), got {det.calib_min_s!r}")
+    unknown = set(det.groups) - set(GROUP_NAMES)
+    if unknown or not det.groups:
+        raise ValueError(f"glr: groups must name some of {', '.join(GROUP_NAMES)}, got {det.groups!r}")
     if det.adapt < 1:
         raise ValueError(f"glr: adapt must be at least 1, got {det.adapt!r}")
 
@@ -170,9 +178,9 @@ class _Calibration:
             self.rows.append((t, d))
 
 
-def _score(d: np.ndarray, scale: np.ndarray, n_windows: int) -> float:
+def _score(d: np.ndarray, scale: np.ndarray, n_windows: int, use: np.ndarray) -> float:
     z = np.nan_to_num(d / scale) ** 2
-    return float(z.reshape(n_windows * WIDTH // 2, 2).mean(axis=1).max())
+    return float(z.reshape(n_windows, WIDTH // 2, 2).mean(axis=2)[:, use].max())
 
 
 @register("glr")
@@ -184,7 +192,7 @@ class StepGLR(Detector):
     def __init__(self, windows: tuple[float, ...] = (0.2, 0.5, 1.0, 2.0, 4.0), reference_s: float = 3.0,
                  calib_s: float = 60.0, calib_min_s: float = 20.0, refresh_s: float = 1.0,
                  adapt: float = 10.0, quantile: float = 0.9, track_s: float | None = None,
-                 guard_s: float = 10.0) -> None:
+                 guard_s: float = 10.0, groups: tuple[str, ...] = ("position", "velocity", "consistency")) -> None:
         self.windows = tuple(windows)
         self.reference_s = reference_s
         self.calib_s = calib_s
@@ -194,6 +202,7 @@ class StepGLR(Detector):
         self.quantile = quantile
         self.track_s = track_s
         self.guard_s = guard_s
+        self.groups = tuple(groups)
 
     # -- fitting ------------------------------------------------------------------------
     def _features(self, X: pd.DataFrame) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray]:
@@ -244,12 +253,16 @@ class StepGLR(Detector):
         t = X["t"].to_numpy(dtype=float)
         out = np.zeros(len(X))
         nw = len(self.windows)
+        use = self._use()
         for _, idx in slices:
             cal = _Calibration(self)
             for k in idx:
-                out[k] = _score(d[k], cal.scales(t[k]), nw)
+                out[k] = _score(d[k], cal.scales(t[k]), nw, use)
                 cal.add(t[k], d[k], bool(air[k]))
         return out
+
+    def _use(self) -> np.ndarray:
+        return np.array([g in self.groups for g in GROUP_NAMES])
 
     def stream(self, n_flights: int = 1) -> "GLRStream":
         return GLRStream(self, n_flights)
@@ -273,6 +286,7 @@ class GLRStream(DetectorStream):
         self.first_t = [math.nan] * self.n
         self.cal = [_Calibration(detector) for _ in range(self.n)]
         self.steps = 0
+        self.use = detector._use()
         self.prev: list[tuple[float, np.ndarray] | None] = [None] * self.n
 
     def update(self, residues) -> StreamStep:
@@ -306,7 +320,7 @@ class GLRStream(DetectorStream):
             while buf and buf[0][0] <= ti - self.span - 1e-9:
                 buf.popleft()
             d = self._features(i, ti)
-            score[i] = _score(d, self.cal[i].scales(ti), len(det.windows))
+            score[i] = _score(d, self.cal[i].scales(ti), len(det.windows), self.use)
             self.cal[i].add(ti, d, bool(air[i]))
         thr = getattr(det, "threshold_", None)
         alarm = score > thr if thr is not None else np.zeros(self.n, dtype=bool)
