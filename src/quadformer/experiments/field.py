@@ -14,9 +14,11 @@ For each method (the benchmark's defaults), on the logs given:
    phase (arming, take-off and landing events, else height) and receiver health (fix type,
    accuracy, the autopilot's GPS glitch and failsafe events): each alert is ``spoofing`` or
    ``degraded``, raised on the ``ground``, in ``transition`` or in ``air``.
-4. Two thresholds per method: the simulation's (``sim``), and one calibrated on the vehicle
-   fleet's own clean logs at ``budget_per_hour`` false alarms per in-air hour, leaving the scored
-   log out of its calibration (``calibrated``).
+4. Two thresholds per method: the simulation's (``sim``; a shipped detector's own), and one
+   calibrated on the fleet's own clean logs at ``budget_per_hour`` false alarms per in-air hour,
+   leaving the scored log's vehicle out of its calibration (``calibrated``: every log of the same
+   vehicle, the manifest's ``vehicle`` with firmware hashes removed, is left out; a log without
+   one is a vehicle of its own).
 5. Clean logs (per the manifest): spoofing alerts in air per in-air flight-hour with the exposure
    and a Poisson 95% interval; ground and transition alerts, and degraded alerts, apart.
 6. Logs with GPS trouble (manifest windows): alerts inside the windows by kind, spoofing alerts
@@ -27,12 +29,16 @@ For each method (the benchmark's defaults), on the logs given:
    take-off has settled, position and the matching velocity): event recall (a spoofing alert
    raised in air between the onset and the end of the injection), median and p95 delay, offset at
    detection, and recall on the offsets of at least 2 m and drifts of at least 0.2 m/s.
+8. The physical floor of each clean log (``logs.noise.detection_floor``): the smallest offset and
+   drift a test of one GPS interval tells from that log's own noise at the budget; recall is also
+   given on the spoofs at or above both the targets' sizes and the log's floor (``recall_floor``).
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -106,6 +112,13 @@ class FieldLog:
         return self.entry is None or self.entry.clean
 
     @property
+    def vehicle(self) -> str:
+        """The vehicle the log was flown on: the manifest's ``vehicle`` without firmware hashes
+        (one airframe across firmware builds), else the log's own name."""
+        v = (self.entry.extra.get("vehicle") or "").strip() if self.entry is not None else ""
+        return re.sub(r"\s*\([0-9a-f]{7,}\)", "", v).strip() or self.path.name
+
+    @property
     def gps_t0(self) -> float:
         """The log's first GPS report (with or without a fix): the manifest's time origin."""
         first = [float(s["t"].iloc[0]) for s in (self.log.receiver, self.log.gps) if s is not None and len(s)]
@@ -175,11 +188,12 @@ def _air_hours(fl: FieldLog) -> float:
 
 
 def calibrated_thresholds(scores: dict[int, np.ndarray], logs: list[FieldLog], per_hour: float) -> dict[int, float]:
-    """Per log, the threshold of the clean logs other than it (in-air rows) at ``per_hour``."""
+    """Per log, the threshold of the clean logs of the other vehicles (in-air rows) at ``per_hour``:
+    the scored log's vehicle is left out of its calibration."""
     clean = [i for i, fl in enumerate(logs) if fl.clean and i in scores]
     out = {}
     for i in scores:
-        others = [j for j in clean if j != i]
+        others = [j for j in clean if logs[j].vehicle != logs[i].vehicle]
         s, fid, hours = [], [], 0.0
         for j in others:
             air = logs[j].phase == "air"
@@ -192,6 +206,23 @@ def calibrated_thresholds(scores: dict[int, np.ndarray], logs: list[FieldLog], p
             continue
         s, fid = np.concatenate(s), np.concatenate(fid)
         out[i] = budget_threshold(s, fid, np.unique(fid), hours, per_hour)
+    return out
+
+
+def floors(logs: list[FieldLog], per_hour: float) -> dict[str, dict[str, Any]]:
+    """Each clean log's physical floor (``logs.noise.detection_floor``) at ``per_hour``, by log name
+    (an entry with ``reason`` where it cannot be computed)."""
+    from quadformer.logs.noise import detection_floor
+    from quadformer.logs.replay import in_air
+
+    out: dict[str, dict[str, Any]] = {}
+    for fl in logs:
+        if not fl.clean:
+            continue
+        g = fl.log.gps
+        f = None if g is None else detection_floor(fl.log, in_air(fl.log, g["t"].to_numpy()) > 0, per_hour)
+        out[fl.path.name] = ({"vehicle": fl.vehicle, **f.to_dict()} if f is not None else
+                             {"vehicle": fl.vehicle, "reason": "no GPS, IMU and attitude in the air to estimate it"})
     return out
 
 
@@ -285,6 +316,8 @@ def run_field(paths: list[Path], out: Path, plan: FieldPlan, manifest: Path | No
     receiver_rows: list[dict[str, Any]] = []
     t0 = time.perf_counter()
     injected = {i: inject(plan, fl, i, config) for i, fl in enumerate(logs) if fl.clean}
+    results["floors"] = floors(logs, plan.budget_per_hour)
+    results["vehicles"] = {fl.path.name: fl.vehicle for fl in logs}
     echo(f"  {sum(map(len, injected.values()))} spoofs injected into {len(injected)} clean logs in air "
          f"({time.perf_counter() - t0:.0f} s)")
     unscored: dict[str, list[dict[str, str]]] = {}
@@ -315,7 +348,8 @@ def run_field(paths: list[Path], out: Path, plan: FieldPlan, manifest: Path | No
                     covered.add(i)
                     receiver_rows += [{"log": fl.path.name, **c} for c in receiver_coverage(fl, alerts)]
             if fl.clean:
-                inj_rows += injected_events(fl, injected[i], m, dets_by_log[i], rate)
+                inj_rows += injected_events(fl, injected[i], m, dets_by_log[i], rate,
+                                            results["floors"].get(fl.path.name))
         echo(f"  {m}: scored in {time.perf_counter() - t0:.0f} s")
     per_log = pd.DataFrame(per_log_rows)
     inj = pd.DataFrame(inj_rows)

@@ -136,10 +136,16 @@ def inject(plan: FieldPlan, fl: FieldLog, li: int, config: FilterConfig) -> list
     return out
 
 
+#: which of a log's physical floors (``logs.noise.DetectionFloor``) an injection's size is judged
+#: against: an offset's (m) or a drift's (m/s); an accelerating drift has no step to see
+FLOOR_OF = {"bias": "offset_m", "capture": "offset_m", "ramp": "drift_ms", "drift": "drift_ms"}
+
+
 def injected_events(fl: FieldLog, injected: list[Injected], method: str, dets: dict[str, Any],
-                    rate: float) -> list[dict[str, Any]]:
+                    rate: float, floor: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """One row per injected spoof and threshold: detected (a spoofing alert raised in air between the
-    onset and the end), delay, offset at detection."""
+    onset and the end), delay, offset at detection, and the log's physical floor for the spoof's
+    kind (``floor``: the log's ``DetectionFloor`` as a dict; NaN where none applies)."""
     rows_out = []
     for inj in injected:
         scores = np.asarray(next(iter(dets.values())).decision_function(inj.rows), dtype=float)
@@ -149,9 +155,11 @@ def injected_events(fl: FieldLog, injected: list[Injected], method: str, dets: d
                    and inj.onset <= a.start_s < inj.end]
             delay = (min(hit) - inj.onset) if hit else None
             offset = None if delay is None else _offset_at(inj, min(hit), delay)
+            key = FLOOR_OF.get(inj.kind)
             rows_out.append({"log": fl.path.name, "segment": inj.segment, "kind": inj.kind, "size": inj.size,
                              "method": method, "threshold": thr_name, "detected": bool(hit),
-                             "delay_s": delay, "offset_at_detection_m": offset})
+                             "delay_s": delay, "offset_at_detection_m": offset,
+                             "floor": float((floor or {}).get(key, float("nan"))) if key else float("nan")})
     return rows_out
 
 

@@ -56,19 +56,34 @@ def trouble_summary(per_log: pd.DataFrame) -> pd.DataFrame:
 
 
 def injection_summary(df: pd.DataFrame) -> pd.DataFrame:
-    """Event recall, delays and offsets by method, threshold and attack kind."""
+    """Event recall, delays and offsets by method, threshold and attack kind; ``recall_big`` on the
+    targets' sizes (offsets >= 2 m, drifts >= 0.2 m/s), ``recall_floor`` on those at or above both
+    the targets' size and the log's physical floor (the ``floor`` column, where the rows have it),
+    with the median delay of those detected (``floor_delay_median_s``) and the share detected within
+    3 s (``recall_floor_3s``)."""
     out = []
     for (m, thr, kind), g in df.groupby(["method", "threshold", "kind"], sort=False):
-        big = g[g["size"] >= (BIG_OFFSET_M if kind in OFFSET_KINDS else BIG_DRIFT_MPS)]
+        target = BIG_OFFSET_M if kind in OFFSET_KINDS else BIG_DRIFT_MPS
+        big = g[g["size"] >= target]
         d = g["delay_s"].dropna().to_numpy(dtype=float)
         off = g["offset_at_detection_m"].dropna().to_numpy(dtype=float)
-        out.append({"method": m, "threshold": thr, "kind": kind, "injected": len(g),
-                    "event_recall": float(g["detected"].mean()),
-                    "recall_big": float(big["detected"].mean()) if len(big) else float("nan"),
-                    "big_injected": len(big),
-                    "delay_median_s": float(np.median(d)) if len(d) else float("nan"),
-                    "delay_p95_s": float(np.percentile(d, 95)) if len(d) else float("nan"),
-                    "offset_median_m": float(np.median(off)) if len(off) else float("nan")})
+        row = {"method": m, "threshold": thr, "kind": kind, "injected": len(g),
+               "event_recall": float(g["detected"].mean()),
+               "recall_big": float(big["detected"].mean()) if len(big) else float("nan"),
+               "big_injected": len(big),
+               "delay_median_s": float(np.median(d)) if len(d) else float("nan"),
+               "delay_p95_s": float(np.percentile(d, 95)) if len(d) else float("nan"),
+               "offset_median_m": float(np.median(off)) if len(off) else float("nan")}
+        if "floor" in g.columns and g["floor"].notna().any():
+            floor = g["floor"].to_numpy(dtype=float)
+            at = g[np.isfinite(floor) & (g["size"].to_numpy(dtype=float) >= np.fmax(floor, target))]
+            fd = at["delay_s"].dropna().to_numpy(dtype=float)
+            row.update({"floor_injected": len(at),
+                        "recall_floor": float(at["detected"].mean()) if len(at) else float("nan"),
+                        "recall_floor_3s": float((at["delay_s"].fillna(np.inf) <= 3.0).mean()) if len(at)
+                        else float("nan"),
+                        "floor_delay_median_s": float(np.median(fd)) if len(fd) else float("nan")})
+        out.append(row)
     return pd.DataFrame(out)
 
 
