@@ -214,6 +214,25 @@ def calibrated_model(path: Path, runtime: str):
     return det
 
 
+VEHICLE_HELP = ("A vehicle profile written by `quadformer calibrate --profile` (its detector with the vehicle's own "
+                "noise scales and threshold); refused for another vehicle's logs or another sensor set.")
+
+
+def vehicle_or_fail(path: Path):
+    """(detector, label, sensors) of a vehicle profile file, or a one-line refusal."""
+    if not Path(path).exists():
+        fail(f"--vehicle {path}: no such file")
+    det = calibrated_model(Path(path), "torch")
+    cal = getattr(det, "calibration_", None) or {}
+    if not cal.get("vehicle"):
+        fail(f"--vehicle {path}: not a vehicle profile (no vehicle recorded); write one with quadformer calibrate "
+             "--profile, or pass a model with --model")
+    who = cal["vehicle"].get("board") or cal["vehicle"].get("autopilot")
+    typer.echo(f"detector: {det.name} of the vehicle profile {path} ({who}, {cal.get('vehicle_sensors')}, "
+               f"{cal.get('vehicle_minutes', 0):.1f} clean minutes; threshold {det.threshold_:.4g})")
+    return det, str(path), cal.get("vehicle_sensors")
+
+
 def model_or_shipped(model: str, runtime: str):
     """(detector, label, sensors): a model file, else a shipped detector by name or sensor set
     (at its false-alarm-budget threshold; ``sensors``, the sensors it was trained with, else None)."""

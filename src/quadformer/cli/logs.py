@@ -9,14 +9,16 @@ from typing import Optional
 import typer
 
 from quadformer.cli.common import (FILTER_HELP, LOG_GPS_DELAY_HELP, RECEIVER_HELP, RESIDUES_HELP, RUNTIME_HELP,
-                                   SHIPPED_MODEL_HELP, TYPING_HELP, check_residues, check_typing, fail, log_paths,
-                                   model_or_shipped, pair, print_alerts, replay_config, shipped_for_data)
+                                   SHIPPED_MODEL_HELP, TYPING_HELP, VEHICLE_HELP, check_residues, check_typing, fail,
+                                   log_paths, model_or_shipped, pair, print_alerts, replay_config, shipped_for_data,
+                                   vehicle_or_fail)
 from quadformer.config import ATTACK_KINDS, ConfigError
 
 def detect(
     logs: list[Path] = typer.Argument(..., help="Flight logs (PX4 .ulg, ArduPilot .bin, ROS 1/2 bags) or "
                                       "directories holding them."),
     model: Optional[str] = typer.Option(None, help=SHIPPED_MODEL_HELP),
+    vehicle: Optional[Path] = typer.Option(None, help=VEHICLE_HELP),
     runtime: str = typer.Option("torch", help=RUNTIME_HELP),
     residues: str = typer.Option("ekf", help=RESIDUES_HELP),
     out: Path = typer.Option(Path("runs/detect"), "--out", help="Output directory (one folder per log)."),
@@ -47,7 +49,11 @@ def detect(
     check_residues(residues)
     check_typing(typing)
     paths = log_paths(logs, format)
-    if model is None:
+    if vehicle is not None:
+        if model is not None:
+            fail("--vehicle and --model: a vehicle profile holds its detector; give one of them")
+        det, label, trained_with = vehicle_or_fail(vehicle)
+    elif model is None:
         det, label, trained_with = _shipped_for_logs(paths, residues, format)
     else:
         det, label, trained_with = model_or_shipped(model, runtime)
@@ -235,9 +241,12 @@ def calibrate(
     sensors: Optional[str] = typer.Option(None, help="Sensors the replayed filter fuses (default: every sensor "
                                           "the log has)."),
     filter: str = typer.Option("model", help=FILTER_HELP),
+    profile: bool = typer.Option(False, "--profile", help="Write a vehicle profile (glr: the vehicle's own noise "
+                                 "scales, used from take-off, and a threshold narrowed only on enough clean "
+                                 "minutes; read by detect and monitor with --vehicle) instead of a threshold."),
 ) -> None:
     """Set a model's alarm threshold from one vehicle's own clean flights at a false-alarm budget, with a
-    leave-one-log-out estimate of the false alarms it will raise."""
+    leave-one-log-out estimate of the false alarms it will raise; with --profile, a vehicle profile."""
     from quadformer.io import set_threads
     from quadformer.logs import LogError
     from quadformer.logs.calibration import calibrate_on_logs
@@ -252,6 +261,24 @@ def calibrate(
                            where_logged=sensors is None and trained_with is not None)
     paths = log_paths(clean, format)
     set_threads(1)
+    if profile:
+        from quadformer.logs.calibration import vehicle_profile
+
+        if residues != "ekf":
+            fail("--profile: a vehicle profile is made on the project's replay (--residues ekf)")
+        try:
+            prof = vehicle_profile(det, paths, per_hour, config, format=format,
+                                   progress=lambda p: typer.echo(f"scored {p}"))
+        except (LogError, ValueError) as e:
+            fail(str(e))
+        for reason in prof.skipped:
+            typer.secho(f"skipped: {reason}", fg=typer.colors.YELLOW, err=True)
+        prof.detector.save(out)
+        who = prof.identity.get("board") or f"{prof.identity.get('autopilot')} (no board serial in the logs)"
+        typer.echo(f"vehicle profile of {who}, {prof.sensors}, on {len(prof.logs)} clean log(s): {prof.message}; "
+                   f"threshold {prof.shipped_threshold:.4g} -> {prof.threshold:.4g}")
+        typer.echo(f"wrote {out} (quadformer detect LOG --vehicle {out})")
+        return
     before = det.threshold_
     try:
         cal = calibrate_on_logs(det, paths, per_hour, residues, config, format=format,

@@ -8,8 +8,8 @@ from typing import Optional
 import typer
 
 from quadformer.cli.common import (FILTER_HELP, LIVE_GPS_DELAY_HELP, RECEIVER_HELP, RUNTIME_HELP,
-                                   SHIPPED_MODEL_HELP, STALE_HOLD_HELP, TYPING_HELP, fail, model_or_shipped,
-                                   replay_config, shipped_for_data)
+                                   SHIPPED_MODEL_HELP, STALE_HOLD_HELP, TYPING_HELP, VEHICLE_HELP, fail,
+                                   model_or_shipped, replay_config, shipped_for_data, vehicle_or_fail)
 
 ACT_HELP = ("Act on the vehicle (ArduPilot): on GPS exclusion send MAV_CMD_SET_EKF_SOURCE_SET with the source set "
             "of --act-source-set, and set 1 on re-admission. Off by default. Risks: the vehicle must have a "
@@ -24,6 +24,7 @@ def monitor(
                                           "or a serial device /dev/ttyACM0,921600."),
     model: Optional[str] = typer.Option(None, help=SHIPPED_MODEL_HELP + " On a link: the set of --sensors, else "
                                         "gps+imu+mag+baro (what a flight controller without a camera sends)."),
+    vehicle: Optional[Path] = typer.Option(None, help=VEHICLE_HELP),
     runtime: str = typer.Option("torch", help=RUNTIME_HELP),
     sensors: Optional[str] = typer.Option(None, help="Sensors the monitor's filter fuses, e.g. gps+imu+mag "
                                           "(default: those the detector was fit with)."),
@@ -67,6 +68,13 @@ def monitor(
     except ValueError as e:
         fail(str(e))
     det, label, trained_with = model_or_shipped(model, runtime) if model is not None else (None, None, None)
+    if vehicle is not None:
+        if model is not None:
+            fail("--vehicle and --model: a vehicle profile holds its detector; give one of them")
+        det, label, trained_with = vehicle_or_fail(vehicle)
+        if sensors is not None and sensors != trained_with:
+            fail(f"--vehicle {vehicle}: the profile was made fusing {trained_with}; --sensors {sensors} is another "
+                 "sensor set (make a profile of it with quadformer calibrate --profile)")
     if demo:
         from quadformer.experiments.live_demo import run_demo
 

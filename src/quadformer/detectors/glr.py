@@ -30,13 +30,19 @@ moves. The scales come from the data instead:
   standard deviation (1.4826 x the median absolute deviation) of each component of each d_M;
 - each flight then normalises itself. Until it has ``calib_min_s`` seconds in the air, the
   scales are the prior's times ``adapt`` (the noisiest vehicle the test allows: a large spoof
-  is still seen, a small one waits for the calibration). From then on, the scales
+  is still seen, a small one waits for the calibration); with a vehicle profile (``vehicle_``,
+  written by ``quadformer calibrate`` from the vehicle's own clean flights) the prior is the
+  vehicle's and is used as it is from take-off. From then on, the scales
   are the robust standard deviations of the flight's own d_M over its steps in the air so far,
   up to its first ``calib_s`` seconds in the air (then frozen), refreshed every ``refresh_s``
-  seconds of data; each is kept within ``adapt`` times the prior either way. The median
-  ignores the few steps of a spoof's onset, and the bound keeps a spoof present from take-off
-  (or a noisy flight) from teaching a scale more than ``adapt`` times the prior; a consistent
-  drift present from take-off leaves the innovations as a clean flight's.
+  seconds of data; each is kept within ``adapt`` times the prior either way. The robust std is
+  the ``quantile`` (0.75) of the absolute deviation, as a normal variable's: it follows a
+  vehicle's heavier tails better than the median does and still ignores a quarter of the steps.
+  A step whose score is above ``learn_below`` (25, about 5 standard deviations) is not learned
+  from, so a spoof's onset inside the calibration does not teach the scale; the bound keeps
+  anything else (a spoof present from take-off, a noisy flight) from teaching a scale more than
+  ``adapt`` times the prior; a consistent drift present from take-off leaves the innovations as a
+  clean flight's.
 
 "In the air" is the optional ``in_air`` column of the rows (1 airborne, 0 not: a log's flight
 phase, the live vehicle's); without it every step is. Time is the ``t`` column. The online
@@ -76,7 +82,7 @@ def _check_settings(det: "StepGLR") -> None:
     w = det.windows
     if not (isinstance(w, (tuple, list)) and w and all(isinstance(v, (int, float)) and v > 0 for v in w)):
         raise ValueError(f"glr: windows must be positive seconds, got {w!r}")
-    for name in ("reference_s", "calib_s", "refresh_s", "adapt"):
+    for name in ("reference_s", "calib_s", "refresh_s", "adapt", "learn_below"):
         v = getattr(det, name)
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
             raise ValueError(f"glr: {name} must be a positive number, got {v!r}")
@@ -141,7 +147,9 @@ class _Calibration:
     def __init__(self, det: "StepGLR"):
         self.det = det
         self.prior = np.maximum(np.asarray(det.scale_, dtype=float), TINY)
-        self.scale = self.prior * det.adapt
+        # the prior is the vehicle's own (a vehicle profile: ``logs.calibration.vehicle_profile``):
+        # trusted from take-off; else the noisiest vehicle allowed until the flight has calibrated
+        self.scale = self.prior.copy() if getattr(det, "vehicle_", None) else self.prior * det.adapt
         self.rows: deque[tuple[float, np.ndarray]] = deque()   # (t, d) of steps in the air
         self.air_s = 0.0               # s of steps in the air taken so far
         self.last_t = math.nan         # the previous step's time
@@ -170,11 +178,12 @@ class _Calibration:
                 self.rows = deque()
         return self.scale
 
-    def add(self, t: float, d: np.ndarray, in_air: bool) -> None:
+    def add(self, t: float, d: np.ndarray, in_air: bool, score: float) -> None:
         if in_air and self.last_air and math.isfinite(self.last_t):
             self.air_s += max(0.0, t - self.last_t)
         self.last_t, self.last_air = t, in_air
-        if in_air and not self.frozen and (self.det.track_s is not None or self.air_s <= self.det.calib_s + EDGE):
+        if (in_air and not self.frozen and score <= self.det.learn_below
+                and (self.det.track_s is not None or self.air_s <= self.det.calib_s + EDGE)):
             self.rows.append((t, d))
 
 
@@ -191,8 +200,9 @@ class StepGLR(Detector):
 
     def __init__(self, windows: tuple[float, ...] = (0.2, 0.5, 1.0, 2.0, 4.0), reference_s: float = 3.0,
                  calib_s: float = 60.0, calib_min_s: float = 20.0, refresh_s: float = 1.0,
-                 adapt: float = 10.0, quantile: float = 0.9, track_s: float | None = None,
-                 guard_s: float = 10.0, groups: tuple[str, ...] = ("position", "velocity", "consistency")) -> None:
+                 adapt: float = 10.0, quantile: float = 0.75, track_s: float | None = None,
+                 guard_s: float = 10.0, groups: tuple[str, ...] = ("position", "velocity", "consistency"),
+                 learn_below: float = 25.0) -> None:
         self.windows = tuple(windows)
         self.reference_s = reference_s
         self.calib_s = calib_s
@@ -203,6 +213,7 @@ class StepGLR(Detector):
         self.track_s = track_s
         self.guard_s = guard_s
         self.groups = tuple(groups)
+        self.learn_below = learn_below
 
     # -- fitting ------------------------------------------------------------------------
     def _features(self, X: pd.DataFrame) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray]:
@@ -258,7 +269,7 @@ class StepGLR(Detector):
             cal = _Calibration(self)
             for k in idx:
                 out[k] = _score(d[k], cal.scales(t[k]), nw, use)
-                cal.add(t[k], d[k], bool(air[k]))
+                cal.add(t[k], d[k], bool(air[k]), out[k])
         return out
 
     def _use(self) -> np.ndarray:
@@ -321,7 +332,7 @@ class GLRStream(DetectorStream):
                 buf.popleft()
             d = self._features(i, ti)
             score[i] = _score(d, self.cal[i].scales(ti), len(det.windows), self.use)
-            self.cal[i].add(ti, d, bool(air[i]))
+            self.cal[i].add(ti, d, bool(air[i]), score[i])
         thr = getattr(det, "threshold_", None)
         alarm = score > thr if thr is not None else np.zeros(self.n, dtype=bool)
         return StreamStep(score, alarm, None, None)

@@ -22,10 +22,18 @@ from quadformer.estimator.filter_config import FilterConfig
 from quadformer.logs import read_log
 from quadformer.logs.detect import log_rows
 from quadformer.logs.flightlog import LogError
+from quadformer.logs.vehicle import vehicle_identity
 
-__all__ = ["VehicleCalibration", "calibrate_on_logs", "poisson_interval"]
+__all__ = ["VehicleCalibration", "VehicleProfile", "calibrate_on_logs", "poisson_interval", "vehicle_profile"]
 
 MIN_LOGS = 2          # leaving one out needs another to calibrate on
+#: a vehicle profile narrows the shipped threshold only on at least this many budget periods of
+#: clean flight in the air (at 1 false alarm per hour: 3 hours), so that the budget can be seen
+BUDGET_PERIODS = 3.0
+#: minutes of clean flight in the air a profile needs to set the vehicle's own noise scales
+MIN_SCALE_MINUTES = 3.0
+#: a threshold widened to the clean flights' largest score is kept this much above it
+WIDEN_MARGIN = 1.1
 
 
 @dataclass
@@ -112,3 +120,107 @@ def calibrate_on_logs(detector, paths: list[str | Path], per_hour: float = 1.0, 
     detector.calibration_.update(held_out_alarms_per_hour=held_rate, held_out_interval=[lo, hi])
     return VehicleCalibration(detector, float(per_hour), float(detector.threshold_), total, per_log, skipped,
                               n_alarms, held_rate, (lo, hi))
+
+
+# --------------------------------------------------------------------------- vehicle profiles
+@dataclass
+class VehicleProfile:
+    detector: Any                      # glr with the vehicle's scales and threshold (in place)
+    identity: dict[str, Any]
+    sensors: str
+    minutes: float                     # clean minutes in the air the profile rests on
+    needed_minutes: float              # what narrowing the threshold at the budget needs
+    narrowed: bool                     # whether the threshold was set from these flights at the budget
+    threshold: float
+    shipped_threshold: float
+    scales_set: bool                   # whether the vehicle's own noise scales replaced the trained ones
+    logs: list[str]
+    skipped: list[str] = field(default_factory=list)
+    message: str = ""
+
+
+def vehicle_profile(detector, paths: list[str | Path], per_hour: float = 1.0, config: FilterConfig = FilterConfig(),
+                    format: str | None = None, progress: Callable[[str], None] | None = None) -> VehicleProfile:
+    """A vehicle profile for ``glr``: its noise scales from the vehicle's clean flights in the air
+    (at least ``MIN_SCALE_MINUTES``), used from take-off; its threshold set at ``per_hour`` from these
+    flights only when they hold ``BUDGET_PERIODS`` budget periods in the air, else never below the
+    shipped one (widened to ``WIDEN_MARGIN`` times the flights' largest score where that is higher);
+    the vehicle (``vehicle_identity``) and the sensors fused recorded, so that ``check_profile``
+    refuses another's logs. The logs must be of one vehicle."""
+    from quadformer.detectors.calibration import budget_threshold, gps_rate
+    from quadformer.detectors.glr import INPUTS, robust_scale, step_features
+
+    if getattr(detector, "name", None) != "glr":
+        raise ValueError(f"a vehicle profile normalises glr (its noise scales and threshold); {detector.name} is "
+                         "calibrated on a vehicle's flights with calibrate_on_logs (quadformer calibrate without "
+                         "--profile)")
+    if not (isinstance(per_hour, (int, float)) and np.isfinite(per_hour) and per_hour > 0):
+        raise ValueError(f"per_hour must be a positive number of false alarms per flight-hour, got {per_hour!r}")
+    detector.check_fitted()
+    frames, used, skipped, ids, sensors = [], [], [], [], set()
+    for k, p in enumerate(map(Path, paths)):
+        try:
+            log = read_log(p, format=format)
+            flights, _ = log_rows(log, "ekf", config)
+        except LogError as e:
+            skipped.append(str(e))
+            continue
+        rows = pd.concat([f.rows for f in flights], ignore_index=True)
+        rows["flight_id"] = k * 1000 + rows["flight_id"].astype(np.int64)
+        frames.append(rows)
+        used.append(p)
+        ids.append(vehicle_identity(log))
+        sensors.add(flights[0].sensors)
+        if progress is not None:
+            progress(str(p))
+    if not used:
+        raise LogError("a vehicle profile needs clean logs that can be scored" + (": " + "; ".join(skipped)
+                                                                                   if skipped else ""))
+    boards = {i["board"] for i in ids if i["board"]}
+    if len(boards) > 1 or len({i["autopilot"] for i in ids}) > 1:
+        raise LogError("the clean logs are of more than one vehicle (boards " + ", ".join(sorted(boards)) + "): a "
+                       "profile is one vehicle's")
+    if len(sensors) > 1:
+        raise LogError(f"the clean logs fuse different sensors ({', '.join(sorted(sensors))}); give logs of one sensor "
+                       "set, or --sensors")
+    X = pd.concat(frames, ignore_index=True)
+    air = X["in_air"].to_numpy(dtype=float) > 0.5 if "in_air" in X.columns else np.ones(len(X), bool)
+    rate = gps_rate(X)
+    minutes = float(air.sum()) / rate / 60.0
+    needed = BUDGET_PERIODS / per_hour * 60.0
+    shipped = float(detector.threshold_)
+    scales_set = minutes >= MIN_SCALE_MINUTES
+    if scales_set:
+        d = []
+        for fid, g in X.groupby("flight_id", sort=False):
+            feats = step_features(g["t"].to_numpy(dtype=float), g[list(INPUTS)].to_numpy(dtype=float),
+                                  detector.windows, detector.reference_s)
+            d.append(feats[air[g.index.to_numpy()]])
+        own = robust_scale(np.vstack(d), detector.quantile)
+        detector.scale_ = np.where(np.isfinite(own), np.maximum(own, 1e-6), detector.scale_)
+        detector.vehicle_ = True
+    scores = np.asarray(detector.decision_function(X), dtype=float)
+    fid = X["flight_id"].to_numpy()
+    narrowed = minutes >= needed
+    if narrowed:
+        thr = budget_threshold(scores[air], fid[air], np.unique(fid[air]), minutes / 60.0, per_hour)
+        message = (f"threshold set from {minutes:.1f} clean minutes in the air at {per_hour:g} false alarm(s) per "
+                   "hour")
+    else:
+        top = float(scores[air].max()) if air.any() else 0.0
+        thr = max(shipped, WIDEN_MARGIN * top)
+        message = (f"threshold not narrowed: {minutes:.1f} clean minutes in the air, and a budget of {per_hour:g} "
+                   f"per hour needs {needed:.0f}; " + ("kept the shipped threshold" if thr == shipped else
+                                                       f"widened above these flights' largest score ({top:.1f})"))
+    if not scales_set:
+        message += (f"; noise scales not set: {minutes:.1f} clean minutes in the air, at least {MIN_SCALE_MINUTES:g} "
+                    "needed")
+    identity = next((i for i in ids if i["board"]), ids[0])
+    detector.calibrate(thr, thr, vehicle=identity, vehicle_sensors=sensors.pop(), vehicle_minutes=minutes,
+                       vehicle_needed_minutes=needed, vehicle_narrowed=narrowed, vehicle_scales_set=scales_set,
+                       vehicle_logs=[str(p) for p in used], false_alarm_budget_per_hour=per_hour,
+                       shipped_threshold=shipped, **{k: v for k, v in (getattr(detector, "calibration_", None)
+                                                                        or {}).items() if k == "sim_config"})
+    cal = detector.calibration_
+    return VehicleProfile(detector, identity, cal["vehicle_sensors"], minutes, needed, narrowed, thr, shipped,
+                          scales_set, [str(p) for p in used], skipped, message)

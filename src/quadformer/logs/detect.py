@@ -109,6 +109,12 @@ def detect_log(log: FlightLog | str | Path, detector=None, residues: str = "ekf"
         flights, notes = log_rows(log, residues, config)
     except LogError as e:
         raise NothingToScore(str(e), log) from None
+    from quadformer.logs.vehicle import check_profile
+
+    try:
+        check_profile(detector, log, flights[0].sensors)      # a vehicle profile: this vehicle's logs only
+    except LogError as e:
+        raise NothingToScore(str(e), log) from None
     rows = pd.concat([f.rows for f in flights], ignore_index=True)
     lacking = missing_features(detector.features_, rows.columns)
     if lacking:

@@ -1,0 +1,193 @@
+"""The self-normalising step test (``glr``) on hand-made innovations: it sees a step that no
+clean stretch makes, normalises itself to a noisier vehicle, cannot be taught by a transient in
+its calibration, and streams what it scores offline; a receiver's capture signature makes an
+alarm spoofing; the physical floor of a log the project writes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from quadformer.detectors import make
+from quadformer.detectors.glr import INPUTS, StepGLR
+from quadformer.detectors.receiver_health import ReceiverHealth
+from quadformer.detectors.streams import ScoredStream
+from quadformer.resilience.step import OnlineStep
+
+RATE = 5.0     # Hz, the GPS steps of the hand-made flights (a real receiver's rate)
+
+
+def flight(seed: int, seconds: float = 180.0, noise: float = 0.1, fid: int = 0, in_air: float | None = 1.0,
+           vel_step: tuple[float, float] | None = None, pos_step: tuple[float, float] | None = None) -> pd.DataFrame:
+    """GPS steps of one flight: white raw innovations (position 0.05 m, velocity ``noise`` m/s), a
+    receiver hovering (fix at rest with 0.02 m of noise); ``vel_step`` (t, size): from t the
+    velocity innovation steps by size and the filter absorbs it (decay over 1 s), as a consistent
+    drift switched on at once does; ``pos_step`` (t, size): the fix jumps by size (a bias)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(1, int(seconds * RATE) + 1) / RATE
+    n = len(t)
+    r = {c: rng.normal(0.0, noise if "_v" in c else 0.05, n) for c in INPUTS[:6]}
+    fix = {c: rng.normal(0.0, 0.02, n) for c in INPUTS[6:]}
+    if vel_step is not None:
+        t0, size = vel_step
+        on = t >= t0
+        r["res_gps_r_vx"] = r["res_gps_r_vx"] + np.where(on, size * np.exp(-(t - t0) / 1.0), 0.0)
+    if pos_step is not None:
+        t0, size = pos_step
+        on = t >= t0
+        fix["gps_pos_x"] = fix["gps_pos_x"] + np.where(on, size, 0.0)
+        r["res_gps_r_px"] = r["res_gps_r_px"] + np.where(on, size * np.exp(-(t - t0) / 1.0), 0.0)
+    out = pd.DataFrame({"flight_id": fid, "t": t, **r, **fix})
+    if in_air is not None:
+        out["in_air"] = in_air
+    return out
+
+
+@pytest.fixture(scope="module")
+def fitted() -> StepGLR:
+    train = pd.concat([flight(s, fid=s) for s in range(4)], ignore_index=True)
+    return make("glr").fit(train)
+
+
+def test_a_velocity_step_scores_far_above_any_clean_step(fitted):
+    clean = [fitted.decision_function(flight(s, fid=s)).max() for s in range(10, 14)]
+    drift = fitted.decision_function(flight(20, vel_step=(100.0, 1.0)))
+    t = np.arange(1, len(drift) + 1) / RATE
+    assert max(clean) < 16.0                                       # chi-square(2)/2-like tails of white noise
+    onset = drift[(t >= 100.0) & (t < 101.0)]
+    assert onset.max() > 5 * max(clean)                            # 1 m/s against 0.1 m/s of noise
+    assert drift[t < 100.0].max() < 16.0
+
+
+def test_a_position_jump_shows_in_the_receivers_own_consistency(fitted):
+    det = fitted.set_params(groups=("consistency",))
+    s = det.decision_function(flight(21, pos_step=(90.0, 2.0)))
+    t = np.arange(1, len(s) + 1) / RATE
+    assert s[(t >= 90.0) & (t < 90.5)].max() > 1000                # 2 m against 2 cm of receiver noise
+    assert s[t < 90.0].max() < 16.0
+    det.set_params(groups=("position", "velocity", "consistency"))
+
+
+def test_a_noisier_vehicle_normalises_itself_after_calib_min_s_in_the_air(fitted):
+    noisy = flight(30, noise=0.5)                                  # 5 times the training velocity noise
+    s = fitted.decision_function(noisy)
+    t = noisy["t"].to_numpy()
+    warm = t < fitted.calib_min_s + fitted.reference_s + max(fitted.windows)
+    # before it has calibrated: the prior times adapt (the noisiest vehicle allowed); after: its own
+    assert s[~warm].max() < 20.0
+    # a vehicle never in the air never calibrates: its scale stays the prior's times adapt, so its
+    # 5-times noise scores 25/100 of a calibrated flight's
+    ground = fitted.decision_function(noisy.assign(in_air=0.0))
+    assert np.all(ground[~warm] <= s[~warm] * (25.0 / 100.0) * 1.6 + 1e-9)
+
+
+def test_a_transient_in_the_calibration_window_does_not_teach_the_scale(fitted):
+    quiet = flight(40)
+    spoofed = flight(40, vel_step=(30.0, 3.0))                     # a 3 m/s onset inside the first 60 s
+    a, b = fitted.stream(1), fitted.stream(1)
+    for row_a, row_b in zip(quiet.to_dict("records"), spoofed.to_dict("records")):
+        a.update(row_a)
+        b.update(row_b)
+    sa, sb = a.cal[0].scale, b.cal[0].scale
+    # the onset's steps are not learned from: the scales differ by the quantiles' sampling noise
+    # over the few hundred steps of the window only (measured: within 16%)
+    assert np.allclose(sa, sb, rtol=0.2)
+    # and no flight teaches a scale beyond adapt times the prior, either way
+    assert np.all(sb <= fitted.scale_ * fitted.adapt * (1 + 1e-12))
+    assert np.all(sb >= fitted.scale_ / fitted.adapt * (1 - 1e-12))
+
+
+def test_the_stream_with_time_and_in_air_equals_offline(fitted):
+    rows = pd.concat([flight(50, in_air=None).assign(in_air=0.0).iloc[:100],
+                      flight(51, vel_step=(80.0, 0.8), in_air=None).assign(in_air=1.0).iloc[100:]], ignore_index=True)
+    rows["t"] = np.arange(1, len(rows) + 1) / RATE
+    offline = fitted.decision_function(rows)
+    st = fitted.stream(1)
+    online = np.array([st.update(r).score[0] for r in rows.to_dict("records")])
+    np.testing.assert_allclose(online, offline, rtol=1e-9, atol=1e-9)
+
+
+def test_bad_settings_and_input_are_named(fitted):
+    with pytest.raises(ValueError, match="groups"):
+        make("glr", groups=("altitude",)).fit(flight(1))
+    with pytest.raises(ValueError, match="adapt"):
+        make("glr", adapt=0.5).fit(flight(1))
+    with pytest.raises(ValueError, match="windows"):
+        make("glr", windows=(0.2, -1.0)).fit(flight(1))
+    st = fitted.stream(1)
+    row = flight(2).iloc[5].to_dict()
+    st.update(row)
+    with pytest.raises(ValueError, match="time went back"):
+        st.update({**row, "t": row["t"] - 1.0})
+    bad = flight(3)
+    bad.loc[7, "res_gps_r_vx"] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        fitted.decision_function(bad)
+
+
+# -- the capture signature ----------------------------------------------------------------
+
+def _capture_step(reports: list[dict], row: dict) -> list:
+    """An online step labelled by a receiver health fed ``reports`` (t and fields), then one alarm
+    at t = 20 s carrying the raw innovation ``row``."""
+    health = ReceiverHealth()
+    step = OnlineStep(ScoredStream(np.array([5.0]), np.array([True])), flight_ids=[0], health=health)
+    for rep in reports:
+        step.receiver(rep.pop("t"), **rep)
+    step.update_columns(20.0, row)
+    step.finish()
+    return [a for a in step.alerts if not np.isnan(a.score)]
+
+
+def _steady(t1: float = 19.0, **last) -> list[dict]:
+    reps = [{"t": t, "fix_type": 3, "satellites": 11, "eph": 1.6, "speed_acc": 0.3, "noise": 100}
+            for t in np.arange(0.0, t1, 0.2)]
+    reps.append({"t": t1 + 0.8, "fix_type": 3, "satellites": 11, "eph": 1.6, "speed_acc": 0.3, "noise": 100,
+                 **last})
+    return reps
+
+
+MOVING = {"res_gps_r_px": 1.0, "res_gps_r_py": 0.5, "res_gps_r_vx": 3.5, "res_gps_r_vy": 1.0}
+STILL = {"res_gps_r_px": 0.3, "res_gps_r_py": 0.1, "res_gps_r_vx": 0.2, "res_gps_r_vy": 0.1}
+
+
+def test_satellites_and_noise_jumping_while_the_fix_runs_from_the_imu_is_a_capture():
+    (a,) = _capture_step(_steady(satellites=5, noise=139, eph=6.0, speed_acc=4.2), MOVING)
+    assert a.kind == "spoofing" and a.reason.startswith("capture:")
+    assert "satellites 5" in a.reason and "3.6 m/s against the IMU" in a.reason
+
+
+def test_an_inflated_accuracy_hides_nothing_even_with_the_lock_lost_for_a_moment():
+    reps = _steady(speed_acc=4.2, eph=6.0)
+    reps.insert(-1, {"t": 19.5, "fix_type": 1, "satellites": 5})      # lock lost 0.3 s before
+    (a,) = _capture_step(reps, MOVING)
+    assert a.kind == "spoofing" and "speed accuracy 4.2" in a.reason
+
+
+def test_an_accuracy_jump_without_the_fix_moving_against_the_imu_stays_degraded():
+    (a,) = _capture_step(_steady(eph=6.0), STILL)
+    assert a.kind == "degraded" and a.reason.startswith("accuracy jump")
+
+
+def test_a_receiver_missing_fixes_is_degraded():
+    reps = _steady()
+    reps[-1]["t"] = 19.9                                               # 1.1 s after the previous report
+    (a,) = _capture_step(reps, STILL)
+    assert a.kind == "degraded" and a.reason.startswith("fixes missed")
+
+
+# -- the physical floor ---------------------------------------------------------------------
+
+def test_the_floor_of_a_log_the_project_writes(tmp_path):
+    from quadformer.logs import read_log
+    from quadformer.logs.noise import detection_floor
+
+    log = read_log("tests/fixtures/logs/sim_copter.bin")
+    f1 = detection_floor(log, per_hour=1.0)
+    f100 = detection_floor(log, per_hour=100.0)
+    assert f1 is not None and f1.intervals > 100
+    assert 0 < f100.offset_m < f1.offset_m and 0 < f100.drift_ms < f1.drift_ms   # a laxer budget sees less
+    # one interval's chi-square test at 1 alarm per hour: about 5.6 standard deviations
+    assert f1.drift_ms / f1.sigma_vel_ms == pytest.approx(5.6, abs=0.4)
+    assert detection_floor(log.__class__(**{**log.__dict__, "attitude": None})) is None
