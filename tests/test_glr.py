@@ -191,3 +191,62 @@ def test_the_floor_of_a_log_the_project_writes(tmp_path):
     # one interval's chi-square test at 1 alarm per hour: about 5.6 standard deviations
     assert f1.drift_ms / f1.sigma_vel_ms == pytest.approx(5.6, abs=0.4)
     assert detection_floor(log.__class__(**{**log.__dict__, "attitude": None})) is None
+
+
+# -- vehicle profiles -----------------------------------------------------------------------
+
+FIX = "tests/fixtures/logs"
+
+
+@pytest.fixture(scope="module")
+def sim_glr(bias_dataset):
+    return make("glr").fit(bias_dataset.flights).calibrate(40.0, 40.0)
+
+
+def test_a_profile_on_few_minutes_keeps_the_threshold_and_says_what_it_needs(sim_glr, tmp_path):
+    import copy
+
+    from quadformer.logs.calibration import vehicle_profile
+
+    det = copy.deepcopy(sim_glr)
+    prof = vehicle_profile(det, [f"{FIX}/sim_copter.bin", f"{FIX}/copter_armed_only.bin"], per_hour=1.0)
+    assert prof.minutes < 3.0 and not prof.scales_set and not prof.narrowed
+    assert prof.threshold >= prof.shipped_threshold                 # never narrowed on so little
+    assert "needs 180" in prof.message and "noise scales not set" in prof.message
+    assert prof.sensors == "gps+imu+mag+baro" and prof.identity["autopilot"] == "ArduPilot"
+    path = prof.detector.save(tmp_path / "vehicle.qfm")
+    from quadformer.detectors import load
+    again = load(path)
+    assert again.calibration_["vehicle_needed_minutes"] == 180.0 and again.threshold_ == prof.threshold
+
+
+def test_a_profile_refuses_another_vehicles_log_and_another_sensor_set(sim_glr, tmp_path):
+    import copy
+
+    from quadformer.logs import LogError, read_log
+    from quadformer.logs.calibration import vehicle_profile
+    from quadformer.logs.detect import NothingToScore, detect_log
+    from quadformer.logs.vehicle import check_profile
+
+    prof = vehicle_profile(copy.deepcopy(sim_glr), [f"{FIX}/sim_copter.bin", f"{FIX}/copter_armed_only.bin"])
+    det = prof.detector
+    px4 = read_log(f"{FIX}/sample_log_small.ulg")
+    with pytest.raises(LogError, match="ArduPilot vehicle; this log is PX4"):
+        check_profile(det, px4, "gps+imu+mag+baro")
+    with pytest.raises(NothingToScore, match="fusing gps\\+imu\\+mag\\+baro; this log fuses gps\\+imu"):
+        detect_log(f"{FIX}/copter_core_switch.bin", det)            # the same autopilot, no compass nor barometer
+    res = detect_log(f"{FIX}/sim_copter.bin", det)                  # its own: scored
+    assert len(res.scores) > 100
+
+
+def test_a_vehicle_of_its_own_noise_gets_its_scales_from_enough_minutes(sim_glr):
+    """With the vehicle's scales, a profile uses them from take-off (no warm-up at the prior times adapt)."""
+    import copy
+
+    det = copy.deepcopy(sim_glr)
+    det.vehicle_ = True
+    s_vehicle = det.decision_function(flight(60, noise=0.1))
+    s_prior = sim_glr.decision_function(flight(60, noise=0.1))
+    t = np.arange(1, len(s_vehicle) + 1) / RATE
+    early = (t > 8.0) & (t < 20.0)
+    assert s_vehicle[early].mean() > 10 * s_prior[early].mean()     # the prior x adapt until calibrated
