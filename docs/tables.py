@@ -281,12 +281,18 @@ def table_resilience(res: dict[str, Any], spec: dict[str, Any], name: str) -> st
     return markdown(head, rows)
 
 
+FIELD_KINDS = {"bias": ("offset", "2 m"), "capture": ("capture", "2 m"), "ramp": ("ramp", "0.2 m/s"),
+               "drift": ("drift switched on at once", "0.2 m/s"), "drift-accel": ("accelerating drift", "0.2 m/s")}
+
+
 def table_field(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
     if "false_alarms" not in res or "injection" not in res:
         raise TableError(f"table {name!r}: not a field run's results.json (no false_alarms / injection)")
     fa = {(r["method"], r["threshold"]): r for r in res["false_alarms"]}
     inj = {(r["method"], r["threshold"], r["kind"]): r for r in res["injection"]}
     methods = pick_methods(list(dict.fromkeys(r["method"] for r in res["false_alarms"])), spec.get("methods"), name)
+    kinds = [k for k in spec.get("kinds", ("bias", "ramp")) if any(r["kind"] == k for r in res["injection"])]
+    floor = any("recall_floor" in r for r in res["injection"])
     digits = spec.get("digits", 2)
     rows = []
     for m in methods:
@@ -297,15 +303,42 @@ def table_field(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
             cells = [m, thr, f"{f['spoofing_air']} in {f['air_hours']:.3f} h: {fmt(f['per_air_hour'], 0)} "
                              f"[{fmt(f['ci_low'], 0)}, {fmt(f['ci_high'], 0)}]",
                      f"{f['ground']} / {f['transition']} / {f['degraded']}"]
-            for kind in ("bias", "ramp"):
+            for kind in kinds:
                 r = inj.get((m, thr, kind))
-                delay = fmt(r["delay_median_s"], 1) if r is not None else "-"
-                cells.append("-" if r is None else f"{fmt(r['event_recall'], digits)} / {fmt(r['recall_big'], digits)}"
-                             f" / {delay}{' s' if delay != '-' else ''}")
+                if r is None:
+                    cells.append("-")
+                    continue
+                parts = [fmt(r["event_recall"], digits), fmt(r["recall_big"], digits)]
+                if floor:
+                    parts.append(fmt(r.get("recall_floor"), digits) + f" ({r.get('floor_injected', 0)})")
+                delay = fmt(r["delay_median_s"], 1)
+                parts.append(delay + (" s" if delay != "-" else ""))
+                cells.append(" / ".join(parts))
             rows.append(cells)
     head = ["method", "threshold", "spoofing alerts in air on clean flights: count in in-air hours, per hour [95%]",
-            "ground / transition / degraded alerts", "injected bias: recall / recall >= 2 m / median delay",
-            "injected ramp: recall / recall >= 0.2 m/s / median delay"]
+            "ground / transition / degraded alerts"]
+    for kind in kinds:
+        what, target = FIELD_KINDS.get(kind, (kind, "the target"))
+        head.append(f"injected {what}: recall / recall >= {target} / "
+                    + ("recall at or above the target and the log's floor (spoofs) / " if floor else "")
+                    + "median delay")
+    return markdown(head, rows)
+
+
+def table_floors(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
+    floors = res.get("floors")
+    if not floors:
+        raise TableError(f"table {name!r}: the field run has no physical floors (run it again)")
+    rows = []
+    for log, f in floors.items():
+        if "reason" in f:
+            rows.append([log, f["vehicle"], "-", "-", f["reason"]])
+            continue
+        rows.append([log, f["vehicle"], f"{f['offset_m']:.2f} m ({f['sigma_pos_m']:.3f} m)",
+                     f"{f['drift_ms']:.2f} m/s ({f['sigma_vel_ms']:.3f} m/s)",
+                     f"{f['intervals']} intervals at {f['gps_rate_hz']:.1f} Hz"])
+    head = ["clean log", "vehicle", "offset floor (robust std of one interval's position step)",
+            "drift floor (robust std of one interval's velocity step against the IMU)", "on"]
     return markdown(head, rows)
 
 
@@ -344,7 +377,8 @@ def table_zoo_configs(res: dict[str, Any], spec: dict[str, Any], name: str) -> s
 
 
 KINDS = {"methods": table_methods, "seeds": table_seeds, "stress": table_stress, "typing": table_typing,
-         "resilience": table_resilience, "field": table_field, "zoo": table_zoo, "zoo-configs": table_zoo_configs}
+         "resilience": table_resilience, "field": table_field, "floors": table_floors, "zoo": table_zoo,
+         "zoo-configs": table_zoo_configs}
 
 
 # ---------------------------------------------------------------------------------------------

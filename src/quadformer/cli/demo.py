@@ -36,7 +36,7 @@ def demo(
 def _shipped(out: Path, cache: Path, quiet: bool) -> None:
     from quadformer.detectors import pretrained
     from quadformer.detectors.alarms import alert_counts
-    from quadformer.experiments.demo import SHIPPED_FLY, run_shipped_demo, shipped_profile, versus_paper
+    from quadformer.experiments.demo import DRIFT_RATE, SHIPPED_FLY, run_shipped_demo, shipped_profile, versus_paper
     from quadformer.experiments.grid import summary_table
     from quadformer.experiments.zoo import ZOO_SEED
 
@@ -76,9 +76,11 @@ def _shipped(out: Path, cache: Path, quiet: bool) -> None:
     typer.echo(f"\nResilience: {run.shipped['quadformer']} driving the resilient estimator, the first {SHIPPED_FLY} "
                "test flights of four configurations flown again under each GPS policy:")
     print_resilience(run.resilience)
-    typer.echo(f"\n`quadformer detect` on two simulated flights, each written as a PX4 ULog and an ArduPilot "
-               f"DataFlash log (one flight spoofed: its attack in the .attack.json beside it), no --model: "
-               f"the shipped {run.log_detector}")
+    typer.echo(f"\n`quadformer detect` on simulated flights of a vehicle without a camera (GPS, IMU, compass, "
+               f"barometer), each written as a PX4 ULog and an ArduPilot DataFlash log: flight_0000/0001 with the "
+               f"fleet's noise (one under a bias), drift_0000 under a consistent drift of {DRIFT_RATE:g} m/s switched "
+               f"on at once (position and velocity agree; each attack in the .attack.json beside its logs); no "
+               f"--model: the shipped {run.log_detector}")
     for o in run.logs.outcomes:
         if o.status == "scored":
             n = alert_counts(o.detection.alerts)

@@ -238,9 +238,17 @@ def run_shipped_demo(out: Path, cache_dir: Path, progress: bool = True, workers:
     return ShippedDemo(rows, detection, resilience, logs, name, shipped, phases)
 
 
+#: the demo's vehicle without a camera flying a consistent drift: a receiver of the u-blox class
+#: (velocity noise 0.1 m/s, position 0.3 m white over 0.5 m of slow error), the fleet's IMU
+DRIFT_RECEIVER = {"gps": {"vel_std": 0.1, "pos_std_h": 0.3, "gm_std": 0.5}}
+DRIFT_RATE = 1.5          # m/s, switched on at once: the position and the velocity agree
+
+
 def _detect_on_logs(out: Path, cache_dir: Path, duration: float, workers: int | None = None):
     """Simulated flights written as autopilot logs (kept in the cache), scored by ``detect``'s
-    route with the shipped detector it picks for them."""
+    route with the shipped detector it picks for them: two flights with the fleet's noise (one
+    under a bias), and a vehicle without a camera under a consistent drift switched on at once
+    (``drift_0000``)."""
     from quadformer.config import SimConfig, merge
     from quadformer.experiments.cache import dataset_key
     from quadformer.experiments.flight_logs import simulate_with_logs
@@ -253,10 +261,19 @@ def _detect_on_logs(out: Path, cache_dir: Path, duration: float, workers: int | 
         "model": "I", "noise": "gaussian", "sensors": "gps+imu+mag+baro", "flights": LOG_FLIGHTS, "duration": duration,
         "seed": DEMO_SEED, "attack": {"kind": "bias", "fraction": 0.5, "magnitude": [4.0, 8.0],
                                       "onset": [duration / 3, duration / 2]}}))
-    where = Path(cache_dir) / f"demo-logs-{dataset_key(cfg)}"
-    if not (where / "logs").is_dir():
-        simulate_with_logs(cfg, where, ("ulog", "dataflash"), overwrite=True)
-    paths = find_logs([where / "logs"])
+    drift = SimConfig.from_dict(merge(merge(FLEET_NOISE, DRIFT_RECEIVER), {
+        "model": "I", "noise": "gaussian", "sensors": "gps+imu+mag+baro", "flights": 1, "duration": duration,
+        "seed": DEMO_SEED + 1, "attack": {"kind": "drift", "fraction": 1.0, "rate": [DRIFT_RATE, DRIFT_RATE],
+                                          "onset": [duration / 2, duration / 2], "onset_step": True, "axes": "xy"}}))
+    paths = []
+    for c, prefix in ((cfg, None), (drift, "drift")):
+        where = Path(cache_dir) / f"demo-logs-{dataset_key(c)}"
+        if not (where / "logs").is_dir():
+            simulate_with_logs(c, where, ("ulog", "dataflash"), overwrite=True)
+            if prefix is not None:                     # their own names beside the others' in the outputs
+                for f in sorted((where / "logs").iterdir()):
+                    f.rename(f.with_name(f.name.replace("flight_", f"{prefix}_", 1)))
+        paths += find_logs([where / "logs"])
     det, config = shipped_for(read_log(paths[0]))
     run = detect_logs(paths, det, out / "logs", "ekf", config, model=f"shipped:{det.zoo_name_}",
                       workers=min(len(paths), workers or os.cpu_count() or 1))
