@@ -266,31 +266,33 @@ def calibrate(
 
         if residues != "ekf":
             fail("--profile: a vehicle profile is made on the project's replay (--residues ekf)")
-        try:
-            prof = vehicle_profile(det, paths, per_hour, config, format=format,
-                                   progress=lambda p: typer.echo(f"scored {p}"))
-        except (LogError, ValueError) as e:
-            fail(str(e))
-        for reason in prof.skipped:
-            typer.secho(f"skipped: {reason}", fg=typer.colors.YELLOW, err=True)
-        prof.detector.save(out)
+        prof = _on_clean_logs(vehicle_profile, det, paths, per_hour, config, format, out)
         who = prof.identity.get("board") or f"{prof.identity.get('autopilot')} (no board serial in the logs)"
         typer.echo(f"vehicle profile of {who}, {prof.sensors}, on {len(prof.logs)} clean log(s): {prof.message}; "
                    f"threshold {prof.shipped_threshold:.4g} -> {prof.threshold:.4g}")
         typer.echo(f"wrote {out} (quadformer detect LOG --vehicle {out})")
         return
     before = det.threshold_
-    try:
-        cal = calibrate_on_logs(det, paths, per_hour, residues, config, format=format,
-                                progress=lambda p: typer.echo(f"scored {p}"))
-    except (LogError, ValueError) as e:
-        fail(str(e))
-    for reason in cal.skipped:
-        typer.secho(f"skipped: {reason}", fg=typer.colors.YELLOW, err=True)
-    cal.detector.save(out)
+    cal = _on_clean_logs(calibrate_on_logs, det, paths, per_hour, config, format, out, residues)
     lo, hi = cal.held_out_interval
     typer.echo(f"{det.name}: threshold {before:.4g} -> {cal.threshold:.4g} at {per_hour:g} false alarm(s) per "
                f"flight-hour on {len(cal.logs)} clean log(s), {cal.hours * 60:.1f} min of flight")
     typer.echo(f"leaving one log out: {cal.held_out_alarms} false alarm(s) in {cal.hours:.2f} h = "
                f"{cal.held_out_rate:.2f} per hour (95% interval {lo:.2f} to {hi:.2f})")
     typer.echo(f"wrote {out}")
+
+
+def _on_clean_logs(fn, det, paths, per_hour: float, config, format, out: Path, *residues):
+    """``fn`` (calibrate_on_logs or vehicle_profile) run on the clean logs, its skipped logs said, its
+    detector saved to ``out``; a refusal in one line."""
+    from quadformer.logs import LogError
+
+    try:
+        res = fn(det, paths, per_hour, *residues, config=config, format=format,
+                 progress=lambda p: typer.echo(f"scored {p}"))
+    except (LogError, ValueError) as e:
+        fail(str(e))
+    for reason in res.skipped:
+        typer.secho(f"skipped: {reason}", fg=typer.colors.YELLOW, err=True)
+    res.detector.save(out)
+    return res

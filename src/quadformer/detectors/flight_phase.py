@@ -294,25 +294,23 @@ def phases(t, events: pd.DataFrame | None = None, height: pd.DataFrame | None = 
     fp = FlightPhase(rule)
     items = list(timeline(("events", events), ("height", height), ("impacts", impacts)))
     out, landings, k = [], [], 0
-    for tk in t:
-        while k < len(items) and items[k][0] <= tk:
-            ti, name, row = items[k]
-            if name == "events":
-                fp.event(ti, str(row["event"]))
-            elif name == "height":
-                fp.update(ti, float(row["h"]))
-            else:
-                fp.impact(ti, bool(row["crash"]), str(row.get("detail", "impact")))
-            k += 1
-        out.append(fp.update(tk))
-        landings += fp.pop_landings()
-    for ti, name, row in items[k:]:          # landings after the last time still relabel before it
+
+    def feed(ti: float, name: str, row: dict) -> None:
         if name == "events":
             fp.event(ti, str(row["event"]))
         elif name == "height":
             fp.update(ti, float(row["h"]))
         else:
             fp.impact(ti, bool(row["crash"]), str(row.get("detail", "impact")))
+
+    for tk in t:
+        while k < len(items) and items[k][0] <= tk:
+            feed(*items[k])
+            k += 1
+        out.append(fp.update(tk))
+        landings += fp.pop_landings()
+    for item in items[k:]:                   # landings after the last time still relabel before it
+        feed(*item)
     landings += fp.pop_landings()
     out = np.array(out, dtype=object)
     for landing in landings:
