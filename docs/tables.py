@@ -320,7 +320,8 @@ def table_field(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
                     continue
                 parts = [fmt(r["event_recall"], digits), fmt(r["recall_big"], digits)]
                 if floor:
-                    parts.append(fmt(r.get("recall_floor"), digits) + f" ({r.get('floor_injected', 0)})")
+                    n = as_float(r.get("floor_injected"))
+                    parts.append("-" if not n or n != n else f"{fmt(r.get('recall_floor'), digits)} ({int(n)})")
                 delay = fmt(r["delay_median_s"], 1)
                 parts.append(delay + (" s" if delay != "-" else ""))
                 cells.append(" / ".join(parts))
