@@ -46,7 +46,8 @@ def test_demo_run_benchmarks_detection_then_resilience_from_the_cache(short_data
 def test_the_demo_on_shipped_detectors_trains_nothing_and_scores_every_flight(short_dataset_dir, tmp_path):
     """The default demo: the shipped vio detectors score every flight of a configuration's new
     dataset, the shipped QUADFormer drives the resilient estimator, and `detect`'s route reads
-    simulated PX4 and ArduPilot logs with the shipped detector it picks."""
+    simulated PX4 and ArduPilot logs (a vehicle without a camera under a consistent drift among
+    them) with the shipped detector it picks."""
     from quadformer.detectors import pretrained
     from quadformer.experiments.demo import run_shipped_demo, shipped_profile
 
@@ -65,8 +66,9 @@ def test_the_demo_on_shipped_detectors_trains_nothing_and_scores_every_flight(sh
     assert "shipped detectors" in run.detection["protocol"]
     res = run.resilience["configs"][0]
     assert run.resilience["shipped"] == "vio-quadformer" and res["test_flights"] == 1
-    assert [o.status for o in run.logs.outcomes] == ["scored"] * 4               # two flights, two formats
-    assert sorted(o.path.suffix for o in run.logs.outcomes) == [".bin", ".bin", ".ulg", ".ulg"]
+    assert [o.status for o in run.logs.outcomes] == ["scored"] * 6               # three flights, two formats
+    assert sorted(o.path.name for o in run.logs.outcomes) == [
+        "drift_0000.bin", "drift_0000.ulg", "flight_0000.bin", "flight_0000.ulg", "flight_0001.bin", "flight_0001.ulg"]
     assert run.log_detector == pretrained.sets()["magbaro"].default
     assert (out / "logs" / "summary.csv").exists() and (out / "detection" / "report.html").exists()
     assert json.loads((out / "detection" / "results.json").read_text())["methods_run"] == list(run.shipped)

@@ -248,7 +248,8 @@ def _detect_on_logs(out: Path, cache_dir: Path, duration: float, workers: int | 
     """Simulated flights written as autopilot logs (kept in the cache), scored by ``detect``'s
     route with the shipped detector it picks for them: two flights with the fleet's noise (one
     under a bias), and a vehicle without a camera under a consistent drift switched on at once
-    (``drift_0000``)."""
+    (``drift_0000``), its onset three quarters into the flight, after the shipped ``glr`` has
+    calibrated itself on the flight's first 20 s in the air."""
     from quadformer.config import SimConfig, merge
     from quadformer.experiments.cache import dataset_key
     from quadformer.experiments.flight_logs import simulate_with_logs
@@ -264,7 +265,8 @@ def _detect_on_logs(out: Path, cache_dir: Path, duration: float, workers: int | 
     drift = SimConfig.from_dict(merge(merge(FLEET_NOISE, DRIFT_RECEIVER), {
         "model": "I", "noise": "gaussian", "sensors": "gps+imu+mag+baro", "flights": 1, "duration": duration,
         "seed": DEMO_SEED + 1, "attack": {"kind": "drift", "fraction": 1.0, "rate": [DRIFT_RATE, DRIFT_RATE],
-                                          "onset": [duration / 2, duration / 2], "onset_step": True, "axes": "xy"}}))
+                                          "onset": [0.75 * duration, 0.75 * duration], "onset_step": True,
+                                          "axes": "xy"}}))
     paths = []
     for c, prefix in ((cfg, None), (drift, "drift")):
         where = Path(cache_dir) / f"demo-logs-{dataset_key(c)}"
