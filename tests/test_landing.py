@@ -227,13 +227,17 @@ def test_an_impact_relabels_an_alert_2_s_before_it_and_holds_a_transition_after(
     ph = phases(rows.t, events, height, impacts=impacts(imu))
     assert [ph[rows.t.searchsorted(a.start_s)] for a in alerts] == [a.phase for a in alerts]
     assert alert_counts(alerts)["alerts"] == 1 and alert_counts(alerts)["alerts_transition"] == 2
-    # high up, the same spike is no landing; a crash is one wherever it happens
+    # high up, the same spike is no landing; a crash is one wherever it happens, once the vehicle is
+    # seen down after it (here: disarmed 2 s later), and none when it flies on (a spoof that makes
+    # the vehicle jerk does not get its alert relabelled)
     high = height.assign(h=height.h + np.where(height.t > 20.0, 30.0, 0.0))
     assert [a.phase for a in online(rows, scores, det, events=events, height=high, imu=imu)[0]] == ["air"] * 3
     assert [a.phase for a in online(rows, scores, det, events=events, imu=imu)[0]] == ["air"] * 3   # no height
     crash = imu_frame(40.0, spike_at=30.0, spike_g=7.0, n=5)
-    assert [a.phase for a in online(rows, scores, det, events=events, imu=crash)[0]] == [
-        "transition", "transition", "air"]
+    assert [a.phase for a in online(rows, scores, det, events=events, imu=crash)[0]] == ["air"] * 3  # flies on
+    down = pd.concat([events, pd.DataFrame({"t": [32.0], "event": ["disarmed"], "detail": ""})], ignore_index=True)
+    assert [a.phase for a in online(rows, scores, det, events=down, imu=crash)[0]] == [
+        "transition", "transition", "ground"]
 
 
 # -- the live monitor's side ------------------------------------------------------------------------------
@@ -254,7 +258,11 @@ def test_the_monitor_writes_the_relabel_and_its_alert_list_shows_the_new_phase(t
     alerting.attach(None, records)
     row_t = iter(rows.t)
     nxt = next(row_t)
+    down = False
     for r in imu.itertuples():
+        if r.t >= 31.0 and not down:                   # the vehicle on the ground after its crash
+            fs.message(31.0, M.mavlink2.MAVLink_extended_sys_state_message(0, M.mavlink2.MAV_LANDED_STATE_ON_GROUND))
+            down = True
         fs.imu(r.t, np.array([r.ax, r.ay, r.az, 0.0, 0.0, 0.0]))
         while nxt is not None and nxt <= r.t:
             alerting.events(fs.feed(step, nxt), 0, math.nan, FUSING)
@@ -270,7 +278,8 @@ def test_the_monitor_writes_the_relabel_and_its_alert_list_shows_the_new_phase(t
     assert start["phase"] == "air" and seen[-1]["event"] == "alert_relabel"
     assert (relabel["start_s"], relabel["phase"], relabel["was"], relabel["kind"]) == (27.0, "transition", "air",
                                                                                       "spoofing")
-    assert relabel["reason"] == "landing at t=30.0 s (crash: 5.8 g)" and relabel["vehicle_t"] == pytest.approx(30.03)
+    # dated at the crash, relabelled when the vehicle was seen down
+    assert relabel["reason"] == "landing at t=30.0 s (crash: 5.8 g)" and relabel["vehicle_t"] == pytest.approx(31.0)
     (kept,) = alerting.alerts
     assert (kept.start_s, kept.phase, kept.reason) == (27.0, "transition", relabel["reason"])
     assert {k: v for k, v in alerting.counts.items() if v} == {"alerts_transition": 1, "alerts_total": 1}

@@ -33,8 +33,11 @@ from (``Landing``, its ``how``):
   unknown), at the event's time (at the height's touchdown where one is pending);
 - the height fallback's landing, dated at its touchdown: the first of the heights within
   ``climb_m / 2`` of the ground, ``land_hold_s`` before the landing is declared;
-- an impact (``impact(t, crash)``, from ``detectors.impact``): a crash anywhere; a smaller
-  impact only near the ground: the last height within ``near_m`` (3 m) of the ground height, or
+- an impact (``impact(t, crash)``, from ``detectors.impact``): a crash anywhere once the vehicle
+  is seen down within ``impact_hold_s`` after it (a landed or disarmed event, the height near the
+  ground, or the end of the data: a spike in the air that the vehicle flies on from is no landing,
+  so a spoof that makes the vehicle jerk cannot have its alert relabelled); a smaller impact only
+  near the ground: the last height within ``near_m`` (3 m) of the ground height, or
   within twice that while descending (it fell more than ``climb_m`` over the last ``sink_s``).
   Without a height only a crash counts. The ``impact_hold_s`` (5 s) after a counted impact are a
   transition where the phase would be ``air``.
@@ -115,6 +118,7 @@ class FlightPhase:
         self._low_since = math.nan       # s, the first of the current run of heights near the ground
         self._heights = False            # a height seen
         self.last_impact: Landing | None = None     # the last impact counted as a landing
+        self._crash: tuple[float, str] | None = None   # (t, how) of a crash in the air not yet seen down
         self._recent: deque[tuple[float, float]] = deque()   # (t, h) of the last sink_s of heights
         self._landings: deque[Landing] = deque(maxlen=MAX_LANDINGS)
 
@@ -130,6 +134,8 @@ class FlightPhase:
     def event(self, t: float, kind: str) -> None:
         """One of the vehicle's events at t (``VEHICLE_EVENTS``; others are ignored)."""
         t = _time(t)
+        if kind in ("landed", "disarmed") and self._crash is not None:
+            self._confirm_crash(t, down=True)
         if kind in ("landed", "disarmed") and (self.airborne or self.source == "none"):
             self._land(min(t, self._low_since) if math.isfinite(self._low_since) else t, t, f"{kind} event")
         if kind == "takeoff":
@@ -158,6 +164,7 @@ class FlightPhase:
             self._track(t, h)
             if not self.by_events:
                 self._height(t, h)
+        self._confirm_crash(t)
         return self._phase(t)
 
     def impact(self, t: float, crash: bool = False, how: str = "impact") -> bool:
@@ -165,10 +172,30 @@ class FlightPhase:
         is; ``how``: in words, for the landing's reason); whether it counts as a landing (see the
         module text)."""
         t = _time(t)
-        if not (crash or self._near_ground()):
-            return False
-        self.last_impact = self._land(t, t, how)
-        return True
+        if self._near_ground():
+            self.last_impact = self._land(t, t, how)
+            return True
+        if crash:                   # a crash in the air: a landing once the vehicle is seen down
+            self._crash = (t, how)
+        return False
+
+    def finish(self, t: float) -> None:
+        """The end of the data at t: a crash pending within ``impact_hold_s`` before it is a landing
+        (the log or the link ended with it)."""
+        self._confirm_crash(_time(t), ended=True)
+
+    def _confirm_crash(self, t: float, ended: bool = False, down: bool = False) -> None:
+        """Declare a pending crash a landing when the vehicle is down (``down``: a landed or disarmed
+        event; else the height near the ground) or the data ended, within ``impact_hold_s`` after
+        it; forget it after that."""
+        if self._crash is None:
+            return
+        tc, how = self._crash
+        if t > tc + self.rule.impact_hold_s + 1e-9:
+            self._crash = None
+        elif ended or down or self._near_ground():
+            self._crash = None
+            self.last_impact = self._land(tc, t, how)
 
     def reason(self, t: float) -> str | None:
         """Why the phase at t is a landing's transition (the impact hold): the impact's
@@ -182,9 +209,10 @@ class FlightPhase:
         return out
 
     def touchdown(self, t: float) -> float:
-        """The earliest time a landing not yet declared at t can be dated at: the pending touchdown
-        of the height fallback, else t."""
-        return min(t, self._low_since) if math.isfinite(self._low_since) else t
+        """The earliest time a landing not yet declared at t can be dated at: a pending crash, the
+        pending touchdown of the height fallback, else t."""
+        out = min(t, self._low_since) if math.isfinite(self._low_since) else t
+        return out if self._crash is None else min(out, self._crash[0])
 
     def _land(self, t: float, seen: float, how: str) -> Landing:
         landing = Landing(t, seen, how)
@@ -311,6 +339,9 @@ def phases(t, events: pd.DataFrame | None = None, height: pd.DataFrame | None = 
         landings += fp.pop_landings()
     for item in items[k:]:                   # landings after the last time still relabel before it
         feed(*item)
+    ends = ([float(t[-1])] if len(t) else []) + ([float(items[-1][0])] if items else [])
+    if ends:
+        fp.finish(max(ends))
     landings += fp.pop_landings()
     out = np.array(out, dtype=object)
     for landing in landings:

@@ -125,6 +125,7 @@ class OnlineStep:
         self.pending: deque[tuple[float, str]] = deque(maxlen=MAX_PENDING)
         self.recent: deque[tuple[float, int]] = deque(maxlen=MAX_RECENT)   # (start_s, holder) raised in the air
         self._zeros = np.zeros(self.n)
+        self._last_t: float | None = None          # the last step's time (a crash just before the end)
         self._quiet = np.zeros(self.n, dtype=bool)
 
     def update(self, t, residues: Mapping[str, Any], attacked=None) -> StepResult:
@@ -136,6 +137,7 @@ class OnlineStep:
 
     def update_columns(self, t, cols: Mapping[str, Any], attacked=None) -> StepResult:
         """``update`` for a residue row already in the flight table's columns ``{column: (n,)}``."""
+        self._last_t = float(np.asarray(t, dtype=float).reshape(-1).max())
         if self.stream is not None:
             st = self.stream.update(self._scored(t, cols))
             score, alarm, types, above = st.score, np.asarray(st.alarm, dtype=bool), st.attack_type, st.above
@@ -318,8 +320,13 @@ class OnlineStep:
         return replace(a, score=self.tracker.peak(i))
 
     def finish(self) -> list[AlertEvent]:
-        """The end of the data: open alerts closed (``end_s`` None), then pending types confirmed."""
-        events = self.tracker.finish()
+        """The end of the data: a crash just before it declared a landing, open alerts closed
+        (``end_s`` None), then pending types confirmed."""
+        events = []
+        if self.phase is not None and self._last_t is not None:
+            self.phase.finish(self._last_t)
+            events += self._landed()
+        events += self.tracker.finish()
         if self.typer is not None and self.typer.history:
             events += self._confirm(None)
         if self.health is not None:
