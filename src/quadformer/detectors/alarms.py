@@ -28,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from quadformer.detectors.base import flight_slices
+from quadformer.detectors.runs import runs
 from quadformer.io import atomic_path
 
 ALERT_COLUMNS = ["flight_id", "start_s", "onset_s", "attack_type", "score", "end_s", "confirmed_type",
@@ -52,13 +53,6 @@ def with_reason(reason: str | None, more: str | None) -> str | None:
     if more is None or (reason is not None and more in reason):
         return reason
     return more if reason is None else f"{reason}; {more}"
-
-
-def runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """Half-open [start, end) index runs where ``mask`` is true."""
-    m = np.concatenate([[False], np.asarray(mask, dtype=bool), [False]])
-    d = np.diff(m.astype(np.int8))
-    return list(zip(np.nonzero(d == 1)[0].tolist(), np.nonzero(d == -1)[0].tolist()))
 
 
 def run_starts(X: pd.DataFrame, alarms: np.ndarray) -> np.ndarray:

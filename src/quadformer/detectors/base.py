@@ -29,6 +29,7 @@ from typing import Any, ClassVar
 import numpy as np
 import pandas as pd
 
+from quadformer.detectors.calibration import CRITERIA, choose_thresholds, gps_rate
 from quadformer.io import write_json
 
 
@@ -126,9 +127,6 @@ class Detector:
     def _choose(self, X: pd.DataFrame, y: np.ndarray | None, criterion: str, budget_per_hour: float,
                 gps_rate_hz: float | None, scores: np.ndarray | None) -> tuple[float, float]:
         """(threshold, budget threshold) chosen on validation flights ``X``."""
-        # imported here: calibration counts alarm runs with detectors.alarms, which imports this module
-        from quadformer.detectors.calibration import CRITERIA, choose_thresholds, gps_rate
-
         if criterion not in CRITERIA:
             raise ValueError(f"{self.name}: criterion must be one of {', '.join(CRITERIA)}, got {criterion!r}")
         if y is None and "label" in X.columns:

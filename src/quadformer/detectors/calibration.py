@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from quadformer.detectors.alarms import runs
+from quadformer.detectors.runs import runs
 
 #: the criteria ``Detector.calibrate`` accepts for ``threshold_``
 CRITERIA = ("f1", "budget")

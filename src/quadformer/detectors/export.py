@@ -50,19 +50,12 @@ from typing import Any
 import numpy as np
 
 from quadformer.detectors.base import Detector
+from quadformer.detectors.onnx_files import (CONTEXT, FORMAT, FORMAT_VERSION, INPUT, OPSET, RUNTIMES, export_files,
+                                             meta_path, stream_path)
 from quadformer.io import PACKAGES, atomic_path, package_versions, write_json
 
-FORMAT = "quadformer-onnx"
-FORMAT_VERSION = 2
-READS = (1, 2)          # format versions this version loads (1: no streaming graph)
-OPSET = 17
-INPUT = "residues"
-CONTEXT = "context"     # the streaming graph's second input
-RUNTIMES = ("torch", "onnx")
-#: windows per onnxruntime call offline: small batches keep the intermediate tensors in cache
-#: (one thread, default sizes: QUADFormer scores about twice as many steps per second in
-#: batches of 64 as in batches of 4096; CNN and LSTM gain 15 to 40%)
-BATCH = 64
+#: the export's files and runtimes (``detectors.onnx_files``) are named here too, where they were first
+__all__ = ["FORMAT", "FORMAT_VERSION", "OPSET", "RUNTIMES", "export_files", "export_onnx", "exportable"]
 
 
 # -- the graph (torch, loaded by export_onnx: detectors.neural.graph) ------------------------
@@ -100,11 +93,11 @@ def export_onnx(detector: Detector, path: str | Path, *, opset: int = OPSET) -> 
         step = QUADFormerStepGraph(detector).eval()
         ctx = detector.context
         example = (torch.from_numpy(np.tile(pad, (2, 1))), torch.zeros(2, ctx.n_tokens - 1, step.steps.width))
-        spath = _stream_path(path)
+        spath = stream_path(path)
         stream = {"graph": spath.name, "sha256": _export(step, example, spath, [INPUT, CONTEXT],
                                                          [*outputs, "embedding"], opset),
                   "width": int(step.steps.width)}
-    write_json(_meta_path(path), _metadata(detector, digest, opset, stream))
+    write_json(meta_path(path), _metadata(detector, digest, opset, stream))
     return path
 
 
@@ -198,32 +191,6 @@ def _metadata(detector: Detector, graph_sha256: str, opset: int = OPSET,
     doc["params"] = detector.saved_params()   # device: cpu, whatever it trained on
     doc["versions"] = package_versions((*PACKAGES, "onnx", "onnxruntime"))
     return doc
-
-
-def export_files(path: str | Path) -> list[Path]:
-    """The files of the export at ``path`` (``NAME.onnx``) that exist: the graph, its metadata
-    and, for QUADFormer, the streaming graph: what to copy together."""
-    path = Path(path)
-    return [p for p in (path, _meta_path(path), _stream_path(path)) if p.exists()]
-
-
-def _meta_path(graph: Path) -> Path:
-    return graph.with_name(graph.name + ".json")
-
-
-def _stream_path(graph: Path) -> Path:
-    """``model.onnx`` -> ``model.stream.onnx``."""
-    return graph.with_name(graph.stem + ".stream.onnx")
-
-
-def _pair(path: str | Path) -> tuple[Path, Path]:
-    """(graph, metadata) from either file's path."""
-    path = Path(path)
-    if path.name.endswith(".onnx.json"):
-        return path.with_name(path.name[: -len(".json")]), path
-    if path.suffix == ".onnx":
-        return path, _meta_path(path)
-    raise ValueError(f"{path}: not an exported model (expected NAME.onnx or NAME.onnx.json)")
 
 
 def __getattr__(name: str) -> Any:

@@ -14,7 +14,7 @@ import pandas as pd
 
 from quadformer.detectors.base import Detector, check_residues
 from quadformer.detectors.context import Context
-from quadformer.detectors.export import BATCH, CONTEXT, FORMAT, INPUT, READS, RUNTIMES, _pair
+from quadformer.detectors.onnx_files import BATCH, CONTEXT, FORMAT, INPUT, READS, RUNTIMES, graph_and_meta
 from quadformer.detectors.registry import load
 from quadformer.detectors.windows import RawInputs, Windows, WindowStream
 
@@ -41,7 +41,7 @@ class OnnxDetector(Detector):
         self._open()
 
     def _open(self) -> None:
-        graph, meta = _pair(self.path)
+        graph, meta = graph_and_meta(self.path)
         try:
             doc = json.loads(meta.read_text())
         except FileNotFoundError:

@@ -38,21 +38,20 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import re
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
 
-from quadformer.config import SimConfig, merge
+from quadformer.config import SimConfig
 from quadformer.detectors.calibration import budget_threshold
 from quadformer.detectors.flight_phase import PhaseRule, phases
 from quadformer.estimator.filter_config import FilterConfig
 from quadformer.experiments.field_models import shipped_detectors, shipped_files, tune_methods
-from quadformer.experiments.field_spoofs import INJECTED, inject, injected_events, log_alerts, planned_injections
+from quadformer.experiments.field_plan import FieldLog, FieldPlan
+from quadformer.experiments.field_spoofs import inject, injected_events, log_alerts, planned_injections
 from quadformer.io import package_versions, write_json
 from quadformer.logs import LogError, read_log
 from quadformer.logs.detect import log_height, log_impacts, log_rows
@@ -63,76 +62,6 @@ from quadformer.logs.replay import ekf_flights, missing_features
 __all__ = ["FieldPlan", "run_field"]
 
 DEGRADED_WITHIN_S = 2.0     # s after a receiver's first sign of trouble, the degraded alert's deadline
-
-
-@dataclass(frozen=True)
-class FieldPlan:
-    methods: tuple[str, ...]
-    flights: int = 60                     # simulated training flights
-    duration: float = 60.0                # s per simulated flight
-    model: str = "I"
-    seed: int = 0
-    budget_per_hour: float = 1.0          # false alarms per in-air hour, for the calibrated threshold
-    label_fraction: float = 0.2
-    injections: int = 6                   # spoofs of each kind injected into each clean segment in air
-    bias: tuple[float, float] = (1.0, 10.0)       # m
-    ramp: tuple[float, float] = (0.05, 2.0)       # m/s
-    phase: PhaseRule = PhaseRule()
-    drift: tuple[float, float] = (0.2, 2.0)       # m/s, a drift's rate (switched on at once or accelerating in)
-    drift_accel: tuple[float, float] = (0.05, 0.5)  # m/s^2, an accelerating drift's acceleration
-    capture: tuple[float, float] = (5.0, 15.0)    # m, a capture's pull-off
-    capture_rate: tuple[float, float] = (0.5, 3.0)  # m/s, the drift after a capture
-    kinds: tuple[str, ...] = tuple(INJECTED)      # the spoofs injected (names of field_spoofs.INJECTED)
-
-    def __post_init__(self) -> None:
-        unknown = [k for k in self.kinds if k not in INJECTED]
-        if unknown:
-            raise ValueError(f"FieldPlan.kinds: unknown injection {unknown[0]!r}; choose from {', '.join(INJECTED)}")
-
-    def sim_config(self, noise_overrides: dict[str, Any]) -> SimConfig:
-        return SimConfig.from_dict(merge(noise_overrides, {
-            "model": self.model, "noise": "gaussian", "sensors": "gps+imu+mag+baro", "flights": self.flights,
-            "duration": self.duration, "seed": self.seed,
-            "attack": {"kind": "mix", "mix": ["bias", "ramp"], "magnitude": list(self.bias), "rate": list(self.ramp),
-                       "onset": [self.duration / 6, self.duration * 2 / 3]}}))
-
-
-@dataclass
-class FieldLog:
-    """One log as the benchmark uses it: its rows (``ekf`` residues), each row's flight phase."""
-    path: Path
-    log: FlightLog
-    entry: ManifestEntry | None
-    rows: pd.DataFrame
-    phase: np.ndarray
-    notes: list[str] = field(default_factory=list)
-
-    @property
-    def clean(self) -> bool:
-        return self.entry is None or self.entry.clean
-
-    @property
-    def vehicle(self) -> str:
-        """The vehicle the log was flown on: the manifest's ``vehicle`` without firmware hashes
-        (one airframe across firmware builds), else the log's own name."""
-        v = (self.entry.extra.get("vehicle") or "").strip() if self.entry is not None else ""
-        return re.sub(r"\s*\([0-9a-f]{7,}\)", "", v).strip() or self.path.name
-
-    @property
-    def gps_t0(self) -> float:
-        """The log's first GPS report (with or without a fix): the manifest's time origin."""
-        first = [float(s["t"].iloc[0]) for s in (self.log.receiver, self.log.gps) if s is not None and len(s)]
-        return min(first)
-
-    def windows(self) -> list[tuple[float, float]]:
-        """The manifest's GPS-trouble windows on the log's clock."""
-        t0 = self.gps_t0
-        return [] if self.entry is None else [(a + t0, b + t0) for a, b in self.entry.trouble]
-
-    def signs(self) -> list[float]:
-        """The manifest's first signs of GPS trouble on the log's clock."""
-        t0 = self.gps_t0
-        return [] if self.entry is None else [s + t0 for s in self.entry.signs]
 
 
 def fleet_noise_logs(logs: list[FlightLog], entries: dict[str, ManifestEntry] | None) -> list[FlightLog]:
@@ -169,7 +98,8 @@ def replay_logs(read: dict[Path, FlightLog | LogError], manifest: dict[str, Mani
             notes = [*notes, "not in the manifest: taken as a clean flight"]
         used.append(FieldLog(p, log, entry, rows, phase, notes))
         air = float(np.mean(phase == "air")) if len(phase) else 0.0
-        echo(f"  read {p.name}: {len(rows)} GPS steps, {air:.0%} in air ({'clean' if used[-1].clean else 'GPS trouble'})")
+        kind = "clean" if used[-1].clean else "GPS trouble"
+        echo(f"  read {p.name}: {len(rows)} GPS steps, {air:.0%} in air ({kind})")
     return used, refused
 
 

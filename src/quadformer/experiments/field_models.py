@@ -8,13 +8,12 @@ import dataclasses
 import json
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable
 
 from quadformer.config import SimConfig, unset_kind_fields
+from quadformer.experiments.field_plan import FieldPlan
 from quadformer.io import atomic_write_text
 
-if TYPE_CHECKING:
-    from quadformer.experiments.field import FieldPlan
 
 __all__ = ["tune_methods", "shipped_detectors", "shipped_files"]
 

@@ -15,40 +15,22 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from quadformer.config import AttackConfig
 from quadformer.estimator.filter_config import FilterConfig
+from quadformer.experiments.field_plan import INJECTED, FieldLog, FieldPlan
 from quadformer.logs.detect import log_height, log_impacts, step_alerts
 from quadformer.logs.replay import ekf_flights
 
-if TYPE_CHECKING:
-    from quadformer.experiments.field import FieldLog, FieldPlan
 
 __all__ = ["INJECTED", "INJECT_BEFORE_END_S", "Injected", "inject", "injected_events", "log_alerts",
            "planned_injections"]
 
 INJECT_BEFORE_END_S = 12.0  # s of air kept after an injected onset
-
-
-@dataclass(frozen=True)
-class Injection:
-    """One kind of spoof the field benchmark injects."""
-    kind: str                    # the attack kind (``config.ATTACK_KINDS``)
-    seed_offset: int             # added to the injection's flight index (each kind its own draws)
-    onset_step: bool | None = None   # a drift's onset style
-    size: str = "rate"           # the AttackBatch field its size is (m or m/s)
-
-
-#: the spoofs injected, by the name their results rows carry; bias and ramp keep the flight indices
-#: (and so the draws) they had before the others existed, the others are offset far beyond them
-INJECTED = {"bias": Injection("bias", 0, size="magnitude"), "ramp": Injection("ramp", 500),
-            "drift": Injection("drift", 100_000_000, onset_step=True),
-            "drift-accel": Injection("drift", 200_000_000, onset_step=False),
-            "capture": Injection("capture", 300_000_000, size="magnitude")}
 
 
 def log_alerts(fl: FieldLog, rows: pd.DataFrame, scores: np.ndarray, det, rate: float,

@@ -1,6 +1,6 @@
-"""The shipped detectors: their recipes and their build (``quadformer zoo build``).
+"""The shipped detectors' build (``quadformer zoo build``), from their recipes.
 
-A recipe per sensor set (``RECIPES``): the simulated flights its detectors learn from
+A recipe per sensor set (``RECIPES``, ``experiments.zoo_recipes``): the simulated flights its detectors learn from
 (configurations, flights per configuration, seed) and the methods; the set's default is chosen
 on the validation flights (``build``). The build simulates each set's flights (cached like the
 benchmark's datasets), splits every configuration's flights by flight with the benchmark's
@@ -24,20 +24,19 @@ versions and the tuning times; the checksums cover the detector files only).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 import pandas as pd
 
-from quadformer.config import SimConfig, merge
+from quadformer.config import SimConfig
 from quadformer.dataset import load_dataset
 from quadformer.detectors import pretrained
 from quadformer.evaluation.metrics import bootstrap_f1, evaluate
 from quadformer.evaluation.protocol import Tuned, split_flights, tune
 from quadformer.experiments.cache import ensure_configs
-from quadformer.experiments.grid import PAPER_GRID, Profile, profile_configs
+from quadformer.experiments.zoo_recipes import FLEET_NOISE, PAPER_PROFILE_F1, RECIPES, Recipe
 from quadformer.io import atomic_dir, package_versions, write_json
 
 __all__ = ["ZOO_SEED", "DEMO_SEED", "THREADS", "BUDGET_PER_HOUR", "FLEET_NOISE", "PAPER_PROFILE_F1", "Recipe",
@@ -52,118 +51,6 @@ SPLIT_SEED = 0
 LABEL_FRACTION = 0.2
 #: offset between the flight ids of pooled configurations (a configuration has fewer flights)
 ID_STRIDE = 1_000_000
-
-#: sensor noise of a fleet of real ArduCopter vehicles: what ``logs.noise.estimate_noise``
-#: measured on the clean flights of the field benchmark's set (the committed field run,
-#: ``docs/results/field/results.json``); only these numbers are used, no log is shipped
-FLEET_NOISE: dict[str, Any] = {
-    "gps": {"gm_std": 0.7432064851354794, "pos_std_h": 0.16246638389073875, "pos_std_v": 0.9220659419651528,
-            "vel_std": 0.3457059330527667},
-    "imu": {"accel_noise_density": 0.7354707032918594, "gyro_noise_density": 0.04703928858094162},
-    "mag": {"noise_std": 0.0018132049135960002},
-    "baro": {"gm_std": 4.231174405439167, "noise_std": 0.47591915466248536},
-}
-
-
-#: the paper profile's test F1 by method and configuration (docs/results.md, "Paper profile":
-#: `quadformer benchmark --profile paper`, commit 47559b9: a model per configuration, 360 training
-#: flights each), which the ``vio`` set's cards and the demo cite beside their own figures
-PAPER_PROFILE_F1: dict[str, dict[str, float]] = {
-    m: dict(zip(("modelI-exponential-bias", "modelI-exponential-ramp", "modelI-laplace-bias", "modelI-laplace-ramp",
-                 "modelII-exponential-bias", "modelII-exponential-ramp", "modelII-laplace-bias",
-                 "modelII-laplace-ramp"), f1))
-    for m, f1 in {
-        "chi2": (0.51, 0.75, 0.56, 0.74, 0.51, 0.75, 0.55, 0.76),
-        "cusum": (0.54, 0.75, 0.53, 0.69, 0.58, 0.68, 0.54, 0.71),
-        "sprt": (0.58, 0.77, 0.65, 0.77, 0.62, 0.75, 0.67, 0.77),
-        "bht": (0.63, 0.79, 0.70, 0.77, 0.67, 0.77, 0.70, 0.79),
-        "chi2-vref": (0.19, 0.78, 0.19, 0.72, 0.21, 0.72, 0.20, 0.73),
-        "cusum-vref": (0.20, 0.76, 0.18, 0.69, 0.20, 0.68, 0.19, 0.71),
-        "cusum-ref": (0.50, 0.75, 0.50, 0.67, 0.52, 0.67, 0.51, 0.70),
-        "quadformer": (0.91, 0.98, 0.90, 0.98, 0.92, 0.99, 0.93, 0.99),
-    }.items()}
-
-
-def paper_grid(flights: int, seed: int, duration: float = 60.0) -> list[tuple[str, SimConfig]]:
-    """The paper's eight configurations (GPS + IMU + VIO; Model I/II, exponential/Laplace noise,
-    bias/ramp) at ``flights`` each, their seeds derived from ``seed``."""
-    return profile_configs(Profile("zoo", flights, duration=duration, seed=seed, grid=PAPER_GRID))
-
-
-def fleet_grid(flights: int, seed: int, duration: float = 60.0) -> list[tuple[str, SimConfig]]:
-    """GPS + IMU + magnetometer + barometer with the fleet's noise, both airframes, half of the
-    flights under a bias of 1 to 10 m or a ramp of 0.05 to 2 m/s (the field benchmark's ranges)."""
-    out = []
-    for i, model in enumerate(("I", "II")):
-        cfg = SimConfig.from_dict(merge(FLEET_NOISE, {
-            "model": model, "noise": "gaussian", "sensors": "gps+imu+mag+baro", "flights": flights,
-            "duration": duration, "seed": int(np.random.SeedSequence(seed, spawn_key=(0x200, i)).generate_state(1)[0]),
-            "attack": {"kind": "mix", "mix": ["bias", "ramp"], "magnitude": [1.0, 10.0], "rate": [0.05, 2.0],
-                       "onset": [duration / 6, duration * 2 / 3]}}))
-        out.append((f"fleet-model{model}-gaussian-mix", cfg))
-    return out
-
-
-@dataclass(frozen=True)
-class Recipe:
-    set: str                        # the set's name (file names start with it)
-    sensors: str
-    residues: str                   # "ekf" or "autopilot"
-    formats: tuple[str, ...]        # log formats it serves (empty: any)
-    methods: tuple[str, ...]        # in order of preference where the validation flights tie
-    flights: int                    # per configuration
-    configs: Callable[..., list[tuple[str, SimConfig]]]     # (flights, seed, duration) -> named configs
-    about: str
-    #: the set's default by design (None: chosen on the validation flights), and why
-    default: str | None = None
-    default_reason: str = ""
-    #: a floor under the default's false-alarm-budget threshold from real clean flights (None: none),
-    #: and where it comes from
-    field_threshold: float | None = None
-    field_source: str = ""
-
-
-#: why a self-normalising test is the default of the sets real vehicles without a camera use
-_GLR_DEFAULT = ("glr is the one method that normalises itself to each vehicle in the air (the spread of its own "
-                "innovations, within 10 times the trained one) and reads the raw innovation, which a receiver's "
-                "inflated accuracy cannot normalise away; simulated validation flights, all of one simulated "
-                "noise, cannot show how a method meets a real vehicle's")
-#: a floor under the shipped glr's budget threshold: the largest glr score of a spoofing alert in the
-#: air on the real clean flights of the field benchmark's set was 51.5 (``quadformer detect
-#: ../shared/data/real-flights --model`` the shipped magbaro-glr at a threshold of 15: 18.6 to 51.5
-#: on the four clean flights the filter replays with spoofing alerts in the air; a score, not a log,
-#: is kept), rounded up to 60
-FLEET_GLR_THRESHOLD = 60.0
-_FLEET_GLR_SOURCE = ("the largest glr score of a spoofing alert in the air on the field benchmark's clean real "
-                     "flights (51.5, joeydouglas_2014-10-18_20-44-05.bin), rounded up to 60")
-
-RECIPES: tuple[Recipe, ...] = (
-    Recipe("magbaro", "gps+imu+mag+baro", "ekf", (), ("glr", "quadformer", "cusum", "chi2", "cusum-ref",
-                                                      "cusum-vref"),
-           200, fleet_grid,
-           "a vehicle without a camera (most PX4 and ArduPilot logs, a MAVLink link): the project's filter over "
-           "GPS, IMU, magnetometer and barometer, trained with a real fleet's sensor noise",
-           default="glr", default_reason=_GLR_DEFAULT, field_threshold=FLEET_GLR_THRESHOLD,
-           field_source=_FLEET_GLR_SOURCE),
-    Recipe("vio", "gps+imu+vio", "ekf", (), ("quadformer", "chi2", "cusum", "sprt", "bht", "chi2-vref", "cusum-vref",
-                                               "cusum-ref"),
-           60, paper_grid,
-           "the paper's vehicle: GPS, IMU and stereo visual-inertial odometry, trained on the paper's eight "
-           "configurations (both airframes, exponential and Laplace noise, bias and ramp attacks)"),
-    Recipe("px4", "gps+imu+mag+baro", "autopilot", ("px4",), ("cusum", "chi2"), 200, fleet_grid,
-           "PX4 logs scored on the autopilot's own GPS innovations (--residues autopilot): the NIS tests, "
-           "trained on the simulated filter's NIS with the fleet's noise; PX4's NIS has its own scale, so "
-           "calibrate on the vehicle's clean flights (quadformer calibrate) before trusting its false-alarm rate"),
-    Recipe("ardupilot", "gps+imu+mag+baro", "autopilot", ("ardupilot",), ("glr", "cusum", "chi2"), 200, fleet_grid,
-           "ArduPilot logs scored on the autopilot's own GPS innovations (--residues autopilot; EKF3's XKF3, EKF2's "
-           "NKF3 or the first EKF's EKF3, variances recovered from the logged test ratios): trained on the "
-           "simulated in-loop filter's innovations with the fleet's noise; glr normalises itself to the vehicle, "
-           "the NIS tests need a calibration on its clean flights (quadformer calibrate)",
-           default="glr", default_reason=_GLR_DEFAULT, field_threshold=FLEET_GLR_THRESHOLD,
-           field_source=_FLEET_GLR_SOURCE + " (on the project's replay; the autopilot's innovations were not "
-                        "measured for it)"),
-)
-
 
 def shipped_tuned(name: str, threshold: str = "f1") -> Tuned:
     """A shipped detector as the protocol's ``Tuned`` (its card's parameters and validation F1;

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -16,12 +16,15 @@ from quadformer.io import package_versions
 from quadformer.live.intake import STREAMS, Intake
 from quadformer.resilience.admission import BLENDING, EXCLUDED, FUSING
 
-if TYPE_CHECKING:
-    from quadformer.live.monitor import Monitor, _Segment
-
-__all__ = ["STALE", "STATES", "Latency", "state_text", "status_line", "summary", "summary_text"]
+__all__ = ["STALE", "STATES", "Latency", "SegmentState", "state_text", "status_line", "summary", "summary_text"]
 
 STATES = {FUSING: "fusing", EXCLUDED: "GPS excluded", BLENDING: "re-admitting GPS"}
+
+
+class SegmentState(Protocol):
+    """What the state in words reads of the monitor's current segment (``live.segment``)."""
+    fixes: int          # fixes scored in the segment
+    state: int          # the GPS admission state (``resilience.admission``)
 STALE = "stale"                   # the state while the IMU or GPS the filter needs is silent
 
 
@@ -48,7 +51,7 @@ class Latency:
         return 10 ** (self.LO + (i + 0.5) / self.PER_DECADE)
 
 
-def state_text(intake: Intake, seg: _Segment | None) -> str:
+def state_text(intake: Intake, seg: SegmentState | None) -> str:
     """waiting for IMU, stale (the IMU or GPS silent longer than ``stale_s``), waiting for
     fix, or the admission state."""
     if "imu" not in intake.last_t:
@@ -60,9 +63,10 @@ def state_text(intake: Intake, seg: _Segment | None) -> str:
     return STATES[seg.state]
 
 
-def status_line(m: Monitor, elapsed: float = 1.0) -> str:
-    """One line: time, segment, stream rates over ``elapsed`` s, fixes, score, state, silent
-    streams and the link's losses."""
+def status_line(m: Any, elapsed: float = 1.0) -> str:
+    """One line of the monitor ``m`` (``live.monitor.Monitor``, read, not imported: it reports
+    through this module): time, segment, stream rates over ``elapsed`` s, fixes, score, state,
+    silent streams and the link's losses."""
     intake = m.intake
     rates = " ".join(f"{s} {intake.window[s] / max(elapsed, 1e-9):.0f}" for s in STREAMS if s in intake.last_t)
     seg = m.segment
@@ -88,8 +92,9 @@ def status_line(m: Monitor, elapsed: float = 1.0) -> str:
     return " | ".join(parts)
 
 
-def summary(m: Monitor, wall_s: float) -> dict[str, Any]:
-    """The monitor's summary after ``wall_s`` seconds of its clock (``summary.json``)."""
+def summary(m: Any, wall_s: float) -> dict[str, Any]:
+    """The summary of the monitor ``m`` (``live.monitor.Monitor``) after ``wall_s`` seconds of its
+    clock (``summary.json``)."""
     dropped = dict(sorted(m.dropped.items()))
     intake, packets = m.intake, m.intake.packets
     return {
