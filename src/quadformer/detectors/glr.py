@@ -130,13 +130,15 @@ def step_features(t: np.ndarray, x: np.ndarray, windows, reference_s: float) -> 
 
 def robust_scale(d: np.ndarray, q: float = 0.5) -> np.ndarray:
     """Per column, of the finite rows: the q-quantile of the absolute deviation about the median,
-    as a normal variable's std (q 0.5: 1.4826 x the median absolute deviation)."""
+    as a normal variable's std (q 0.5: 1.4826 x the median absolute deviation); NaN for a column
+    without a finite row."""
+    d = np.asarray(d, dtype=float)
     out = np.full(d.shape[1], np.nan)
-    k = float(stats.norm.ppf(0.5 + q / 2))
-    for j in range(d.shape[1]):
-        v = d[:, j][np.isfinite(d[:, j])]
-        if len(v):
-            out[j] = float(np.quantile(np.abs(v - np.median(v)), q)) / k
+    have = np.isfinite(d).any(axis=0)
+    if have.any():
+        x = d[:, have]
+        dev = np.abs(x - np.nanmedian(x, axis=0))
+        out[have] = np.nanquantile(dev, q, axis=0) / float(stats.norm.ppf(0.5 + q / 2))
     return out
 
 

@@ -271,13 +271,10 @@ def _detect_on_logs(out: Path, cache_dir: Path, duration: float, workers: int | 
                                           "onset": [0.75 * duration, 0.75 * duration], "onset_step": True,
                                           "axes": "xy"}}))
     paths = []
-    for c, prefix in ((cfg, None), (drift, "drift")):
-        where = Path(cache_dir) / f"demo-logs-{dataset_key(c)}"
+    for c, name in ((cfg, "flight"), (drift, "drift")):      # their own names beside each other's
+        where = Path(cache_dir) / f"demo-logs-{name}-{dataset_key(c)}"
         if not (where / "logs").is_dir():
-            simulate_with_logs(c, where, ("ulog", "dataflash"), overwrite=True)
-            if prefix is not None:                     # their own names beside the others' in the outputs
-                for f in sorted((where / "logs").iterdir()):
-                    f.rename(f.with_name(f.name.replace("flight_", f"{prefix}_", 1)))
+            simulate_with_logs(c, where, ("ulog", "dataflash"), overwrite=True, name=name)
         paths += find_logs([where / "logs"])
     det, config = shipped_for(read_log(paths[0]))
     run = detect_logs(paths, det, out / "logs", "ekf", config, model=f"shipped:{det.zoo_name_}",

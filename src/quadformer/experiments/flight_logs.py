@@ -200,12 +200,14 @@ def attack_note(r, i: int) -> dict | None:
 
 class LogExport:
     """Writes each flight of the batches it is given as logs under ``directory``:
-    ``flight_NNNN.ulg`` / ``.bin`` (NNNN: the flight id) and, for an attacked flight,
-    ``flight_NNNN.attack.json``. Call it with each ``BatchResult`` (``simulate(on_batch=...)``)."""
+    ``flight_NNNN.ulg`` / ``.bin`` (NNNN: the flight id; ``name`` instead of ``flight``) and, for an
+    attacked flight, ``flight_NNNN.attack.json``. Call it with each ``BatchResult``
+    (``simulate(on_batch=...)``)."""
 
     def __init__(self, cfg: SimConfig, directory: str | Path, formats: Iterable[str] = EXPORT_FORMATS,
-                 header: LogHeader | None = None) -> None:
+                 header: LogHeader | None = None, name: str = "flight") -> None:
         self.cfg = cfg
+        self.name = name
         self.directory = Path(directory)
         self.formats = export_formats(formats)
         self.header = header or LogHeader(utc0=UTC0)
@@ -214,7 +216,7 @@ class LogExport:
     def __call__(self, r) -> None:
         self.directory.mkdir(parents=True, exist_ok=True)
         for i, fid in enumerate(np.asarray(r["flights"])):
-            stem = f"flight_{int(fid):04d}"
+            stem = f"{self.name}_{int(fid):04d}"
             log = flight_log(self.cfg, r, i, path=self.directory / stem)
             for fmt in self.formats:
                 self.written.append(WRITERS[fmt](log, self.directory / (stem + SUFFIX[fmt]), self.header))
@@ -224,9 +226,11 @@ class LogExport:
 
 
 def simulate_with_logs(cfg: SimConfig, out: str | Path, formats: Iterable[str], overwrite: bool = False,
-                       progress: bool | Callable[[float], None] = False) -> tuple[Dataset, Path, list[Path]]:
+                       progress: bool | Callable[[float], None] = False,
+                       name: str = "flight") -> tuple[Dataset, Path, list[Path]]:
     """Simulate ``cfg`` and write the dataset to ``out`` with every flight's logs under
-    ``out/logs`` (``LogExport``); the dataset is the one ``simulate`` gives. The logs are
+    ``out/logs`` (``LogExport``, the files named ``{name}_NNNN``); the dataset is the one
+    ``simulate`` gives. The logs are
     written beside ``out`` first and moved in with the dataset, which appears at once.
     Returns (dataset, logs directory, files written)."""
     from quadformer.simulation import simulate
@@ -237,7 +241,7 @@ def simulate_with_logs(cfg: SimConfig, out: str | Path, formats: Iterable[str], 
         raise FileExistsError(f"{out} already exists (use --overwrite to replace it)")
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.logs.") as staging:
-        export = LogExport(cfg, Path(staging) / "logs", fmts)
+        export = LogExport(cfg, Path(staging) / "logs", fmts, name=name)
         ds = simulate(cfg, progress=progress, on_batch=export)
         write_dataset(ds, out, overwrite=overwrite, extra={"logs": export.directory})
     logs = out / "logs"

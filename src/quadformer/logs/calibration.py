@@ -66,6 +66,39 @@ def _alarm_runs(scores: np.ndarray, flights: np.ndarray, threshold: float) -> in
     return sum(len(runs(scores[flights == f] > threshold)) for f in np.unique(flights))
 
 
+@dataclass
+class _Read:
+    path: Path
+    log: Any                      # the FlightLog
+    rows: pd.DataFrame            # its segments' rows, flight ids ``1000 k + segment`` (k: the path's index)
+    sensors: str
+
+
+def _check_budget(per_hour: float) -> None:
+    if not (isinstance(per_hour, (int, float)) and np.isfinite(per_hour) and per_hour > 0):
+        raise ValueError(f"per_hour must be a positive number of false alarms per flight-hour, got {per_hour!r}")
+
+
+def _clean_rows(paths: list[str | Path], residues: str, config: FilterConfig, format: str | None,
+                progress: Callable[[str], None] | None) -> tuple[list[_Read], list[str]]:
+    """The rows of the clean logs that can be scored (one flight id per log and segment), and why
+    the others could not."""
+    read, skipped = [], []
+    for k, p in enumerate(map(Path, paths)):
+        try:
+            log = read_log(p, format=format)
+            flights, _ = log_rows(log, residues, config)
+        except LogError as e:
+            skipped.append(str(e))
+            continue
+        rows = pd.concat([f.rows for f in flights], ignore_index=True)
+        rows["flight_id"] = k * 1000 + rows["flight_id"].astype(np.int64)
+        read.append(_Read(p, log, rows, flights[0].sensors))
+        if progress is not None:
+            progress(str(p))
+    return read, skipped
+
+
 def calibrate_on_logs(detector, paths: list[str | Path], per_hour: float = 1.0, residues: str = "ekf",
                       config: FilterConfig = FilterConfig(), format: str | None = None,
                       progress: Callable[[str], None] | None = None) -> VehicleCalibration:
@@ -73,26 +106,14 @@ def calibrate_on_logs(detector, paths: list[str | Path], per_hour: float = 1.0, 
     text). Logs that cannot be scored are skipped and listed; at least two must be scored."""
     from quadformer.detectors.calibration import budget_threshold, gps_rate
 
-    if not (isinstance(per_hour, (int, float)) and np.isfinite(per_hour) and per_hour > 0):
-        raise ValueError(f"per_hour must be a positive number of false alarms per flight-hour, got {per_hour!r}")
+    _check_budget(per_hour)
     detector.check_fitted()
-    frames, used, skipped = [], [], []
-    for k, p in enumerate(map(Path, paths)):
-        try:
-            flights, _ = log_rows(read_log(p, format=format), residues, config)
-        except LogError as e:
-            skipped.append(str(e))
-            continue
-        rows = pd.concat([f.rows for f in flights], ignore_index=True)
-        rows["flight_id"] = k * 1000 + rows["flight_id"].astype(np.int64)      # one id per log and segment
-        frames.append(rows)
-        used.append(p)
-        if progress is not None:
-            progress(str(p))
+    read, skipped = _clean_rows(paths, residues, config, format, progress)
+    used = [r.path for r in read]
     if len(used) < MIN_LOGS:
         raise LogError(f"calibration needs at least {MIN_LOGS} scored clean logs, got {len(used)}"
                        + (": " + "; ".join(skipped) if skipped else ""))
-    X = pd.concat(frames, ignore_index=True)
+    X = pd.concat([r.rows for r in read], ignore_index=True)
     scores = np.asarray(detector.decision_function(X), dtype=float)
     fid = X["flight_id"].to_numpy()
     _, log_of = np.unique(fid // 1000, return_inverse=True)            # log index 0..len(used)-1 per row
@@ -154,25 +175,12 @@ def vehicle_profile(detector, paths: list[str | Path], per_hour: float = 1.0, co
         raise ValueError(f"a vehicle profile normalises glr (its noise scales and threshold); {detector.name} is "
                          "calibrated on a vehicle's flights with calibrate_on_logs (quadformer calibrate without "
                          "--profile)")
-    if not (isinstance(per_hour, (int, float)) and np.isfinite(per_hour) and per_hour > 0):
-        raise ValueError(f"per_hour must be a positive number of false alarms per flight-hour, got {per_hour!r}")
+    _check_budget(per_hour)
     detector.check_fitted()
-    frames, used, skipped, ids, sensors = [], [], [], [], set()
-    for k, p in enumerate(map(Path, paths)):
-        try:
-            log = read_log(p, format=format)
-            flights, _ = log_rows(log, "ekf", config)
-        except LogError as e:
-            skipped.append(str(e))
-            continue
-        rows = pd.concat([f.rows for f in flights], ignore_index=True)
-        rows["flight_id"] = k * 1000 + rows["flight_id"].astype(np.int64)
-        frames.append(rows)
-        used.append(p)
-        ids.append(vehicle_identity(log))
-        sensors.add(flights[0].sensors)
-        if progress is not None:
-            progress(str(p))
+    read, skipped = _clean_rows(paths, "ekf", config, format, progress)
+    used = [r.path for r in read]
+    ids = [vehicle_identity(r.log) for r in read]
+    sensors = {r.sensors for r in read}
     if not used:
         raise LogError("a vehicle profile needs clean logs that can be scored" + (": " + "; ".join(skipped)
                                                                                    if skipped else ""))
@@ -183,7 +191,7 @@ def vehicle_profile(detector, paths: list[str | Path], per_hour: float = 1.0, co
     if len(sensors) > 1:
         raise LogError(f"the clean logs fuse different sensors ({', '.join(sorted(sensors))}); give logs of one sensor "
                        "set, or --sensors")
-    X = pd.concat(frames, ignore_index=True)
+    X = pd.concat([r.rows for r in read], ignore_index=True)
     air = X["in_air"].to_numpy(dtype=float) > 0.5 if "in_air" in X.columns else np.ones(len(X), bool)
     rate = gps_rate(X)
     minutes = float(air.sum()) / rate / 60.0
