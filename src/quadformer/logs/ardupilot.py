@@ -10,6 +10,8 @@ file; NED/FRD converted by ``frames``; DFReader applies the logged unit multipli
   ``Status`` (fix_type: the same codes as PX4, 3 = 3D fix; samples below 2 are dropped),
   ``NSats``; joined with ``GPA`` of the same ``TimeUS``: ``HAcc`` (eph), ``VAcc`` (epv),
   ``SAcc`` (speed_acc), ``VV`` (vz is NaN where 0). jamming/spoofing are not logged (NaN).
+  Each fix is stamped at its epoch from the receiver's GPS time (``GWk``/``GMS``; ``Week``/
+  ``TimeMS`` before 3.3): ``logs.receiver_clock``.
 * receiver: every ``GPS`` message of the same instance, fix or not: ``Status`` (fix_type),
   ``NSats``, and the ``GPA`` accuracies as in gps; noise, jamming and spoofing are not logged.
 * baro: ``BARO`` instance 0 ``Alt`` (relative to the ground calibration, as logged).
@@ -56,6 +58,7 @@ from quadformer.logs.ardupilot_estimator import DataflashEstimator
 from quadformer.logs.ardupilot_events import dataflash_events
 from quadformer.logs.ardupilot_messages import WANTED, col, collect_messages
 from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, assemble, gps_stream, make_stream
+from quadformer.logs.receiver_clock import week_seconds
 
 __all__ = ["read_dataflash"]
 
@@ -186,7 +189,11 @@ class _DataflashReader(DataflashEstimator):
         if (vv[keep] == 0).any():
             vel[vv == 0, 2] = np.nan
             self.notes.append(f"gps: vz NaN in {int((vv[keep] == 0).sum())} samples (GPA.VV = 0)")
-        out = {"t": t, "lat": lat, "lon": lon, "alt": alt, "fix_type": fix,
+        if "Week" in rows[0]:              # before 3.3: Week and TimeMS (the time of week; T the stamp)
+            tow = week_seconds(col(rows, "Week"), col(rows, "TimeMS"))
+        else:
+            tow = week_seconds(col(rows, "GWk"), col(rows, "GMS"))
+        out = {"t": t, "tow": tow, "lat": lat, "lon": lon, "alt": alt, "fix_type": fix,
                "satellites": col(rows, "NSats"), "vel": vel,
                **{k: accuracy[k] for k in ("eph", "epv", "speed_acc")}}
         return {k: v[keep] for k, v in out.items()}

@@ -17,7 +17,7 @@ __all__ = ["OLDER_EKFS", "WANTED", "DataflashMessages", "col", "collect_messages
 _HEADER = b"\xa3\x95"
 WANTED = {
     "IMU": ("I", "AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ"),
-    "GPS": ("I", "Status", "NSats", "Lat", "Lng", "Alt", "Spd", "GCrs", "VZ"),
+    "GPS": ("I", "Status", "NSats", "Lat", "Lng", "Alt", "Spd", "GCrs", "VZ", "GMS", "GWk", "Week", "TimeMS"),
     "GPA": ("I", "HAcc", "VAcc", "SAcc", "VV"),
     "BARO": ("I", "Alt"),
     "MAG": ("I", "MagX", "MagY", "MagZ"),

@@ -226,15 +226,27 @@ def make_stream(name: str, t: np.ndarray, values: Mapping[str, np.ndarray | floa
 def gps_stream(raw: Mapping[str, np.ndarray] | None, origin: tuple[float, float, float],
                notes: list[str]) -> pd.DataFrame | None:
     """The ``gps`` stream of raw fixes (``t``, ``lat``, ``lon``, ``alt``, ``vel`` (n, 3) ENU and
-    any receiver indicators), positions in ENU metres about ``origin``."""
+    any receiver indicators), positions in ENU metres about ``origin``; with ``tow`` (the
+    receiver's GPS time of each fix, s) the fixes are stamped at their epochs
+    (``logs.receiver_clock.fix_epochs``)."""
     if raw is None:
         return None
+    t = raw["t"]
+    if "tow" in raw:                      # the receiver's own time of each fix: stamped at its epoch
+        from quadformer.logs.receiver_clock import fix_epochs
+
+        t, keep, note = fix_epochs(raw["t"], raw["tow"])
+        if note:
+            notes.append(note)
+        if not keep.all():
+            raw = {k: v[keep] for k, v in raw.items()}
+            t = t[keep]
     enu = frames.geodetic_to_enu(raw["lat"], raw["lon"], raw["alt"], origin)
     values = {"x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2], "vx": raw["vel"][:, 0],
               "vy": raw["vel"][:, 1], "vz": raw["vel"][:, 2]}
     values.update({k: raw[k] for k in ("lat", "lon", "alt", "fix_type", "satellites", "eph", "epv",
                                         "speed_acc", "jamming", "spoofing") if k in raw})
-    return make_stream("gps", raw["t"], values, notes)
+    return make_stream("gps", t, values, notes)
 
 
 def clean_stream(name: str, df: pd.DataFrame | None, notes: list[str]) -> pd.DataFrame | None:
