@@ -27,10 +27,10 @@ from quadformer.estimator.online import FilterConfig
 from quadformer.estimator.schema import ATTACK_TYPES
 from quadformer.geometry.frames import euler_to_quat, geodetic_to_enu, quat_ned_frd_to_enu_flu, quat_to_matrix
 from quadformer.live.alerts import describe, statustext
-from quadformer.live.mavlink import local_address, open_link
+from quadformer.sensors.mavlink_link import local_address, open_link
 from quadformer.sensors import mavlink as M
 from quadformer.live.monitor import Monitor, MonitorConfig
-from quadformer.live.sender import SenderConfig, VehicleStreams, send
+from quadformer.sender import SenderConfig, VehicleStreams, send
 from quadformer.logs import read_log
 from quadformer.logs.detect import detect_log
 from quadformer.logs.flightlog import assemble, make_stream

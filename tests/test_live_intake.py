@@ -22,7 +22,7 @@ from logs_support import time_limit
 
 from quadformer.detectors.classical import Chi2Gate
 from quadformer.estimator.online import FilterConfig
-from quadformer.live.mavlink import local_address, open_link
+from quadformer.sensors.mavlink_link import open_link
 from quadformer.sensors import mavlink as M
 from quadformer.live.monitor import Monitor, MonitorConfig
 

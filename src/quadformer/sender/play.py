@@ -1,4 +1,4 @@
-"""A test sender: a vehicle's sensor streams played as MAVLink over a pymavlink link.
+"""Playing a vehicle's sensor streams as MAVLink over a pymavlink link (``send``).
 
 ``VehicleStreams`` holds what a vehicle would stream (SI units, ENU world, FLU body): a
 recorded log's sensors (``VehicleStreams.from_log``, any object with a ``FlightLog``'s
@@ -39,19 +39,19 @@ import time
 
 import numpy as np
 
-from quadformer.live.mavlink import open_link
-from quadformer.live.sender_config import SenderConfig, SendReport
-from quadformer.live.sender_link import Peer, Recorder, pack
-from quadformer.live.vehicle_streams import VehicleStreams, events, state_messages
+from quadformer.sender.config import SenderConfig, SendReport
+from quadformer.sender.link import Peer, Recorder, pack
+from quadformer.sender.streams import VehicleStreams, events, state_messages
 from quadformer.sensors.mavlink import encode_origin, mavlink2
+from quadformer.sensors.mavlink_link import open_link
 
-__all__ = ["SenderConfig", "SendReport", "VehicleStreams", "send"]
+__all__ = ["send"]
 
 
 def send(streams: VehicleStreams, connect, config: SenderConfig = SenderConfig(), stop=None) -> SendReport:
     """Play ``streams`` to a MAVLink receiver. ``connect``: ``udpout:127.0.0.1:PORT`` (a
     receiver bound to PORT), ``udpin:127.0.0.1:PORT`` (wait for the receiver's first packet,
-    then answer to it), or a connection from ``mavlink.open_link`` (closed at the end; a
+    then answer to it), or a connection from ``sensors.mavlink_link.open_link`` (closed at the end; a
     bound one waits for the receiver as udpin does). ``stop``: a ``threading.Event`` that
     ends the stream early. Returns the report; bounded by ``config.timeout_s`` of wall time."""
     cfg = config
