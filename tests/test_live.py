@@ -380,10 +380,10 @@ def test_c_loss_duplicates_reordering_corruption_outages_and_a_restart_are_repor
     fixes, s, report, lines = run_monitor(detector, sim_streams, faults, filter=FILTER, status_s=0.05)
     link = s["link"]
     assert s["errors"] == 0                                  # nothing was caught: every case is handled
-    assert report.lost > 0 and link["lost_packets"] >= report.lost * 0.8
-    assert 0 < report.corrupted <= link["corrupt_packets"] <= report.corrupted + report.duplicated   # some sent twice
-    assert link["duplicates"] > 0 and link["duplicate_packets"] >= report.duplicated - report.corrupted > 0
-    assert link["late"] > 0 and link["reordered_packets"] > 0
+    assert min(report.dropped, report.corrupted, report.duplicated, report.reordered) > 0
+    assert (link["lost_packets"], link["duplicate_packets"], link["reordered_packets"], link["corrupt_packets"]) == \
+        (report.lost, report.duplicated, report.reordered, report.corrupted)     # counted alike at both ends
+    assert link["duplicates"] > 0 and link["late"] > 0
     reasons = [seg["started"] for seg in s["segment_list"]]
     assert any(r.startswith("IMU gap of") for r in reasons), reasons
     assert any("clock went back" in r for r in reasons), reasons
