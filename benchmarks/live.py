@@ -37,7 +37,7 @@ def rss_mb() -> float:
 def play(streams, port: int, loops: int, queue) -> None:
     import torch
 
-    from quadformer.live.sender import SenderConfig, send
+    from quadformer.sender import SenderConfig, send
 
     torch.set_num_threads(1)
     rep = send(streams, f"udpout:127.0.0.1:{port}", SenderConfig(loops=loops, window=256,
@@ -60,7 +60,7 @@ def main() -> None:
     from quadformer.config import MissionConfig, SimConfig
     from quadformer.estimator.online import FilterConfig
     from quadformer.live.monitor import Monitor, MonitorConfig
-    from quadformer.live.sender import VehicleStreams
+    from quadformer.sender import VehicleStreams
     from quadformer.simulation import simulate_batch
 
     torch.set_num_threads(1)

@@ -34,7 +34,7 @@ DEFAULT_LOG = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "
 
 
 def play(streams, port: int, config, queue) -> None:
-    from quadformer.live.sender import send
+    from quadformer.sender import send
 
     rep = send(streams, f"udpout:127.0.0.1:{port}", config)
     queue.put({"sent": rep.sent, "data": rep.data, "stalls": rep.stalls, "wall_s": rep.wall_s,
@@ -98,7 +98,7 @@ def main() -> None:
     from quadformer.detectors import pretrained
     from quadformer.estimator.filter_config import FilterConfig
     from quadformer.live.monitor import Monitor, MonitorConfig
-    from quadformer.live.sender import SenderConfig, VehicleStreams
+    from quadformer.sender import SenderConfig, VehicleStreams
     from quadformer.logs import read_log
     from quadformer.logs.replay import log_sensors
 

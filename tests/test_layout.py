@@ -3,7 +3,7 @@
 Layers, bottom to top (a package may import its own modules and any lower layer):
 geometry and base modules -> vehicle and sensors -> estimator (and the residue schema) ->
 detectors -> library top (resilience, evaluation, dataset format) -> sources of flights
-(beside each other) -> reports -> experiments -> CLI.
+and the test sender (beside each other: the monitor never imports the sender) -> reports -> experiments -> CLI.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ LAYERS = (
     {"estimator"},
     {"detectors"},
     {"resilience", "evaluation", "dataset"},
-    {"simulation", "logs", "live"},
+    {"simulation", "logs", "live", "sender"},
     {"report"},
     {"experiments"},
     {"cli"},

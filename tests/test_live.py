@@ -27,10 +27,10 @@ from quadformer.estimator.online import FilterConfig
 from quadformer.estimator.schema import ATTACK_TYPES
 from quadformer.geometry.frames import euler_to_quat, geodetic_to_enu, quat_ned_frd_to_enu_flu, quat_to_matrix
 from quadformer.live.alerts import describe, statustext
-from quadformer.live.mavlink import local_address, open_link
+from quadformer.sensors.mavlink_link import local_address, open_link
 from quadformer.sensors import mavlink as M
 from quadformer.live.monitor import Monitor, MonitorConfig
-from quadformer.live.sender import SenderConfig, VehicleStreams, send
+from quadformer.sender import SenderConfig, VehicleStreams, send
 from quadformer.logs import read_log
 from quadformer.logs.detect import detect_log
 from quadformer.logs.flightlog import assemble, make_stream
@@ -380,10 +380,10 @@ def test_c_loss_duplicates_reordering_corruption_outages_and_a_restart_are_repor
     fixes, s, report, lines = run_monitor(detector, sim_streams, faults, filter=FILTER, status_s=0.05)
     link = s["link"]
     assert s["errors"] == 0                                  # nothing was caught: every case is handled
-    assert report.lost > 0 and link["lost_packets"] >= report.lost * 0.8
-    assert 0 < report.corrupted <= link["corrupt_packets"] <= report.corrupted + report.duplicated   # some sent twice
-    assert link["duplicates"] > 0 and link["duplicate_packets"] >= report.duplicated - report.corrupted > 0
-    assert link["late"] > 0 and link["reordered_packets"] > 0
+    assert min(report.dropped, report.corrupted, report.duplicated, report.reordered) > 0
+    assert (link["lost_packets"], link["duplicate_packets"], link["reordered_packets"], link["corrupt_packets"]) == \
+        (report.lost, report.duplicated, report.reordered, report.corrupted)     # counted alike at both ends
+    assert link["duplicates"] > 0 and link["late"] > 0
     reasons = [seg["started"] for seg in s["segment_list"]]
     assert any(r.startswith("IMU gap of") for r in reasons), reasons
     assert any("clock went back" in r for r in reasons), reasons

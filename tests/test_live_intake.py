@@ -1,5 +1,6 @@
 """The live monitor's link intake against a MAVLink sender written apart from ours: a pymavlink
-peer on 127.0.0.1 that stamps a stationary vehicle's IMU and GPS with its own boot clock.
+peer on 127.0.0.1 that stamps a stationary vehicle's IMU and GPS with its own boot clock
+(``live_support``; the link's packets and their loss: ``test_live_packets``).
 
 Every exchange ends with a TIMESYNC request the monitor answers once it has processed every
 packet before it, so the tests wait for events and count messages; wall-clock limits are
@@ -7,192 +8,25 @@ only a safety net. Silence is made by moving the monitor's injected clock, never
 
 from __future__ import annotations
 
-import contextlib
-import math
 import csv
 import json
+import math
 import re
-import threading
 import time
 
 import numpy as np
-import pandas as pd
 import pytest
-from logs_support import time_limit
+from live_support import FILTER, LOCAL, UP, Clock, Vehicle, gate, monitor
 
-from quadformer.detectors.classical import Chi2Gate
-from quadformer.estimator.online import FilterConfig
-from quadformer.live.mavlink import local_address, open_link
+from quadformer.live.monitor import Monitor
 from quadformer.sensors import mavlink as M
-from quadformer.live.monitor import Monitor, MonitorConfig
-
-LOCAL = "127.0.0.1"
-ORIGIN = (47.3977418, 8.5455939, 488.0)
-UP = np.array([0.0, 0.0, 9.80665, 0.0, 0.0, 0.0])     # specific force and rates at rest, FLU
-LIMIT_S = 120.0                                        # safety net per test (a loaded machine)
-FILTER = FilterConfig(sensors="gps+imu")
-
-
-# -- helpers ------------------------------------------------------------------------------------
-def gate(threshold: float) -> Chi2Gate:
-    """The NIS gate fitted on chi-square(6) draws, with a given alarm threshold."""
-    nis = np.random.default_rng(0).chisquare(6, 400)
-    table = pd.DataFrame({"flight_id": np.zeros(400, int), "t": np.arange(400) / 10.0, "res_gps_nis": nis})
-    return Chi2Gate().fit(table).calibrate(threshold)
-
-
-class Clock:
-    """The monitor's clock: the machine's monotonic clock plus the silence a test declares."""
-
-    def __init__(self):
-        self.skipped = 0.0
-
-    def __call__(self) -> float:
-        return time.monotonic() + self.skipped
-
-
-class Vehicle:
-    """A pymavlink peer sending to the monitor: a vehicle at rest with its own boot clock."""
-
-    def __init__(self, port: int, boot: float = 100.0):
-        self.conn = open_link(f"udpout:{LOCAL}:{port}", 1, 1)
-        self.t = boot                          # s since the vehicle's boot, the next IMU stamp
-        self.syncs = 0
-
-    def send(self, msg) -> None:
-        self.conn.mav.send(msg)
-
-    def raw_imu(self, t: float):
-        return M.mavlink2.MAVLink_raw_imu_message(M.usec(t), 0, 0, -1000, 0, 0, 0, 0, 0, 0)
-
-    def stream(self, seconds: float, imu_hz: float = 100.0, gps_hz: float = 10.0, attitude: bool = False) -> int:
-        """HIGHRES_IMU at imu_hz and GPS_RAW_INT at gps_hz over ``seconds`` of vehicle time;
-        the number of packets sent."""
-        n, sent = int(round(seconds * imu_hz)), 0
-        every = max(int(round(imu_hz / gps_hz)), 1)
-        for k in range(n):
-            t = self.t + k / imu_hz
-            if attitude and k == 0:
-                self.send(M.encode_attitude(t, np.array([0.0, 0.0, 0.0, 1.0])))
-                sent += 1
-            self.send(M.encode_highres_imu(t, imu=UP))
-            sent += 1
-            if k % every == 0:
-                self.send(M.encode_gps_raw_int(t, *ORIGIN, np.zeros(3), eph=0.5, epv=0.8, speed_acc=0.2))
-                sent += 1
-        self.t += n / imu_hz
-        return sent
-
-    def sync(self, timeout: float = LIMIT_S) -> None:
-        """Until the monitor answered a TIMESYNC request sent now (it processed all before
-        it); the request is repeated every 2 s should a receiver have lost it."""
-        self.syncs += 1
-        ts = self.syncs
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            self.send(M.mavlink2.MAVLink_timesync_message(0, ts))
-            again = time.monotonic() + 2.0
-            while time.monotonic() < min(again, end):
-                m = self.conn.recv_match(type="TIMESYNC", blocking=True, timeout=0.5)
-                if m is not None and m.tc1 != 0 and m.ts1 == ts:
-                    return
-        raise AssertionError(f"no TIMESYNC answer {ts} within {timeout} s")
-
-    def close(self) -> None:
-        self.conn.close()
-
-
-@contextlib.contextmanager
-def monitor(detector, clock=None, on_fix=None, on_alert=None, **config):
-    """A monitor listening on 127.0.0.1 (ephemeral port), run in a thread; yields
-    (monitor, its console lines, a dict that receives its summary once stopped)."""
-    lines: list[str] = []
-    extra = {} if clock is None else {"clock": clock}
-    mon = Monitor(detector, MonitorConfig(connect=f"udpin:{LOCAL}:0", **config), echo=lines.append,
-                  on_fix=on_fix, on_alert=on_alert, **extra)
-    mon.open()
-    out: dict = {}
-    thread = threading.Thread(target=lambda: out.update(summary=mon.run()), daemon=True)
-    thread.start()
-    try:
-        with time_limit(LIMIT_S):
-            yield mon, lines, out
-    finally:
-        mon.stop()
-        thread.join(20)
-    assert not thread.is_alive()
+from quadformer.sensors.mavlink_link import open_link
 
 
 @pytest.fixture(scope="module")
 def quiet():
     """A gate that never alarms."""
     return gate(1e9)
-
-
-# -- 1. one datagram is parsed on its own -----------------------------------------------------------
-def test_a_junk_datagram_starting_with_a_marker_loses_no_valid_datagram(quiet):
-    with monitor(quiet) as (mon, lines, out):
-        peer = Vehicle(mon.address[1])
-        peer.conn.write(b"\xfd\xff")                       # a MAVLink 2 marker claiming 255 bytes
-        for k in range(30):
-            peer.send(peer.raw_imu(100.0 + k / 100.0))
-        peer.sync()
-    s = out["summary"]
-    assert s["messages"]["RAW_IMU"] == 30
-    assert s["messages"]["BAD_DATA"] == 1 and s["link"]["corrupt_packets"] == 1
-    assert s["link"]["lost_packets"] == 0
-
-
-def test_a_thirty_percent_junk_datagrams_lose_nothing(quiet):
-    rng = np.random.default_rng(7)
-    junk = 0
-    with monitor(quiet) as (mon, lines, out):
-        peer = Vehicle(mon.address[1])
-        for k in range(200):
-            if rng.random() < 0.3:                          # 0xFD or 0xFE, then random bytes
-                peer.conn.write(bytes([int(rng.choice([0xFD, 0xFE]))]) + rng.bytes(int(rng.integers(1, 40))))
-                junk += 1
-            peer.send(peer.raw_imu(100.0 + k / 100.0))
-        peer.sync()
-    s = out["summary"]
-    assert junk > 40
-    assert s["messages"]["RAW_IMU"] == 200
-    assert s["link"]["corrupt_packets"] >= junk
-    assert s["link"]["lost_packets"] == 0
-
-
-# -- 2. loss counted on the sequence together with time ---------------------------------------------
-def test_b_an_outage_longer_than_the_sequence_counts_every_lost_packet(quiet):
-    with monitor(quiet) as (mon, lines, out):
-        peer = Vehicle(mon.address[1])
-        for k in range(300):                                # 3 s at 100 Hz: the sender's rate
-            peer.send(peer.raw_imu(100.0 + k / 100.0))
-        peer.sync()
-        peer.conn.mav.seq = (peer.conn.mav.seq + 510) % 256  # 510 packets lost: 5.1 s at 100 Hz ...
-        for k in range(100):                                # ... after the sync packet
-            peer.send(peer.raw_imu(103.0 + 5.11 + k / 100.0))
-        peer.sync()
-    link = out["summary"]["link"]
-    assert link["lost_packets"] == 510
-    assert link["duplicate_packets"] == 0 and link["reordered_packets"] == 0
-
-
-def test_b_an_outage_ended_by_an_unstamped_packet_is_timed_by_the_clock(quiet):
-    """A HEARTBEAT (no stamp) first after the outage: the monitor's clock times the gap."""
-    clock = Clock()
-    with monitor(quiet, clock=clock) as (mon, lines, out):
-        peer = Vehicle(mon.address[1])
-        for k in range(300):
-            peer.send(peer.raw_imu(100.0 + k / 100.0))
-        peer.sync()
-        clock.skipped += 6.0                                # 600 packets at 100 Hz: 6 s
-        peer.conn.mav.seq = (peer.conn.mav.seq + 600) % 256
-        peer.send(M.mavlink2.MAVLink_heartbeat_message(M.mavlink2.MAV_TYPE_QUADROTOR, M.mavlink2.MAV_AUTOPILOT_PX4,
-                                                       0, 0, M.mavlink2.MAV_STATE_ACTIVE, 3))
-        for k in range(50):
-            peer.send(peer.raw_imu(109.0 + k / 100.0))
-        peer.sync()
-    assert out["summary"]["link"]["lost_packets"] == 600
 
 
 # -- 3. a silent link is stale -------------------------------------------------------------------------
@@ -387,7 +221,8 @@ def test_h_the_autopilots_test_ratios_are_recorded_and_asked_for(quiet, tmp_path
         assert M.mavlink2.MAVLINK_MSG_ID_RAW_IMU in asked
         peer.stream(2.0, attitude=True)                          # boot 100 s is t = 0
         for vel in (0.2, 0.9, 0.4):
-            peer.send(M.encode_ekf_status_report(vel, 0.3, 0.1, 0.05, flags=0x1FF | (M.EKF_GPS_GLITCHING if vel > 0.5 else 0)))
+            glitch = M.EKF_GPS_GLITCHING if vel > 0.5 else 0
+            peer.send(M.encode_ekf_status_report(vel, 0.3, 0.1, 0.05, flags=0x1FF | glitch))
         peer.send(M.encode_estimator_status(101.0, 0.5, 0.6, 0.7))
         other = open_link(f"udpout:{LOCAL}:{mon.address[1]}", 2, 1)
         other.mav.send(M.encode_ekf_status_report(3.0, 3.0, 3.0))
@@ -406,6 +241,7 @@ def test_h_the_autopilots_test_ratios_are_recorded_and_asked_for(quiet, tmp_path
     assert ratios["max"] == pytest.approx({"vel": 0.9, "pos_horiz": 0.6, "pos_vert": 0.7, "mag": 0.05})
     assert ratios["last"]["source"] == "ESTIMATOR_STATUS" and ratios["last"]["t"] == pytest.approx(1.0)
     inputs = s["flight"]["inputs"]
-    assert (inputs["ratios_EKF_STATUS_REPORT"], inputs["ratios_ESTIMATOR_STATUS"], inputs["ratios_gps_glitch"]) == (3, 1, 1)
+    assert (inputs["ratios_EKF_STATUS_REPORT"], inputs["ratios_ESTIMATOR_STATUS"],
+            inputs["ratios_gps_glitch"]) == (3, 1, 1)
     assert s["link"]["dropped"]["ratios_other_system"] == 1
     assert s["alerts_total"] == 0 and any("EKF_STATUS_REPORT 10 Hz" in n for n in s["notes"])

@@ -12,8 +12,8 @@ from logs_support import FIX
 from quadformer.attacks import inject_fixes, sample_attacks
 from quadformer.config import AttackConfig
 from quadformer.geometry.frames import geodetic_to_enu
-from quadformer.live.sender import SenderConfig, VehicleStreams
-from quadformer.live.vehicle_streams import events
+from quadformer.sender import SenderConfig, VehicleStreams
+from quadformer.sender.streams import events
 from quadformer.logs import read_log
 from quadformer.rng import Stream, batch_generators
 from quadformer.sensors import mavlink as M

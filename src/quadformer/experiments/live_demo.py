@@ -27,7 +27,7 @@ from quadformer.estimator.online import FilterConfig
 from quadformer.estimator.schema import RESIDUES, groups_for
 from quadformer.evaluation.protocol import tune
 from quadformer.live.monitor import Monitor, MonitorConfig
-from quadformer.live.sender import SenderConfig, VehicleStreams, send
+from quadformer.sender import SenderConfig, VehicleStreams, send
 from quadformer.simulation import simulate_batch
 
 TRAIN_FLIGHTS = 6          # the demo flight is the next index

@@ -141,20 +141,20 @@ class Intake:
     # -- packets ----------------------------------------------------------------------------
     def attach(self, conn) -> None:
         """Read from this connection (``recv``); the clock of a stream that never came starts now."""
-        self.reader = Reader(conn, self.clock)
+        self.reader = Reader(conn)
         self.started = self.clock()
 
     def recv(self, timeout: float):
         """The next message of the attached connection, or None after ``timeout`` s without one."""
         return self.reader.recv(timeout)
 
-    def packet(self, src: tuple[int, int], seq: int, samples: list) -> None:
-        """Sequence accounting of one packet from ``src``, stamped by the samples it carries."""
+    def packet(self, src: tuple[int, int], seq: int, samples: list, checked: bool = True) -> None:
+        """Sequence accounting of one valid packet from ``src``, stamped by the samples it
+        carries (``checked``: its CRC was checked; ``packets.header``)."""
         stamps = [self.boot_time(s.boot_s if isinstance(s, SystemTime) else s.t, count=False)
                   for s in samples if hasattr(s, "t") or isinstance(s, SystemTime)]
         stamps = [t for t in stamps if t is not None]
-        now = self.reader.read_at if self.reader is not None else self.clock()
-        self.sequence.packet(src, seq, max(stamps) if stamps else None, now)
+        self.sequence.packet(src, seq, max(stamps) if stamps else None, checked)
 
     @property
     def packets(self) -> Counter:

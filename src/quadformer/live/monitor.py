@@ -63,7 +63,7 @@ from quadformer.live.alerts import Alerting
 from quadformer.live.config import FixRecord, MonitorConfig, monitor_sensors
 from quadformer.live.flight_state import FlightState
 from quadformer.live.intake import Intake
-from quadformer.live.mavlink import local_address, open_link
+from quadformer.sensors.mavlink_link import local_address, open_link
 from quadformer.live.pipeline import EVENT_MESSAGES, Pipeline  # noqa: F401 - EVENT_MESSAGES: importable here as before
 from quadformer.live.segment import Segment
 from quadformer.live.status import STALE, STATES, Latency

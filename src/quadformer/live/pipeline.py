@@ -26,6 +26,7 @@ from quadformer.live.alerts import Alerting
 from quadformer.live.config import FixRecord, MonitorConfig
 from quadformer.live.flight_state import FlightState
 from quadformer.live.intake import Intake
+from quadformer.live.packets import header
 from quadformer.live.segment import Segment
 from quadformer.live.status import STATES, Latency
 from quadformer.live.vehicle import Vehicle
@@ -81,11 +82,11 @@ class Pipeline:
         if kind == "BAD_DATA":
             return
         try:
-            src = (msg.get_srcSystem(), msg.get_srcComponent())
+            src, seq, checked = header(msg)
             if src == (self.config.source_system, self.config.source_component):
                 return
             samples = decode(msg)
-            self.intake.packet(src, msg.get_seq(), samples)
+            self.intake.packet(src, seq, samples, checked)
             if kind == "TIMESYNC":
                 if msg.tc1 == 0 and self.link is not None:
                     self.link.timesync_reply(msg.ts1)

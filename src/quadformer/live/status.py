@@ -87,7 +87,8 @@ def status_line(m: Any, elapsed: float = 1.0) -> str:
             parts.append(f"no {s.upper()} for {age:.0f} s")
     packets = intake.packets
     late = sum(v for k, v in m.dropped.items() if k.endswith(("_late", "_duplicate")))
-    parts.append(f"packets lost {packets['lost']} bad {m.messages['BAD_DATA']} dup {packets['duplicate']}")
+    parts.append(f"packets lost {packets['lost']} bad {m.messages['BAD_DATA']} dup {packets['duplicate']} "
+                 f"reord {packets['reordered']}")
     parts.append(f"samples late/dup {late}")
     return " | ".join(parts)
 

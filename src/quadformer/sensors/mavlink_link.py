@@ -1,6 +1,6 @@
-"""The live link's MAVLink connection: a pymavlink connection that speaks MAVLink 2 with the
-ardupilotmega dialect and parses robustly, and the address it is bound to. The messages'
-conversions to samples are ``sensors.mavlink``'s."""
+"""A MAVLink connection, the live monitor's and the test sender's: a pymavlink connection that
+speaks MAVLink 2 with the ardupilotmega dialect and parses robustly, and the address it is bound
+to. The messages' conversions to samples are ``sensors.mavlink``'s."""
 
 from __future__ import annotations
 

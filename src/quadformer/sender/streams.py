@@ -15,7 +15,7 @@ import pandas as pd
 
 from quadformer.estimator.online import CALL_ORDER
 from quadformer.geometry.frames import enu_to_geodetic
-from quadformer.live.sender_config import SenderConfig
+from quadformer.sender.config import SenderConfig
 from quadformer.sensors.mavlink import (
     encode_attitude,
     encode_gps_raw_int,

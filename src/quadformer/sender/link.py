@@ -10,7 +10,7 @@ from typing import Any
 
 import pandas as pd
 
-from quadformer.live.sender_config import SendReport
+from quadformer.sender.config import SendReport
 from quadformer.sensors.mavlink import (Attitude, Baro, Gps, Imu, Mag, Odometry, Origin, VehicleEvents, decode,
                                         gps_status, mavlink2)
 

@@ -17,8 +17,10 @@ class SenderConfig:
     window: int = 128                       # packets ahead of the receiver's answers (0: no flow control)
     loss: float = 0.0                       # probability a data packet is not sent
     duplicate: float = 0.0                  # ... is sent twice
-    reorder: float = 0.0                    # ... is held back behind the next one
-    corrupt: float = 0.0                    # ... has one payload byte flipped
+    reorder: float = 0.0                    # ... is held back behind the next intact one
+    corrupt: float = 0.0                    # ... has one byte after the header flipped
+                                            # (a packet meets at most one: loss, corrupt, reorder, duplicate)
+    junk: float = 0.0                       # probability a junk datagram goes before a data packet
     seed: int = 0
     skip: tuple[str, ...] = ()              # streams never sent: imu, gps, mag, baro, vio, attitude
     outages: tuple[tuple[float, float, tuple[str, ...]], ...] = ()   # (start s, length s, streams) of vehicle
@@ -44,7 +46,7 @@ class SenderConfig:
     linger_s: float = 0.3                   # keep reading the receiver's messages after the end
 
     def __post_init__(self) -> None:
-        for name in ("loss", "duplicate", "reorder", "corrupt"):
+        for name in ("loss", "duplicate", "reorder", "corrupt", "junk"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"sender.{name} must be a probability, got {v!r}")
@@ -65,12 +67,17 @@ class SenderConfig:
 
 @dataclass
 class SendReport:
-    sent: int = 0                           # packets written (duplicates counted twice)
+    """What the sender did, its packet counts defined as a monitor counts them (``live.packets``):
+    equal to the monitor's when the link itself loses nothing, the sender's streams never all
+    pause for half a wrap-around of packets, and no packet is held back while 128 sequence
+    numbers pass (over 127.0.0.1 with flow control, at any loss under 50%)."""
+    sent: int = 0                           # packets written (a duplicate twice; junk not counted)
     data: int = 0                           # data packets produced (before faults)
-    lost: int = 0
-    duplicated: int = 0
-    reordered: int = 0
-    corrupted: int = 0
+    dropped: int = 0                        # data packets not sent (their sequence numbers used)
+    corrupted: int = 0                      # data packets sent once with a byte flipped (BAD_DATA)
+    duplicated: int = 0                     # intact packets sent twice
+    reordered: int = 0                      # intact packets sent after a later intact one
+    junk: int = 0                           # junk datagrams written (no sequence number)
     paused_s: float = 0.0
     syncs: int = 0
     stalls: int = 0                         # TIMESYNC answers that never came (receiver stalled)
@@ -81,3 +88,8 @@ class SendReport:
     received: dict[str, int] = field(default_factory=dict)
     record: dict[str, Any] | None = None    # frames of the data as encoded (``record=True``)
     timed_out: bool = False
+
+    @property
+    def lost(self) -> int:
+        """Sequence numbers that reach the receiver in no valid packet: dropped or corrupted."""
+        return self.dropped + self.corrupted

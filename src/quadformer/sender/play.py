@@ -1,4 +1,4 @@
-"""A test sender: a vehicle's sensor streams played as MAVLink over a pymavlink link.
+"""Playing a vehicle's sensor streams as MAVLink over a pymavlink link (``send``).
 
 ``VehicleStreams`` holds what a vehicle would stream (SI units, ENU world, FLU body): a
 recorded log's sensors (``VehicleStreams.from_log``, any object with a ``FlightLog``'s
@@ -18,11 +18,18 @@ replay), faster than real time:
   TIMESYNC as a companion computer does), so a UDP receiver is never overrun: "as fast as the
   receiver keeps up".
 
-Faults, seeded (``np.random.default_rng(seed)``): packet loss, duplicates, reordering (a
-packet held back behind the next), corrupt bytes (one payload byte flipped: a bad CRC), a
-silent pause, an outage of some streams over a span of vehicle time, streams never sent, and
-a restart with the vehicle's clock going back; a span in which the receiver reports no fix
-(``fix_lost``). TIMESYNC, HEARTBEAT and EXTENDED_SYS_STATE packets are not faulted.
+Faults, seeded (``np.random.default_rng(seed)``; junk from a stream of its own, so that
+the other faults of a seed do not depend on it): each data packet is dropped (its sequence
+number used: a gap the receiver sees), corrupted (one byte after the header flipped: a bad
+CRC, sent once in its place), held back behind the next intact data packet (reordered) or
+sent twice (duplicated), at most one of these, drawn in that order; junk datagrams (a marker
+byte and 1 to 40 random bytes, no sequence number used) before data packets; a silent pause,
+an outage of some streams over a span of vehicle time, streams never sent, and a restart with
+the vehicle's clock going back; a span in which the receiver reports no fix (``fix_lost``).
+TIMESYNC, HEARTBEAT and EXTENDED_SYS_STATE packets are not faulted. The report counts as a
+monitor counts (``live.packets``): ``lost`` the sequence numbers that reach the receiver in no
+valid packet (dropped or corrupted), ``duplicated`` and ``reordered`` the intact packets that
+arrive twice or after a later one.
 
 With ``record=True`` the report holds the data exactly as encoded: every data packet that
 left intact, parsed back and decoded (``mavlink.decode``), as FlightLog-like frames
@@ -39,19 +46,19 @@ import time
 
 import numpy as np
 
-from quadformer.live.mavlink import open_link
-from quadformer.live.sender_config import SenderConfig, SendReport
-from quadformer.live.sender_link import Peer, Recorder, pack
-from quadformer.live.vehicle_streams import VehicleStreams, events, state_messages
+from quadformer.sender.config import SenderConfig, SendReport
+from quadformer.sender.link import Peer, Recorder, pack
+from quadformer.sender.streams import VehicleStreams, events, state_messages
 from quadformer.sensors.mavlink import encode_origin, mavlink2
+from quadformer.sensors.mavlink_link import open_link
 
-__all__ = ["SenderConfig", "SendReport", "VehicleStreams", "send"]
+__all__ = ["send"]
 
 
 def send(streams: VehicleStreams, connect, config: SenderConfig = SenderConfig(), stop=None) -> SendReport:
     """Play ``streams`` to a MAVLink receiver. ``connect``: ``udpout:127.0.0.1:PORT`` (a
     receiver bound to PORT), ``udpin:127.0.0.1:PORT`` (wait for the receiver's first packet,
-    then answer to it), or a connection from ``mavlink.open_link`` (closed at the end; a
+    then answer to it), or a connection from ``sensors.mavlink_link.open_link`` (closed at the end; a
     bound one waits for the receiver as udpin does). ``stop``: a ``threading.Event`` that
     ends the stream early. Returns the report; bounded by ``config.timeout_s`` of wall time."""
     cfg = config
@@ -63,6 +70,7 @@ def send(streams: VehicleStreams, connect, config: SenderConfig = SenderConfig()
         conn, listen = connect, bool(getattr(connect, "udp_server", False))
     peer = Peer(conn, report)
     rng = np.random.default_rng(cfg.seed)
+    junk_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed).spawn(1)[0])
     rec = Recorder() if cfg.record else None
     t_start = time.monotonic()
     deadline = t_start + cfg.timeout_s
@@ -76,16 +84,20 @@ def send(streams: VehicleStreams, connect, config: SenderConfig = SenderConfig()
                 report.timed_out = True
                 return report
 
-        def write(buf: bytes) -> None:
+        held: bytes | None = None           # a data packet held back ...
+        passed = False                      # ... and whether an intact packet has left after it
+
+        def write(buf: bytes, intact: bool = True) -> None:
+            nonlocal passed
             conn.write(buf)
             report.sent += 1
+            passed = passed or (intact and held is not None)
 
         def control(msg) -> None:
             write(pack(conn, msg))
 
         sync_every = max(cfg.window // 4, 1)
         next_sync, outstanding = 0, []
-        held: bytes | None = None
         t0_vehicle: float | None = None
         next_heartbeat = -math.inf
         paused = False
@@ -127,29 +139,35 @@ def send(streams: VehicleStreams, connect, config: SenderConfig = SenderConfig()
                 if ahead > 0:
                     time.sleep(min(ahead, 1.0))
             report.data += 1
+            if cfg.junk and junk_rng.random() < cfg.junk:
+                conn.write(junk(junk_rng))
+                report.junk += 1
             buf = pack(conn, msg)
             u = rng.random(4)
             if u[0] < cfg.loss:
-                report.lost += 1
+                report.dropped += 1
                 continue
             if u[1] < cfg.corrupt and len(buf) > 12:
                 b = bytearray(buf)
                 b[int(rng.integers(10, len(b)))] ^= 0xFF
-                buf = bytes(b)
+                write(bytes(b), intact=False)
                 report.corrupted += 1
-            elif rec is not None:
-                rec.add(buf)
-            if u[3] < cfg.reorder and held is None:
-                held = buf
-                report.reordered += 1
+            elif u[3] < cfg.reorder and held is None:
+                held, passed = buf, False
+                if rec is not None:
+                    rec.add(buf)
                 continue
-            write(buf)
-            if u[2] < cfg.duplicate:
+            else:
+                if rec is not None:
+                    rec.add(buf)
                 write(buf)
-                report.duplicated += 1
-            if held is not None:
-                write(held)
-                held = None
+                if u[2] < cfg.duplicate:
+                    write(buf)
+                    report.duplicated += 1
+                if held is not None:
+                    write(held)
+                    report.reordered += 1
+                    held = None
             if cfg.window:
                 if report.data % sync_every == 0:
                     control(mavlink2.MAVLink_timesync_message(0, next_sync))
@@ -165,7 +183,8 @@ def send(streams: VehicleStreams, connect, config: SenderConfig = SenderConfig()
                         outstanding.clear()
             else:
                 peer.poll()
-        if held is not None:
+        if held is not None:                 # late only behind an intact packet
+            report.reordered += int(passed)
             write(held)
         if cfg.window:                       # everything processed before the report
             control(mavlink2.MAVLink_timesync_message(0, next_sync))
@@ -182,3 +201,9 @@ def send(streams: VehicleStreams, connect, config: SenderConfig = SenderConfig()
             report.record = rec.frames()
         conn.close()
     return report
+
+
+def junk(rng: np.random.Generator) -> bytes:
+    """A junk datagram: a MAVLink marker byte (1 or 2) and 1 to 40 random bytes."""
+    marker = (mavlink2.PROTOCOL_MARKER_V1, mavlink2.PROTOCOL_MARKER_V2)[int(rng.integers(2))]
+    return bytes([marker]) + rng.bytes(int(rng.integers(1, 41)))
