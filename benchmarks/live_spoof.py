@@ -103,7 +103,9 @@ def main() -> None:
     from quadformer.logs.replay import log_sensors
 
     torch.set_num_threads(1)
-    log = read_log(args.log)
+    # the fixes at the stamps the autopilot logged them with, as its link sends them (not at the
+    # receiver's epochs, which a link does not carry)
+    log = read_log(args.log, **({"epochs": False} if str(args.log).lower().endswith(".bin") else {}))
     streams = VehicleStreams.from_log(log)
     end = streams.end
     attack = None

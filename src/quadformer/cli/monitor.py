@@ -72,6 +72,11 @@ def monitor(
         if model is not None:
             fail("--vehicle and --model: a vehicle profile holds its detector; give one of them")
         det, label, trained_with = vehicle_or_fail(vehicle)
+        profile_delay = (getattr(det, "calibration_", None) or {}).get("vehicle_gps_delay_s")
+        if gps_delay is None and profile_delay is not None:
+            gps_delay = float(profile_delay)
+            typer.echo(f"gps: each fix fused {gps_delay * 1e3:.0f} ms before its stamp (the receiver latency of the "
+                       "vehicle profile; --gps-delay overrides)")
         if sensors is not None and sensors != trained_with:
             fail(f"--vehicle {vehicle}: the profile was made fusing {trained_with}; --sensors {sensors} is another "
                  "sensor set (make a profile of it with quadformer calibrate --profile)")

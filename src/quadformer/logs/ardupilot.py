@@ -64,15 +64,16 @@ __all__ = ["read_dataflash"]
 
 
 def read_dataflash(path: str | Path, *, imu_gap: float = IMU_GAP,
-                   gps_gap: float = GPS_GAP) -> FlightLog:
-    """Read an ArduPilot DataFlash .bin log into a FlightLog (see the module docstring)."""
+                   gps_gap: float = GPS_GAP, epochs: bool = True) -> FlightLog:
+    """Read an ArduPilot DataFlash .bin log into a FlightLog (see the module docstring).
+    ``epochs`` False: the fixes keep the stamps the autopilot logged (as its link sends them)."""
     path = Path(path)
     rows, first_us, reports = collect_messages(path)
-    return _DataflashReader(path, rows, first_us, reports).read(imu_gap, gps_gap)
+    return _DataflashReader(path, rows, first_us, reports).read(imu_gap, gps_gap, epochs)
 
 
 class _DataflashReader(DataflashEstimator):
-    def read(self, imu_gap: float, gps_gap: float) -> FlightLog:
+    def read(self, imu_gap: float, gps_gap: float, epochs: bool = True) -> FlightLog:
         vehicle = self.vehicle()
         self.arming()
         gps_rows = self.instance("GPS", "gps")
@@ -82,7 +83,8 @@ class _DataflashReader(DataflashEstimator):
         cores = self.cores()
         streams = {
             "imu": self.imu(),
-            "gps": gps_stream(gps_raw, origin, self.notes),
+            "gps": gps_stream(gps_raw if epochs or gps_raw is None else {k: v for k, v in gps_raw.items()
+                                                                          if k != "tow"}, origin, self.notes),
             "baro": self.simple("BARO", "baro", ("Alt",), lambda v: {"alt": v[:, 0]}),
             "mag": self.simple("MAG", "mag", ("MagX", "MagY", "MagZ"), self._mag),
             "innovations": self.innovations(cores),

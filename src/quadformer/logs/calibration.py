@@ -72,6 +72,7 @@ class _Read:
     log: Any                      # the FlightLog
     rows: pd.DataFrame            # its segments' rows, flight ids ``1000 k + segment`` (k: the path's index)
     sensors: str
+    delays: list[float] = field(default_factory=list)   # s, the receiver latencies estimated from its segments
 
 
 def _check_budget(per_hour: float) -> None:
@@ -93,7 +94,8 @@ def _clean_rows(paths: list[str | Path], residues: str, config: FilterConfig, fo
             continue
         rows = pd.concat([f.rows for f in flights], ignore_index=True)
         rows["flight_id"] = k * 1000 + rows["flight_id"].astype(np.int64)
-        read.append(_Read(p, log, rows, flights[0].sensors))
+        read.append(_Read(p, log, rows, flights[0].sensors,
+                          [f.gps_delay_s for f in flights if getattr(f, "delay_estimated", False)]))
         if progress is not None:
             progress(str(p))
     return read, skipped
@@ -224,7 +226,14 @@ def vehicle_profile(detector, paths: list[str | Path], per_hour: float = 1.0, co
         message += (f"; noise scales not set: {minutes:.1f} clean minutes in the air, at least {MIN_SCALE_MINUTES:g} "
                     "needed")
     identity = next((i for i in ids if i["board"]), ids[0])
+    # the receiver's latency, where the logs had to be asked for it: the median of their estimates,
+    # which a live link (that carries no setting) then uses
+    delays = [d for r in read for d in r.delays]
+    latency = float(np.median(delays)) if delays else None
+    if latency is not None:
+        message += f"; receiver latency {latency * 1e3:.0f} ms (the median estimate of {len(delays)} segment(s))"
     detector.calibrate(thr, thr, vehicle=identity, vehicle_sensors=sensors.pop(), vehicle_minutes=minutes,
+                       vehicle_gps_delay_s=latency,
                        vehicle_needed_minutes=needed, vehicle_narrowed=narrowed, vehicle_scales_set=scales_set,
                        vehicle_logs=[str(p) for p in used], false_alarm_budget_per_hour=per_hour,
                        shipped_threshold=shipped, **{k: v for k, v in (getattr(detector, "calibration_", None)

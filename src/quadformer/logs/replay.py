@@ -61,6 +61,8 @@ class LogFlight:
     rows: pd.DataFrame
     sensors: str
     notes: list[str] = field(default_factory=list)
+    gps_delay_s: float = 0.0          # s, each fix fused this long before its stamp
+    delay_estimated: bool = False     # that delay estimated from the log (``logs.receiver_clock.latency``)
 
 
 def missing_features(features: list[str], columns) -> list[str]:
@@ -278,6 +280,7 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
                 "estimated from this log: the log gives no GPS delay setting)")
         for f in out:
             f.notes.insert(0, note)
+            f.delay_estimated = True
         return out
     if config.gps_delay_s is None:                     # the autopilot's own setting, where logged
         delay = log.vehicle.get("gps_delay_s", 0.0)
@@ -371,7 +374,7 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
             lost = int((~k).sum())
             flight_notes = notes + stream.notes + ([f"gps: {lost} fixes not fused (the spoofed receiver lost its "
                                                     "lock)"] if lost else [])
-            flights[b] = LogFlight(seg, pd.DataFrame(rows), sensors, flight_notes)
+            flights[b] = LogFlight(seg, pd.DataFrame(rows), sensors, flight_notes, float(config.gps_delay_s))
     return flights
 
 
