@@ -23,6 +23,7 @@ class Stream(IntEnum):
     ATTACK = 6
     MAG = 7        # appended: the streams above, and so the default data, are unchanged
     BARO = 8
+    LOG = 9        # how a flight is logged (logs.conditions: vibration, GPS read delays); appended too
 
 
 def flight_generator(seed: int, flight: int, stream: Stream) -> np.random.Generator:

@@ -45,6 +45,24 @@ def simulate(
                                      "(PX4, DIR/logs/flight_NNNN.ulg), dataflash (ArduPilot, .bin), or both "
                                      "(repeatable or 'ulog,dataflash'); an attacked flight's attack goes to "
                                      "flight_NNNN.attack.json beside its logs. See docs/logs.md."),
+    log_imu_hz: Optional[float] = typer.Option(None, "--log-imu-hz", help="With --export: log the IMU at this "
+                                               "rate (25 to 400 Hz; the simulated rate, 1/dt, a whole multiple "
+                                               "of it; default every simulated sample). See docs/simulation.md."),
+    log_imu: str = typer.Option("samples", "--log-imu", help="With --export: the IMU logged as 'samples' "
+                                "(instantaneous, vibration aliased) or 'integrated' (delta velocity and angle "
+                                "over each logging interval, divided by it)."),
+    log_vibration: float = typer.Option(0.0, "--log-vibration", help="With --export: airframe vibration, RMS "
+                                        "per axis in an instantaneous accelerometer sample (m/s^2)."),
+    log_vibration_gyro: float = typer.Option(0.0, "--log-vibration-gyro", help="With --export: the same in the "
+                                             "gyro (rad/s)."),
+    log_gps_hz: Optional[float] = typer.Option(None, "--log-gps-hz", help="With --export: log the GPS at this "
+                                               "rate (1 to 10 Hz, dividing the simulated rate; default every fix)."),
+    log_gps_latency_ms: float = typer.Option(0.0, "--log-gps-latency-ms", help="With --export: each fix "
+                                             "measured this long before the autopilot has it (ms, up to 500)."),
+    log_gps_jitter_ms: float = typer.Option(0.0, "--log-gps-jitter-ms", help="With --export: each fix read "
+                                            "0 to this much later still (ms, uniform, seeded)."),
+    log_gps_delay_unstated: bool = typer.Option(False, "--log-gps-delay-unstated", help="With --export: the "
+                                                "logs' GPS delay parameter left at 0 though the fixes lag."),
     overwrite: bool = typer.Option(False, help="Replace DIR if it exists."),
     quiet: bool = typer.Option(False, help="No progress bar."),
 ) -> None:
@@ -60,6 +78,10 @@ def simulate(
         formats = export_formats(export)
     except ValueError as e:
         fail(str(e))
+    conditions = _log_conditions(formats, imu_hz=log_imu_hz, imu=log_imu, vibration_accel=log_vibration,
+                                 vibration_gyro=log_vibration_gyro, gps_hz=log_gps_hz,
+                                 gps_latency_s=log_gps_latency_ms / 1e3, gps_jitter_s=log_gps_jitter_ms / 1e3,
+                                 state_latency=not log_gps_delay_unstated)
     atk = {"kind": attack, "fraction": attack_fraction, "onset": pair("--onset", onset),
            "duration": pair("--attack-duration", attack_duration), "magnitude": pair("--magnitude", magnitude),
            "rate": pair("--rate", rate), "accel": pair("--accel", accel), "onset_step": onset_step, "axes": axes,
@@ -81,13 +103,21 @@ def simulate(
                            set_, base=fitted.sim_overrides() if fitted else None)
     except (ConfigError, TypeError) as e:
         fail(str(e))
+    if conditions is not None:
+        from quadformer.experiments.flight_logs import check_conditions
+
+        try:
+            check_conditions(cfg, conditions)
+        except ValueError as e:
+            fail(_name_option(str(e)))
     if out.exists() and not overwrite:
         fail(f"{out} already exists (use --overwrite to replace it)")
     set_threads()
     if formats:
         from quadformer.experiments.flight_logs import SUFFIX, simulate_with_logs
 
-        ds, logs, files = simulate_with_logs(cfg, out, formats, overwrite=overwrite, progress=not quiet)
+        ds, logs, files = simulate_with_logs(cfg, out, formats, overwrite=overwrite, progress=not quiet,
+                                             conditions=conditions)
     else:
         ds = run(cfg, progress=not quiet)
         write_dataset(ds, out, overwrite=overwrite)
@@ -97,3 +127,32 @@ def simulate(
         counts = ", ".join(f"{sum(p.suffix == SUFFIX[f] for p in files)} {SUFFIX[f]}" for f in formats)
         notes = sum(p.name.endswith(".attack.json") for p in files)
         typer.echo(f"flight logs in {logs}: {counts}" + (f", {notes} attack notes (.attack.json)" if notes else ""))
+
+
+#: LogConditions field -> the option that sets it
+LOG_OPTIONS = {"imu_hz": "--log-imu-hz", "imu": "--log-imu", "vibration_accel": "--log-vibration",
+               "vibration_gyro": "--log-vibration-gyro", "gps_hz": "--log-gps-hz",
+               "gps_latency_s": "--log-gps-latency-ms", "gps_jitter_s": "--log-gps-jitter-ms",
+               "state_latency": "--log-gps-delay-unstated"}
+
+
+def _name_option(text: str) -> str:
+    """A LogConditions error with the option of the field it names."""
+    named = [o for f, o in LOG_OPTIONS.items() if text.startswith(f"log conditions: {f} ")]
+    return f"{text} ({named[0]})" if named else text
+
+
+def _log_conditions(formats: tuple[str, ...], **values):
+    """The logging conditions the --log-* options ask for (None when they ask for nothing);
+    an error when they are impossible or given without --export."""
+    from quadformer.logs.conditions import LogConditions
+
+    try:
+        conditions = LogConditions(**values)
+    except ValueError as e:
+        fail(_name_option(str(e)))
+    if not conditions.active:
+        return None
+    if not formats:
+        fail("the --log-* options say how the exported logs are written; add --export ulog or dataflash")
+    return conditions

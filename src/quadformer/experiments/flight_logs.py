@@ -26,6 +26,12 @@ which PX4 Flight Review, MAVExplorer, PlotJuggler and this project's readers ope
   reports without a fix (fix type 1, in the receiver stream only; the simulated vehicle fused
   them, the simulation has no receiver of its own to lose them).
 
+How the sensors are logged is ``LogConditions`` (``logs.conditions``: the IMU's logging rate,
+instantaneous samples of a vibrating airframe or integrated deltas, the GPS's logging rate,
+latency and read jitter); off by default, the sensors logged as simulated. Its random draws come
+from each flight's own ``Stream.LOG`` generator (``quadformer.rng``): a flight's log depends only
+on the dataset's seed and its flight id.
+
 The flights start airborne (the simulator starts each flight in the air at its mission's
 first point): each log starts armed and flying. The vehicle's clock reads ``BOOT_T0`` at the
 flight's t = 0 and the GPS time ``UTC0`` + t. An attacked flight's attack (kind, onset, end,
@@ -46,13 +52,15 @@ from quadformer.dataset import Dataset, write_dataset
 from quadformer.geometry import frames
 from quadformer.io import write_json
 from quadformer.logs import FlightLog
+from quadformer.logs.conditions import LogConditions, apply_conditions
 from quadformer.logs.dataflash_writer import write_dataflash
 from quadformer.logs.flightlog import make_stream
 from quadformer.logs.ulog_writer import write_ulog
 from quadformer.logs.writing import GATE, LogHeader
+from quadformer.rng import Stream, flight_generator
 
-__all__ = ["BOOT_T0", "EXPORT_FORMATS", "NOISE", "ORIGIN", "SATELLITES", "SUFFIX", "UTC0", "LogExport", "attack_note",
-           "export_formats", "flight_log", "simulate_with_logs"]
+__all__ = ["BOOT_T0", "CONDITIONS_FILE", "EXPORT_FORMATS", "NOISE", "ORIGIN", "SATELLITES", "SUFFIX", "UTC0",
+           "LogExport", "attack_note", "check_conditions", "export_formats", "flight_log", "simulate_with_logs"]
 
 ORIGIN = (47.397742, 8.545594, 488.0)   # lat deg, lon deg, alt m (AMSL) of the simulator's ENU origin
 BOOT_T0 = 10.0                          # s, the vehicle's clock (time since boot) at the flight's t = 0
@@ -62,6 +70,7 @@ NOISE = 100                             # its noise level (PX4 noise_per_ms)
 EXPORT_FORMATS = ("ulog", "dataflash")
 SUFFIX = {"ulog": ".ulg", "dataflash": ".bin"}
 WRITERS = {"ulog": write_ulog, "dataflash": write_dataflash}
+CONDITIONS_FILE = "log_conditions.json"   # beside the logs, when they are logged under conditions
 
 
 def export_formats(values: Iterable[str]) -> tuple[str, ...]:
@@ -198,28 +207,46 @@ def attack_note(r, i: int) -> dict | None:
     return note
 
 
+def check_conditions(cfg: SimConfig, conditions: LogConditions) -> tuple[int, int]:
+    """(IMU, GPS) simulated samples per logged one under ``conditions`` for flights of ``cfg``;
+    ValueError naming the rate when a logging rate is faster than the simulated one (IMU
+    1 / ``cfg.dt``, GPS ``cfg.gps.rate_hz``) or does not divide it."""
+    return conditions.steps(1.0 / cfg.dt, cfg.gps.rate_hz, source="simulated")
+
+
 class LogExport:
     """Writes each flight of the batches it is given as logs under ``directory``:
     ``flight_NNNN.ulg`` / ``.bin`` (NNNN: the flight id; ``name`` instead of ``flight``) and, for an
-    attacked flight, ``flight_NNNN.attack.json``. Call it with each ``BatchResult``
+    attacked flight, ``flight_NNNN.attack.json``; the sensors logged under ``conditions``
+    (checked against ``cfg``'s rates here; when they change anything, written to
+    ``CONDITIONS_FILE`` in ``directory``). Call it with each ``BatchResult``
     (``simulate(on_batch=...)``)."""
 
     def __init__(self, cfg: SimConfig, directory: str | Path, formats: Iterable[str] = EXPORT_FORMATS,
-                 header: LogHeader | None = None, name: str = "flight") -> None:
+                 header: LogHeader | None = None, name: str = "flight",
+                 conditions: LogConditions | None = None) -> None:
         self.cfg = cfg
         self.name = name
         self.directory = Path(directory)
         self.formats = export_formats(formats)
         self.header = header or LogHeader(utc0=UTC0)
+        self.conditions = conditions or LogConditions()
+        check_conditions(cfg, self.conditions)
         self.written: list[Path] = []
 
     def __call__(self, r) -> None:
         self.directory.mkdir(parents=True, exist_ok=True)
+        if self.conditions.active and not (self.directory / CONDITIONS_FILE).exists():
+            self.written.append(write_json(self.directory / CONDITIONS_FILE, {
+                **self.conditions.to_dict(), "seed": self.cfg.seed,
+                "random": "each flight's quadformer.rng Stream.LOG generator (seed, flight id)"}))
         for i, fid in enumerate(np.asarray(r["flights"])):
             stem = f"{self.name}_{int(fid):04d}"
             log = flight_log(self.cfg, r, i, path=self.directory / stem)
+            log, header = apply_conditions(log, self.conditions, self.header,
+                                           flight_generator(self.cfg.seed, int(fid), Stream.LOG))
             for fmt in self.formats:
-                self.written.append(WRITERS[fmt](log, self.directory / (stem + SUFFIX[fmt]), self.header))
+                self.written.append(WRITERS[fmt](log, self.directory / (stem + SUFFIX[fmt]), header))
             note = attack_note(r, i)
             if note is not None:
                 self.written.append(write_json(self.directory / f"{stem}.attack.json", note))
@@ -227,21 +254,23 @@ class LogExport:
 
 def simulate_with_logs(cfg: SimConfig, out: str | Path, formats: Iterable[str], overwrite: bool = False,
                        progress: bool | Callable[[float], None] = False,
-                       name: str = "flight") -> tuple[Dataset, Path, list[Path]]:
+                       name: str = "flight", conditions: LogConditions | None = None
+                       ) -> tuple[Dataset, Path, list[Path]]:
     """Simulate ``cfg`` and write the dataset to ``out`` with every flight's logs under
-    ``out/logs`` (``LogExport``, the files named ``{name}_NNNN``); the dataset is the one
-    ``simulate`` gives. The logs are
+    ``out/logs`` (``LogExport``, the files named ``{name}_NNNN``, the sensors logged under
+    ``conditions``); the dataset is the one ``simulate`` gives. The logs are
     written beside ``out`` first and moved in with the dataset, which appears at once.
     Returns (dataset, logs directory, files written)."""
     from quadformer.simulation import simulate
 
     out = Path(out)
     fmts = export_formats(formats)
+    check_conditions(cfg, conditions or LogConditions())
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out} already exists (use --overwrite to replace it)")
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.logs.") as staging:
-        export = LogExport(cfg, Path(staging) / "logs", fmts, name=name)
+        export = LogExport(cfg, Path(staging) / "logs", fmts, name=name, conditions=conditions)
         ds = simulate(cfg, progress=progress, on_batch=export)
         write_dataset(ds, out, overwrite=overwrite, extra={"logs": export.directory})
     logs = out / "logs"

@@ -5,15 +5,16 @@ Messages in ArduCopter 4.x's layout (their formats from pymavlink's ``DFReader.D
 the scaled fields carry ArduPilot's multipliers: centidegrees for ``c``/``C``, 1e-7 degrees for
 ``L``, centimetres for ``e``), at each stream's own times, in time order:
 
-* header: FMT for every message type written; PARM (``GPS_DELAY_MS`` 0, the EKF3 gates, GPS
-  as EKF3's position, height and velocity source (``EK3_SRC1_*`` 3), ``LOG_DISARMED`` 0 and
-  ``LogHeader.params``); MSG (``LogHeader.text`` and the frame);
+* header: FMT for every message type written; PARM (``GPS_DELAY_MS``: ``LogHeader.gps_delay_s``
+  in ms, 0 by default; the EKF3 gates, GPS as EKF3's position, height and velocity source
+  (``EK3_SRC1_*`` 3), ``LOG_DISARMED`` 0 and ``LogHeader.params``); MSG (``LogHeader.text`` and the frame);
   ORGN type 0 (the EKF origin: ``FlightLog.origin``); with ``LogHeader.airborne``, ARM (armed),
   EV 10 (armed), EV 28 (not landed: the flight is under way at the first sample) and MODE
   AUTO;
 * imu -> IMU instance 0 (``GyrX..Z`` rad/s, ``AccX..Z`` m/s^2, FRD);
 * gps -> GPS (``Status`` = fix_type, 3 when not logged; ``Lat``/``Lng``, ``Alt`` AMSL in cm;
-  ``Spd``, ``GCrs``, ``VZ`` down; GPS week/time from ``LogHeader.utc0``) and GPA of the same
+  ``Spd``, ``GCrs``, ``VZ`` down; ``GWk``/``GMS``, the GPS week and time of the fix's
+  measurement: ``LogHeader.utc0`` + its epoch, ``writing.gps_utc``) and GPA of the same
   ``TimeUS`` (``HAcc`` eph, ``VAcc`` epv, ``SAcc`` speed accuracy, cm; ``VV`` 1 where vz is
   known); NSats as logged (0 when not), dilution not modelled (HDop/VDop 1); with a receiver
   stream, its reports without a fix too (``writing.gps_reports``: the last fix repeated, its
@@ -55,7 +56,7 @@ from quadformer.logs._series import quat_interp
 from quadformer.logs.ardupilot_ratios import innovation_test_ratios
 from quadformer.logs.flightlog import FlightLog
 from quadformer.logs.writing import (GATE, LogHeader, clock_us, enu_to_ned, euler_ned_deg, gps_reports,
-                                     gps_week_ms, quat_ned_wxyz, start_us, values)
+                                     gps_utc, gps_week_ms, quat_ned_wxyz, start_us, values)
 
 __all__ = ["FORMATS", "write_dataflash"]
 
@@ -81,7 +82,7 @@ FORMATS: dict[str, tuple[str, str]] = {
     "SIM": ("QccCfLLffff", "TimeUS,Roll,Pitch,Yaw,Alt,Lat,Lng,Q1,Q2,Q3,Q4"),
     "SIM2": ("Qdddffff", "TimeUS,PN,PE,PD,VN,VE,VD,As"),
 }
-#: parameters every written log carries: no receiver latency (the fixes are stamped when measured),
+#: parameters every written log carries: the receiver latency (0; ``LogHeader.gps_delay_s`` sets it),
 #: EKF3's default innovation gates (the test ratios' scale), GPS the source of horizontal and
 #: vertical position and velocity (EK3_SRC1_*: 3, so that XKF3.IPD and XKF4.SH are the GPS's),
 #: logging while disarmed off
@@ -163,7 +164,7 @@ def write_dataflash(log: FlightLog, path: str | Path, header: LogHeader = LogHea
 
 
 def _header(out: _Messages, log: FlightLog, header: LogHeader, t0: int) -> None:
-    params = {**PARAMS, **header.params}
+    params = {**PARAMS, "GPS_DELAY_MS": round(1e3 * header.gps_delay_s, 3), **header.params}
     if log.mag is None:
         params["COMPASS_ENABLE"] = 0.0
     out.add("PARM", {"TimeUS": np.full(len(params), t0), "Name": list(params),
@@ -195,7 +196,8 @@ def _gps(out: _Messages, log: FlightLog, header: LogHeader) -> None:
         return
     t = d["t"].to_numpy()
     us = clock_us(log, t)
-    week, ms = gps_week_ms(header.utc0 + t) if header.utc0 is not None else (0, 0)
+    utc = gps_utc(header, t)
+    week, ms = gps_week_ms(utc) if utc is not None else (0, 0)
     v = values(d, "vx", "vy", "vz")
     fix = np.where(np.isfinite(d["fix_type"]), d["fix_type"], 3.0)
     out.add("GPS", {"TimeUS": us, "Status": fix, "GMS": ms, "GWk": week, "NSats": d["satellites"].to_numpy(),

@@ -9,11 +9,11 @@ subscription classes hold them), each at its stream's own times (``timestamp`` =
   the gyro's time);
 * gps -> ``vehicle_gps_position`` (what EKF2 fuses and the reader prefers): ``latitude_deg``,
   ``longitude_deg``, ``altitude_msl_m``, ``vel_n/e/d_m_s``, ``fix_type`` (3 when not logged),
-  ``eph``, ``epv``, ``s_variance_m_s`` (speed accuracy), ``time_utc_usec`` from
-  ``LogHeader.utc0``; ``satellites_used`` and ``noise_per_ms`` as logged (0 when not: the noise
-  from the receiver stream), dilution 1, jamming and spoofing states as logged (0, unknown, when
-  not); with a receiver stream, its reports without a fix too (``writing.gps_reports``: the last
-  fix repeated, its fix type below 2);
+  ``eph``, ``epv``, ``s_variance_m_s`` (speed accuracy), ``time_utc_usec`` the time of the
+  fix's measurement (``LogHeader.utc0`` + its epoch, ``writing.gps_utc``); ``satellites_used``
+  and ``noise_per_ms`` as logged (0 when not: the noise from the receiver stream), dilution 1,
+  jamming and spoofing states as logged (0, unknown, when not); with a receiver stream, its
+  reports without a fix too (``writing.gps_reports``: the last fix repeated, its fix type below 2);
 * baro -> ``vehicle_air_data`` (``baro_alt_meter`` = origin altitude + height above the origin:
   PX4 logs the barometric altitude above mean sea level; pressure and temperature from the
   standard atmosphere);
@@ -37,8 +37,9 @@ subscription classes hold them), each at its stream's own times (``timestamp`` =
   every second.
 
 The header carries ``sys_name``/``ver_hw``/``ver_sw`` naming the writer (not PX4 firmware),
-``LogHeader.text`` as an INFO message and a few parameters (``EKF2_GPS_DELAY`` 0 and the GPS
-gates, with ``LogHeader.params``). The file is written atomically.
+``LogHeader.text`` as an INFO message and a few parameters (``EKF2_GPS_DELAY``:
+``LogHeader.gps_delay_s`` in ms, 0 by default; the GPS gates, with ``LogHeader.params``). The
+file is written atomically.
 """
 
 from __future__ import annotations
@@ -53,8 +54,8 @@ from pyulog import ULog
 from quadformer.geometry import frames
 from quadformer.io import atomic_path
 from quadformer.logs.flightlog import FlightLog
-from quadformer.logs.writing import (GATE, LogHeader, clock_us, enu_to_ned, gps_reports, quat_ned_wxyz, start_us,
-                                     values)
+from quadformer.logs.writing import (GATE, LogHeader, clock_us, enu_to_ned, gps_reports, gps_utc, quat_ned_wxyz,
+                                     start_us, values)
 
 __all__ = ["TOPICS", "write_ulog"]
 
@@ -124,7 +125,7 @@ TOPICS: dict[str, str] = {
         "bool in_descend;bool has_low_throttle;bool vertical_movement;bool horizontal_movement;"
         "bool rotational_movement;bool close_to_ground_or_skipped_check;bool at_rest;"),
 }
-#: parameters every written log carries: no receiver latency (the fixes are stamped when measured)
+#: parameters every written log carries: the receiver latency (0; ``LogHeader.gps_delay_s`` sets it)
 #: and EKF2's default GPS gates (the test ratios' scale)
 PARAMS = {"EKF2_GPS_DELAY": 0.0, "EKF2_GPS_P_GATE": GATE, "EKF2_GPS_V_GATE": GATE}
 ARMING_STATE_ARMED = 2
@@ -187,7 +188,7 @@ def write_ulog(log: FlightLog, path: str | Path, header: LogHeader = LogHeader()
     for key, value in (("sys_name", "quadformer"), ("ver_hw", "QUADFORMER_SIM"), ("ver_sw", __version__),
                        ("sys_os_name", "simulation")):
         out.info(key, value)
-    for name, value in {**PARAMS, **header.params}.items():
+    for name, value in {**PARAMS, "EKF2_GPS_DELAY": round(1e3 * header.gps_delay_s, 3), **header.params}.items():
         out.ulog.initial_parameters[name] = float(value)
     out.text(t0, header.text)
     for write in (_imu, _gps, _baro, _mag, _attitude, _estimate, _innovations, _odometry, _truth):
@@ -215,12 +216,13 @@ def _gps(out: _Topics, log: FlightLog, header: LogHeader) -> None:
     if d is None:
         return
     t = d["t"].to_numpy()
+    utc = gps_utc(header, t)
     v = enu_to_ned(d, "vx", "vy", "vz")
     col = {k: d[k].to_numpy(dtype=float) for k in ("fix_type", "satellites", "jamming", "spoofing")}
     out.add("vehicle_gps_position", clock_us(log, t), {
         "latitude_deg": d["lat"].to_numpy(), "longitude_deg": d["lon"].to_numpy(),
         "altitude_msl_m": d["alt"].to_numpy(), "altitude_ellipsoid_m": d["alt"].to_numpy(),
-        "time_utc_usec": np.round((header.utc0 + t) * 1e6) if header.utc0 is not None else 0,
+        "time_utc_usec": np.round(utc * 1e6) if utc is not None else 0,
         "s_variance_m_s": d["speed_acc"].to_numpy(), "c_variance_rad": np.nan, "eph": d["eph"].to_numpy(),
         "epv": d["epv"].to_numpy(), "hdop": 1.0, "vdop": 1.0, "vel_m_s": np.hypot(v[:, 0], v[:, 1]),
         "vel_n_m_s": v[:, 0], "vel_e_m_s": v[:, 1], "vel_d_m_s": v[:, 2], "cog_rad": np.arctan2(v[:, 1], v[:, 0]),

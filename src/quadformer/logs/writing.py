@@ -27,7 +27,7 @@ from quadformer.geometry import frames
 from quadformer.logs.flightlog import FlightLog
 
 __all__ = ["BOOT_S", "GATE", "LogHeader", "clock_us", "enu_to_ned", "euler_ned_deg", "first_t", "gps_reports",
-           "gps_week_ms", "quat_ned_wxyz", "start_us", "values"]
+           "gps_utc", "gps_week_ms", "quat_ned_wxyz", "start_us", "values"]
 
 BOOT_S = 1.0             # s, the vehicle's clock at the first sample when the log does not say
 GATE = 5.0               # innovation gate (standard deviations) of the autopilots' test ratios
@@ -45,16 +45,32 @@ class LogHeader:
     time (None: not known, written as 0); airborne: armed and in flight from the first sample
     (ArduPilot ARM with the EV events armed and not landed; PX4 vehicle_status armed and
     vehicle_land_detected not landed); params: parameters written beside the format's own
-    defaults (name -> value)."""
+    defaults (name -> value); gps_delay_s: the receiver latency the autopilot is set to
+    compensate (s; PX4 ``EKF2_GPS_DELAY``, ArduPilot ``GPS_DELAY_MS``, both in ms); gps_epochs:
+    (stamps, epochs), the time each GPS report was measured at (s, the log's clock) where it is
+    not its stamp (a receiver's latency, a late read; ``logs.conditions``), so that the
+    receiver's time of week written with each fix stays its measurement's (None: every report
+    measured at its stamp)."""
     text: str = "quadformer simulator: a simulated flight, not autopilot firmware"
     utc0: float | None = None
     airborne: bool = True
     params: Mapping[str, float] = field(default_factory=dict)
+    gps_delay_s: float = 0.0
+    gps_epochs: tuple[np.ndarray, np.ndarray] | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if self.utc0 is not None and not (isinstance(self.utc0, (int, float)) and math.isfinite(self.utc0)
                                           and self.utc0 >= _GPS_EPOCH):
             raise ValueError(f"utc0 must be a UNIX time after the GPS epoch (1980-01-06), got {self.utc0!r}")
+        if not (isinstance(self.gps_delay_s, (int, float)) and math.isfinite(self.gps_delay_s)
+                and self.gps_delay_s >= 0):
+            raise ValueError(f"gps_delay_s must be a non-negative number of seconds, got {self.gps_delay_s!r}")
+        if self.gps_epochs is not None:
+            stamps, epochs = (np.asarray(a, dtype=float) for a in self.gps_epochs)
+            if stamps.ndim != 1 or stamps.shape != epochs.shape or np.any(np.diff(stamps) <= 0):
+                raise ValueError("gps_epochs must be (stamps, epochs): two 1-D arrays of the same length, the "
+                                 "stamps strictly increasing")
+            object.__setattr__(self, "gps_epochs", (stamps, epochs))
 
 
 def first_t(log: FlightLog) -> float:
@@ -110,6 +126,23 @@ def gps_reports(log: FlightLog) -> pd.DataFrame | None:
     for c in ("fix_type", "satellites", "eph", "epv", "speed_acc", "jamming", "spoofing", "noise"):
         extra[c] = rec[c].to_numpy()[~same]
     return pd.concat([out, extra], ignore_index=True).sort_values("t", kind="stable").reset_index(drop=True)
+
+
+def gps_utc(header: LogHeader, t: np.ndarray) -> np.ndarray | None:
+    """The UNIX time (s) at which each GPS report stamped at ``t`` (s, the log's clock) was
+    measured: ``utc0`` + its epoch (``header.gps_epochs``; the stamp itself without them). None
+    where ``utc0`` is not known; ValueError for a report stamped at no time of ``gps_epochs``."""
+    if header.utc0 is None:
+        return None
+    t = np.asarray(t, dtype=float)
+    if header.gps_epochs is None:
+        return header.utc0 + t
+    stamps, epochs = header.gps_epochs
+    j = np.clip(np.searchsorted(stamps, t), 0, max(len(stamps) - 1, 0))
+    if not len(stamps) or np.any(np.abs(stamps[j] - t) > 1e-9):
+        raise ValueError("a GPS report is stamped at a time that LogHeader.gps_epochs does not hold; give the "
+                         "epoch of every report written")
+    return header.utc0 + epochs[j]
 
 
 def gps_week_ms(utc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
