@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -75,41 +76,42 @@ def test_week_seconds():
     assert np.isnan(out[1]) and np.isnan(out[2])
 
 
-def kinematic_rows(delay, n=900, rate=5.0, seed=3):
-    """Rows of a filter replay over a manoeuvring flight whose fixes lag by ``delay``: the
-    filter's propagation over each interval is the true velocity change (an exact IMU), its
-    posterior halfway between its prediction and the fix."""
+def manoeuvring_log(delay, seconds=240.0, seed=3, noise=0.05):
+    """A log of a vehicle level and facing east, accelerating in the horizontal plane (about
+    2 m/s^2 changing within about 0.5 s), its IMU exact at 100 Hz, its 5 Hz fixes' velocity
+    measured ``delay`` seconds before their stamps, with ``noise`` m/s of white noise."""
+    from quadformer.logs.flightlog import FlightLog, make_stream
+
     rng = np.random.default_rng(seed)
-    fine = 200.0
-    tt = np.arange(0.0, n / rate + 2.0, 1.0 / fine)
-    acc = np.zeros((len(tt), 2))             # 2 m/s^2 of acceleration changing within about 0.5 s
-    kick = rng.normal(0.0, 2.0 * np.sqrt(2.0 / (0.5 * fine)), (len(tt), 2))
-    for i in range(1, len(tt)):
-        acc[i] = acc[i - 1] * (1.0 - 1.0 / (0.5 * fine)) + kick[i]
-    v = np.cumsum(acc, axis=0) / fine
-    t = 1.0 + np.arange(n) / rate
-    truth = np.column_stack([np.interp(t, tt, v[:, i]) for i in range(2)])
-    lagged = np.column_stack([np.interp(t - delay, tt, v[:, i]) for i in range(2)])
-    gps = lagged + rng.normal(0.0, 0.05, (n, 2))
-    post = np.zeros((n, 2))
-    pred = np.zeros((n, 2))
-    for k in range(n):
-        pred[k] = gps[0] if k == 0 else post[k - 1] + (truth[k] - truth[k - 1])
-        post[k] = pred[k] + 0.5 * (gps[k] - pred[k])
-    return pd.DataFrame({"t": t, "gps_vel_x": gps[:, 0], "gps_vel_y": gps[:, 1],
-                         "res_gps_r_vx": gps[:, 0] - pred[:, 0], "res_gps_r_vy": gps[:, 1] - pred[:, 1],
-                         "est_vel_x": post[:, 0], "est_vel_y": post[:, 1], "in_air": 1.0})
+    ti = np.arange(0.0, seconds, 0.01)
+    acc = np.zeros((len(ti), 2))
+    kick = rng.normal(0.0, 2.0 * np.sqrt(2.0 / 50.0), (len(ti), 2))
+    for i in range(1, len(ti)):
+        acc[i] = acc[i - 1] * (1.0 - 1.0 / 50.0) + kick[i]
+    vel = np.concatenate([[np.zeros(2)], np.cumsum(0.5 * (acc[1:] + acc[:-1]) * 0.01, axis=0)])
+    t = np.arange(1.0, seconds, 0.2)
+    v = np.stack([np.interp(t - delay, ti, vel[:, k]) for k in range(2)], axis=1) + rng.normal(0.0, noise, (len(t), 2))
+    zero = np.zeros(len(t))
+    imu = make_stream("imu", ti, {"ax": acc[:, 0], "ay": acc[:, 1], "az": 9.80665, "gx": 0.0, "gy": 0.0, "gz": 0.0})
+    gps = make_stream("gps", t, {"x": zero, "y": zero, "z": zero, "vx": v[:, 0], "vy": v[:, 1], "vz": zero,
+                                 "lat": 47.0, "lon": 8.0, "alt": 400.0, "fix_type": 3.0})
+    att = make_stream("attitude", ti[::10], {"qx": 0.0, "qy": 0.0, "qz": 0.0, "qw": 1.0})
+    return FlightLog("arrays", Path("manoeuvres"), imu=imu, gps=gps, attitude=att, segments=[(0.0, seconds)])
 
 
-@pytest.mark.parametrize("delay", [0.1, 0.2])
+@pytest.mark.parametrize("delay", [0.1, 0.2, 0.3])
 def test_latency_found_on_a_manoeuvring_flight(delay):
-    assert latency(kinematic_rows(delay)) == pytest.approx(delay, abs=0.021)
+    found, spread = latency(manoeuvring_log(delay))
+    assert found == pytest.approx(delay, abs=0.03)
+    assert spread == pytest.approx(1.4826 * 0.6745 * 0.05 * np.sqrt(2), rel=0.25)   # the fixes' noise, differenced
 
 
-def test_latency_none_without_a_lag_or_data():
-    assert latency(kinematic_rows(0.0)) is None
-    assert latency(kinematic_rows(0.1).iloc[:30]) is None
-    assert latency(kinematic_rows(0.1).drop(columns="est_vel_x")) is None
+def test_latency_none_without_a_lag_or_the_streams():
+    assert latency(manoeuvring_log(0.0))[0] is None
+    log = manoeuvring_log(0.2)
+    assert latency(dataclasses.replace(log, attitude=None)) == (None, None)
+    short = dataclasses.replace(log, gps=log.gps.iloc[:20].reset_index(drop=True))
+    assert latency(short) == (None, None)
 
 
 def test_a_replayed_log_stamped_at_epochs_and_without_a_latency_setting(tmp_path):

@@ -119,11 +119,18 @@ class _DataflashReader(DataflashEstimator):
         out["messages"] = texts[:20]
         params = self.params()                                   # the values at the log's start
         delay = params.get("GPS1_DELAY_MS", params.get("GPS_DELAY_MS"))
+        # the EKFs' own GPS latency, before GPS_DELAY_MS took their place: EKF2's, EKF1's (3.2 to 3.4)
+        ekf = next(((n, params[n]) for n in ("EK3_GPS_DELAY", "EK2_GPS_DELAY", "EKF_POS_DELAY")
+                    if isinstance(params.get(n), (int, float)) and math.isfinite(params[n]) and params[n] > 0), None)
         if isinstance(delay, (int, float)) and math.isfinite(delay) and delay > 0:
             out["gps_delay_s"] = float(delay) / 1000.0      # the receiver latency EKF3 compensates
+        elif ekf is not None:
+            out["gps_delay_s"] = float(ekf[1]) / 1000.0
+            self.notes.append(f"gps: the receiver latency is the EKF's {ekf[0]} ({ekf[1]:g} ms)"
+                              + (" (GPS_DELAY_MS 0: the driver's own)" if delay is not None else ""))
         elif delay is not None:
             self.notes.append("gps: GPS_DELAY_MS is 0 (the receiver driver's own latency, which the log does not "
-                              "record); fixes are fused at their stamps unless --gps-delay says otherwise")
+                              "record); the replay estimates it from the log unless --gps-delay says otherwise")
         return out
 
     def arming(self) -> None:

@@ -20,14 +20,12 @@ estimate pools the samples of all logs given.
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 
 from quadformer.logs.flightlog import FlightLog, LogError
-from quadformer.logs.receiver_clock import LATENCY_GRID
 
 FLOORS = {"gps_pos_h": 0.05, "gps_pos_v": 0.05, "gps_vel": 0.02, "gps_gm": 0.0, "accel_density": 1e-3,
           "gyro_density": 1e-4, "baro_noise": 0.05, "baro_gm": 0.0, "mag_noise": 5e-4}
@@ -171,41 +169,29 @@ def detection_floor(log: FlightLog, in_air: np.ndarray | None = None, per_hour: 
     without the velocity: an offset), and its velocity change minus the IMU's specific force
     rotated to the world by the autopilot's attitude and integrated over the interval, gravity
     removed (a velocity step the IMU did not feel: a drift switched on at once), the IMU's interval
-    taken the receiver's latency earlier, the latency (``receiver_clock.LATENCY_GRID``) that
-    makes the velocity residual the least spread. Their robust
+    taken the receiver's latency earlier (``receiver_clock.latency``: the one that makes that
+    residual the least spread). Their robust
     per-axis std (1.4826 MAD) and a chi-square test of one interval's horizontal pair, Gaussian
     with that std, at the budget's per-interval false-alarm chance, give the floors. Heavier
     tails than a Gaussian's raise the true floor; a test over several intervals can go below it
     for a drift the filter absorbs slowly. None without GPS, IMU and the autopilot's attitude."""
-    from quadformer.geometry.frames import quat_rotate
+    from quadformer.logs.receiver_clock import latency, robust_std
 
-    g, imu, att = log.gps, log.imu, log.attitude
-    if g is None or imu is None or att is None or len(g) < 10 or len(imu) < 10 or len(att) < 2:
+    g = log.gps
+    if g is None or len(g) < 10:
         return None
     t = g["t"].to_numpy(dtype=float)
     p = g[["x", "y"]].to_numpy(dtype=float)
-    v = g[["vx", "vy", "vz"]].to_numpy(dtype=float)
+    v = g[["vx", "vy"]].to_numpy(dtype=float)
     air = np.ones(len(t), bool) if in_air is None else np.asarray(in_air, bool)
-    ti = imu["t"].to_numpy(dtype=float)
-    ta = att["t"].to_numpy(dtype=float)
-    q = att[["qx", "qy", "qz", "qw"]].to_numpy(dtype=float)
-    j = np.clip(np.searchsorted(ta, ti), 0, len(ta) - 1)
-    aw = quat_rotate(q[j], imu[["ax", "ay", "az"]].to_numpy(dtype=float)) + np.array([0.0, 0.0, -9.80665])
-    cum = np.concatenate([[np.zeros(3)], np.cumsum(0.5 * (aw[1:] + aw[:-1]) * np.diff(ti)[:, None], axis=0)])
-    dt = np.diff(t)
-    step = float(np.median(dt)) if len(dt) else 0.0
-    ok = (air[1:] & air[:-1] & (dt > 0) & (dt <= 1.5 * step) & (t[:-1] >= ti[0]) & (t[1:] <= ti[-1])
-          & np.isfinite(p).all(axis=1)[1:] & np.isfinite(p).all(axis=1)[:-1]
-          & np.isfinite(v[:, :2]).all(axis=1)[1:] & np.isfinite(v[:, :2]).all(axis=1)[:-1])
-    if ok.sum() < 30:
+    delay, sv = latency(log, air)
+    if sv is None:
         return None
-    mad = lambda e: float(1.4826 * np.median(np.abs(e - np.median(e, axis=0))))   # noqa: E731
-    e_p = (np.diff(p, axis=0) - 0.5 * (v[1:, :2] + v[:-1, :2]) * dt[:, None])[ok]
-    sp = mad(e_p)
-    sv = math.inf
-    for delay in LATENCY_GRID:                # the IMU over the interval the fixes were measured in
-        at_fix = np.stack([np.interp(t - delay, ti, cum[:, k]) for k in range(2)], axis=1)
-        sv = min(sv, mad((np.diff(v[:, :2], axis=0) - np.diff(at_fix, axis=0))[ok]))
+    dt = np.diff(t)
+    step = float(np.median(dt))
+    ok = (air[1:] & air[:-1] & (dt > 0) & (dt <= 1.5 * step) & np.isfinite(p).all(axis=1)[1:]
+          & np.isfinite(p).all(axis=1)[:-1] & np.isfinite(v).all(axis=1)[1:] & np.isfinite(v).all(axis=1)[:-1])
+    sp = robust_std((np.diff(p, axis=0) - 0.5 * (v[1:] + v[:-1]) * dt[:, None])[ok])
     rate = 1.0 / step
     return DetectionFloor(_step_floor(sp, per_hour, rate), _step_floor(sv, per_hour, rate), sp, sv, rate,
                           int(ok.sum()), per_hour)

@@ -6,7 +6,8 @@ Topics and fields read (instance 0 unless said otherwise; NED/FRD converted by `
   ``accelerometer_m_s2`` at ``timestamp + accelerometer_timestamp_relative``; when that offset
   is not zero the accelerometer is interpolated to the gyro times (noted); an offset equal
   to the "invalid" marker 0x7fffffff drops the sample.
-* gps: ``vehicle_gps_position`` (what the estimator uses), else ``sensor_gps``; position as
+* gps: ``vehicle_gps_position`` (what the estimator uses), else ``sensor_gps``; each fix stamped
+  at its epoch from ``time_utc_usec`` where the receiver gives it (``logs.receiver_clock``); position as
   ``lat``/``lon`` (1e-7 deg integers) and ``alt`` (mm) in older versions or
   ``latitude_deg``/``longitude_deg``/``altitude_msl_m`` in newer ones; ``vel_n/e/d_m_s`` (NaN
   where ``vel_ned_valid`` is 0); ``fix_type``, ``satellites_used``, ``eph``, ``epv``,
@@ -227,6 +228,10 @@ class _UlogReader(UlogEstimator):
             self.notes.append(f"gps: velocity NaN in {int((valid[keep] == 0).sum())} samples "
                               "flagged vel_ned_valid = 0")
         out = {"t": t, "lat": lat, "lon": lon, "alt": alt, "vel": frames.ned_to_enu(vel), **status}
+        utc = self.field(d, "time_utc_usec", required=False)
+        if utc is not None:                 # the receiver's time of the fix: stamped at its epoch
+            u = np.asarray(utc, dtype=float) * 1e-6
+            out["tow"] = np.where(u > 1e9, u, np.nan)      # 0 until the receiver knows the time
         return {k: np.asarray(v, dtype=float)[keep] for k, v in out.items()}, receiver
 
     def indicators(self, d, fix: np.ndarray) -> dict[str, np.ndarray | None]:

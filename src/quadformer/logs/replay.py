@@ -264,24 +264,17 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
     part = log.segment(seg) if len(log.segments) > 1 else log
     sensors = _sensors_of(part, config)
     delay_notes = []
-    if config.gps_delay_s is None and "gps_delay_s" not in log.vehicle:
-        # neither the tuning nor the log says: estimated from the log's own replay without it
+    estimated = False
+    if config.gps_delay_s is None and "gps_delay_s" not in log.vehicle and part.gps is not None:
+        # neither the tuning nor the log says: the latency the log's own IMU and GPS show
         from quadformer.logs.receiver_clock import latency
 
-        plain = ekf_flights(log, seg, replace(config, gps_delay_s=0.0), [None], backend)[0]
-        found = latency(plain.rows)
-        if found is None:
-            if all(a is None for a in attacks):
-                return [plain] + [replace(plain, rows=plain.rows.copy(), notes=list(plain.notes))
-                                  for _ in attacks[1:]]
-            return ekf_flights(log, seg, replace(config, gps_delay_s=0.0), attacks, backend)
-        out = ekf_flights(log, seg, replace(config, gps_delay_s=found), attacks, backend)
-        note = (f"gps: each fix fused {found * 1e3:.0f} ms before its stamp (the receiver's latency, "
-                "estimated from this log: the log gives no GPS delay setting)")
-        for f in out:
-            f.notes.insert(0, note)
-            f.delay_estimated = True
-        return out
+        found, _ = latency(part, in_air(log, part.gps["t"].to_numpy()) > 0.5)
+        config = replace(config, gps_delay_s=found or 0.0)
+        if found:
+            estimated = True
+            delay_notes.append(f"gps: each fix fused {found * 1e3:.0f} ms before its stamp (the receiver's "
+                               "latency, estimated from this log's IMU and GPS: the log gives no GPS delay setting)")
     if config.gps_delay_s is None:                     # the autopilot's own setting, where logged
         delay = log.vehicle.get("gps_delay_s", 0.0)
         if delay > MAX_GPS_DELAY:
@@ -374,7 +367,8 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
             lost = int((~k).sum())
             flight_notes = notes + stream.notes + ([f"gps: {lost} fixes not fused (the spoofed receiver lost its "
                                                     "lock)"] if lost else [])
-            flights[b] = LogFlight(seg, pd.DataFrame(rows), sensors, flight_notes, float(config.gps_delay_s))
+            flights[b] = LogFlight(seg, pd.DataFrame(rows), sensors, flight_notes, float(config.gps_delay_s),
+                                   estimated)
     return flights
 
 
