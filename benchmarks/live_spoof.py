@@ -25,6 +25,8 @@ import argparse
 import json
 import math
 import multiprocessing as mp
+import shutil
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -90,6 +92,11 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="seed of the attack's drawn parameters")
     ap.add_argument("--sensors", default=None, help="sensors the monitor fuses (default: those the log sends)")
     ap.add_argument("--timeout", type=float, default=900.0, help="wall-clock bound (s)")
+    ap.add_argument("--gps-delay", dest="gps_delay", type=float, default=None,
+                    help="s, each fix fused this long before its stamp (default: the --vehicle profile's, else 0, "
+                         "as quadformer monitor)")
+    ap.add_argument("--vehicle", type=Path, default=None,
+                    help="a vehicle profile (quadformer calibrate --profile): its detector and receiver latency")
     args = ap.parse_args()
 
     import numpy as np
@@ -114,17 +121,30 @@ def main() -> None:
         streams = streams.with_attack(attack, t0=0.0)
     have = set((args.sensors or "+".join(log_sensors(log))).split("+"))
     entry = pretrained.choose(have, "ekf", None)              # as `quadformer monitor` chooses without --model
-    det = pretrained.load(entry.name)
-    sensors = args.sensors or pretrained.fused_sensors(entry, have)
+    delay = args.gps_delay
+    if args.vehicle is not None:                              # as `quadformer monitor --vehicle`
+        from quadformer.detectors import load
+
+        det = load(args.vehicle)
+        sensors = det.calibration_["vehicle_sensors"]
+        if delay is None:
+            delay = det.calibration_.get("vehicle_gps_delay_s")
+        label = str(args.vehicle)
+    else:
+        det = pretrained.load(entry.name)
+        sensors = args.sensors or pretrained.fused_sensors(entry, have)
+        label = f"shipped:{entry.name}"
     filt = FilterConfig.matching(det.calibration_["sim_config"], sensors=sensors, min_segment_s=3.0,
-                                 receiver_accuracy=True)
+                                 receiver_accuracy=True, gps_delay_s=float(delay or 0.0))
     armed, air = spans(log.events)
     start = streams.start
     sender = SenderConfig(window=256, timeout_s=args.timeout, autopilot="ardupilot",
                           armed=armed, in_air=air if air is not None else None)
     alerts: list[dict] = []
-    config = MonitorConfig(connect="udpin:127.0.0.1:0", filter=filt, status_s=3600.0, duration_s=args.timeout + 30.0)
-    mon = Monitor(det, config, on_alert=alerts.append, echo=None, model=f"shipped:{entry.name}")
+    scored = Path(tempfile.mkdtemp(prefix="live_spoof_"))
+    config = MonitorConfig(connect="udpin:127.0.0.1:0", filter=filt, status_s=3600.0, duration_s=args.timeout + 30.0,
+                           out=scored)
+    mon = Monitor(det, config, on_alert=alerts.append, echo=None, model=label)
     mon.open()
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
@@ -148,7 +168,14 @@ def main() -> None:
                "onset_s": e["onset_s"] + start, "attack_type": e["attack_type"], "score": e["score"]}
               for e in alerts if e["event"] == "alert_start"]
     in_air = [a for a in raised if a["kind"] == "spoofing" and a["phase"] == "air"]
-    out = {"log": Path(args.log).name, "detector": entry.name, "method": entry.method, "sensors": sensors,
+    import pandas as pd
+
+    fixes = pd.read_csv(scored / "fixes.csv")
+    fixes["t"] += start
+    shutil.rmtree(scored, ignore_errors=True)
+    out = {"log": Path(args.log).name, "detector": label, "method": det.name, "sensors": sensors,
+           "gps_delay_s": float(delay or 0.0),
+           "largest_score_in_air": float(fixes.loc[fixes.phase == "air", "score"].max()),
            "threshold": float(det.threshold_), "in_air_s": air, "attack": None, "alerts": raised,
            "spoofing_alerts_in_air": len(in_air), "fixes_scored": summary["fixes_scored"],
            "wall_s": time.perf_counter() - t_wall, "sender": result}
@@ -163,6 +190,10 @@ def main() -> None:
         after = [a["t_s"] for a in in_air if onset <= a["t_s"] < stop]
         out["spoofing_alerts_in_air_before_onset"] = sum(a["t_s"] < onset for a in in_air)
         out["first_spoofing_in_air_after_onset_s"] = (min(after) - onset) if after else None
+        near = fixes[(fixes.t >= onset) & (fixes.t <= onset + 10.0)]
+        out["largest_score_10s_after_onset"] = float(near["score"].max()) if len(near) else None
+        before = fixes[(fixes.t < onset) & (fixes.phase == "air")]
+        out["largest_score_in_air_before_onset"] = float(before["score"].max()) if len(before) else None
     print(json.dumps(out))
 
 

@@ -329,7 +329,8 @@ def logs_dataset(paths: list[Path], residues: str = "ekf", config: FilterConfig 
             frames.append(rows)
             row = {"flight_id": fid, **({"group": f"{paths[li]}#{seg}"} if group else {}),
                    "attacked": bool(batch is not None and rows.label.any()),
-                   "attack_type": str(batch.kind[0]) if batch is not None else "none", "log": str(paths[li]), "segment": seg,
+                   "attack_type": str(batch.kind[0]) if batch is not None else "none", "log": str(paths[li]),
+                   "segment": seg,
                    "repeat": k - start, "duration": float(rows.t.iloc[-1] - rows.t.iloc[0]), "sensors": f.sensors}
             if batch is not None:
                 row.update(onset=float(batch.onset[0]), end=float(batch.end[0]), magnitude=float(batch.magnitude[0]),

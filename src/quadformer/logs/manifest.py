@@ -99,5 +99,6 @@ def read_manifest(path: str | Path) -> dict[str, ManifestEntry]:
             raise ManifestError(f"{path}: row {k}: {name} is listed twice")
         text = (r.get(trouble_col) or "") if trouble_col else ""
         windows, signs = trouble_windows(text)
-        out[name] = ManifestEntry(name, (r.get(clean_col) or "").strip().lower() == "yes", windows, signs, text, {c: v for c, v in r.items() if c not in ("file", clean_col, trouble_col)})
+        extra = {c: v for c, v in r.items() if c not in ("file", clean_col, trouble_col)}
+        out[name] = ManifestEntry(name, (r.get(clean_col) or "").strip().lower() == "yes", windows, signs, text, extra)
     return out

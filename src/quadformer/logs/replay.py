@@ -27,7 +27,6 @@ the replay weights each spoofed fix by the spoofed accuracies and skips the fixe
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 

@@ -130,7 +130,8 @@ def _streams(samples: dict[str, list], t0: float, notes: list[str]) -> dict:
         notes.append(f"imu: {source.split('#')[0]} at {rate:.1f} Hz")
     if samples["Mag"]:
         f = np.array([s.field for _, s in samples["Mag"]])
-        out["mag"] = make_stream("mag", np.array([t for t, _ in samples["Mag"]]) - t0, dict(zip(("mx", "my", "mz"), f.T)))
+        out["mag"] = make_stream("mag", np.array([t for t, _ in samples["Mag"]]) - t0,
+                                 dict(zip(("mx", "my", "mz"), f.T)))
     if samples["Baro"]:
         out["baro"] = make_stream("baro", np.array([t for t, _ in samples["Baro"]]) - t0,
                                   {"alt": np.array([s.alt for _, s in samples["Baro"]])})
