@@ -218,6 +218,8 @@ def test_a_profile_on_few_minutes_keeps_the_threshold_and_says_what_it_needs(sim
     from quadformer.detectors import load
     again = load(path)
     assert again.calibration_["vehicle_needed_minutes"] == 180.0 and again.threshold_ == prof.threshold
+    # the fixture logs state no GPS delay and fly a smooth circle: no latency to estimate, none recorded
+    assert again.calibration_["vehicle_gps_delay_s"] is None and "receiver latency" not in prof.message
 
 
 def test_a_profile_refuses_another_vehicles_log_and_another_sensor_set(sim_glr, tmp_path):
