@@ -27,7 +27,6 @@ the replay weights each spoofed fix by the spoofed accuracies and skips the fixe
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -256,8 +255,10 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
     by its spoofed accuracies (eph, epv, speed accuracy; the other flights keep the log's), its
     rows' receiver columns (``RECEIVER``) from them, and the fixes its receiver lost not fused:
     flights that fuse different fixes are replayed as separate batches."""
-    from quadformer.attacks import inject_fixes, spoofed_reports
     from quadformer.estimator.online import CALL_ORDER, ResidueStream
+
+    if any(a is not None for a in attacks):           # (the attacks' module loads torch)
+        from quadformer.attacks import inject_fixes, spoofed_reports
 
     part = log.segment(seg) if len(log.segments) > 1 else log
     sensors = _sensors_of(part, config)
