@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import html
 import io
+from collections.abc import Mapping
 
 import pandas as pd
 
@@ -22,6 +23,17 @@ def img(b64: str) -> str:
 
 def table(df: pd.DataFrame, digits: str = ".2f", index: bool = True) -> str:
     return df.to_html(index=index, float_format=lambda v: f"{v:{digits}}", na_rep="-", border=0, classes="t")
+
+
+def versions(versions: Mapping[str, str] | None) -> str:
+    """A report's "Versions" section: the packages a run used (``io.package_versions``) as a
+    two-column table, package and version, in the order recorded."""
+    if not versions:
+        return "<h2>Versions</h2><p>not recorded</p>"
+    rows = "".join(f"<tr><td>{html.escape(str(k))}</td><td>{html.escape(str(v))}</td></tr>"
+                   for k, v in versions.items())
+    return ("<h2>Versions</h2><table class='t versions'><thead><tr><th>package</th><th>version</th></tr></thead>"
+            f"<tbody>{rows}</tbody></table>")
 
 
 def page(title: str, parts: list[str], width_px: int = 1200) -> str:
