@@ -314,6 +314,6 @@ def _median(values: list[float]) -> float:
     without numpy's cost per call: the medians are taken at every report."""
     s = sorted(values)
     n = len(s)
-    if n == 0 or any(math.isnan(v) for v in s):
+    if n == 0 or any(map(math.isnan, s)):
         return math.nan
     return s[n // 2] if n % 2 else (s[n // 2 - 1] + s[n // 2]) / 2
