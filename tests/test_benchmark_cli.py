@@ -393,8 +393,10 @@ def test_benchmark_over_seeds_keeps_each_run_and_the_spread(short_dataset_dir, t
     assert "over seeds 0, 1" in res.output and "±" in res.output
     r = json.loads((out / "results.json").read_text())
     assert r["seeds"] == [0, 1] and set(r["per_seed"]) == {"0", "1"}
+    assert (r["provenance"]["seeds"], r["provenance"]["profile"]) == ({"runs": [0, 1]}, "demo")
     runs = [json.loads((out / f"seed-{s}" / "results.json").read_text()) for s in (0, 1)]
     assert [x["seed"] for x in runs] == [0, 1] and [x["dataset_seed"] for x in runs] == [0, 1]
+    assert [x["provenance"]["seeds"] for x in runs] == [{"dataset": 0, "split": 0}, {"dataset": 1, "split": 1}]
     assert runs[0]["configs"][0]["dataset"] != runs[1]["configs"][0]["dataset"]     # own datasets per seed
     name = runs[0]["configs"][0]["name"]
     f1 = [x["configs"][0]["methods"]["cusum"]["f1"] for x in runs]

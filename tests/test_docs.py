@@ -109,3 +109,35 @@ def test_tables_script_writes_a_table_then_checks_it(tmp_path, capsys):
     page.write_text(text.replace("| bht | 1.00", "| bht | 0.99"))
     assert tables.run(check=True, **args) == 1
     assert "f1 differ" in capsys.readouterr().out
+
+
+def test_each_table_says_how_its_results_were_produced(tmp_path):
+    """Under a table, the run's recorded command, commit, seeds and profile; for results written
+    before runs recorded them, what they hold."""
+    tables = _tables()
+    conf = {"precision": 0.5, "recall": 1.0, "f1": 0.5}
+    results = {"profile": "demo", "seed": 4, "dataset_seed": 2, "versions": {"quadformer": "0.1.0"},
+               "methods_run": ["cusum"], "configs": [{"name": "modelI-laplace-bias", "methods": {"cusum": conf}}]}
+    (tmp_path / "docs" / "results" / "old").mkdir(parents=True)
+    (tmp_path / "docs" / "results" / "old" / "results.json").write_text(json.dumps(results))
+    recorded = {**results, "provenance": {"command": "quadformer benchmark --profile demo", "argv": [],
+                                          "commit": "0123456789abcdef0123", "modified": False, "version": "0.1.0",
+                                          "seeds": {"dataset": 2, "split": 4}, "profile": "demo"}}
+    (tmp_path / "docs" / "results" / "new").mkdir(parents=True)
+    (tmp_path / "docs" / "results" / "new" / "results.json").write_text(json.dumps(recorded))
+    page = tmp_path / "docs" / "results.md"
+    page.write_text("<!-- table: old -->\n<!-- /table: old -->\n\n<!-- table: new -->\n<!-- /table: new -->\n")
+    declared = {n: {"source": f"results/{n}/results.json", "kind": "methods"} for n in ("old", "new")}
+    assert tables.run(check=False, pages=(page,), tables=declared, root=tmp_path) == 0
+    text = page.read_text()
+    assert ("\nProduced by `quadformer benchmark --profile demo` at commit `0123456789ab`; seeds: dataset 2, "
+            "split 4; profile demo.\n<!-- /table: new -->") in text
+    assert ("\nProvenance: no command line or commit recorded (written before runs recorded them); recorded: "
+            "quadformer 0.1.0, profile demo, seed 4, dataset seed 2.\n<!-- /table: old -->") in text
+    # without git, the package's version stands for the commit
+    no_git = {**recorded["provenance"], "commit": None, "modified": None, "seeds": {"runs": [0, 1]}}
+    assert tables.provenance_line({"provenance": no_git}) == (
+        "Produced by `quadformer benchmark --profile demo` from quadformer 0.1.0 (no git commit known); "
+        "seeds: runs [0, 1]; profile demo.")
+    assert "with uncommitted changes" in tables.provenance_line(
+        {"provenance": {**recorded["provenance"], "modified": True}})

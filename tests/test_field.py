@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pandas as pd
@@ -119,6 +120,10 @@ def test_field_benchmark_counts_false_alarms_degradation_and_injected_spoofs(fie
     assert load(out / "models" / "chi2.qfm").calibration_["sim_config"]["duration"] == 12.0
     page = (out / "report.html").read_text()
     assert "False alarms on clean flights" in page and page.count("<img") >= 3
+    assert "<th>package</th><th>version</th>" in page
+    # how it was produced, as written to results.json: the field profile and the plan's seed
+    written = json.loads((out / "results.json").read_text())["provenance"]
+    assert (written["profile"], written["seeds"]) == ("field", {"plan": 0})
 
 
 def test_field_cli_refuses_what_it_cannot_run(tmp_path):

@@ -49,6 +49,7 @@ def test_evaluate_model_writes_scores_alerts_and_the_metrics_of_the_test_flights
     assert res == json.loads(json.dumps(ev.results))
     assert res["flights"] == len(det.calibration_["test_flights"]) and res["steps"] == len(f)
     assert res["method"] == "cusum" and res["model"] == str(path) and res["data"] == "ds"
+    assert res["provenance"]["seeds"] == {"split": 1} and res["provenance"]["profile"] is None   # the model's split
     offsets = np.linalg.norm(f[["atk_d_x", "atk_d_y", "atk_d_z"]].to_numpy(), axis=1)
     m = evaluate(f.flight_id.to_numpy(), f.t.to_numpy(), f.label.to_numpy(), scores.score.to_numpy(),
                  scores.alarm.to_numpy() == 1, gps_rate_hz=bias_dataset.gps_rate_hz, offsets=offsets)

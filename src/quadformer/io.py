@@ -12,6 +12,7 @@ created with ``O_CREAT | O_EXCL``, which one process wins, also on shared storag
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import platform
@@ -121,13 +122,17 @@ def write_json(path: str | os.PathLike, obj: Any) -> Path:
 
 
 def package_versions(names: tuple[str, ...] = PACKAGES) -> dict[str, str]:
-    out = {"python": platform.python_version()}
-    for name in names:
-        try:
-            out[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            out[name] = "not installed"
-    return out
+    """The Python version and each package's installed version ("not installed" where absent)."""
+    return {"python": platform.python_version(), **{name: _installed(name) for name in names}}
+
+
+@functools.lru_cache(maxsize=None)
+def _installed(name: str) -> str:
+    """A package's installed version, looked up once a process (a report per log asks again)."""
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return "not installed"
 
 
 def set_threads(n: int | None = None) -> None:

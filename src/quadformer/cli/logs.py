@@ -49,12 +49,13 @@ def detect(
     check_residues(residues)
     check_typing(typing)
     paths = log_paths(logs, format)
+    read = {}                                        # logs read before the run (not read again)
     if vehicle is not None:
         if model is not None:
             fail("--vehicle and --model: a vehicle profile holds its detector; give one of them")
         det, label, trained_with = vehicle_or_fail(vehicle)
     elif model is None:
-        det, label, trained_with = _shipped_for_logs(paths, residues, format)
+        det, label, trained_with, read = _shipped_for_logs(paths, residues, format)
     else:
         det, label, trained_with = model_or_shipped(model, runtime)
     config = replay_config(sensors or trained_with, imu_rate, gps_rate, min_segment, filter, det, gps_delay,
@@ -91,7 +92,7 @@ def detect(
     import os
 
     run = detect_logs(paths, det, out, residues, config, format=format, typing=typing, model=label,
-                      on_log=done, workers=workers or os.cpu_count() or 1)
+                      on_log=done, workers=workers or os.cpu_count() or 1, read=read)
     if bar is not None:
         bar.close()
     skipped, failed = run.of("skipped"), run.of("failed")
@@ -106,7 +107,8 @@ def detect(
 
 
 def _shipped_for_logs(paths: list[Path], residues: str, format: Optional[str]):
-    """The shipped detector for the first of ``paths`` that reads (its sensors and format)."""
+    """The shipped detector for the first of ``paths`` that reads (its sensors and format): the
+    detector, its label, the sensors it was trained with, and {path: log} of the log read."""
     from quadformer.logs import FORMAT_OF_SOURCE, LogError, read_log
     from quadformer.logs.replay import log_sensors
 
@@ -115,9 +117,9 @@ def _shipped_for_logs(paths: list[Path], residues: str, format: Optional[str]):
             log = read_log(p, format=format)
         except LogError:
             continue
-        return shipped_for_data(set(log_sensors(log)), residues, FORMAT_OF_SOURCE.get(log.source),
-                                p.name if len(paths) == 1 else f"{p.name}, the first of the logs that reads",
-                                per_log=True)
+        return (*shipped_for_data(set(log_sensors(log)), residues, FORMAT_OF_SOURCE.get(log.source),
+                                  p.name if len(paths) == 1 else f"{p.name}, the first of the logs that reads",
+                                  per_log=True), {p: log})
     fail("no log could be read to choose a shipped detector for (each is reported when named with --model)")
 
 
@@ -248,7 +250,6 @@ def calibrate(
     """Set a model's alarm threshold from one vehicle's own clean flights at a false-alarm budget, with a
     leave-one-log-out estimate of the false alarms it will raise; with --profile, a vehicle profile."""
     from quadformer.io import set_threads
-    from quadformer.logs import LogError
     from quadformer.logs.calibration import calibrate_on_logs
 
     det, _, trained_with = model_or_shipped(model, "torch")

@@ -60,7 +60,7 @@ from collections.abc import Mapping
 
 import numpy as np
 import pandas as pd
-from scipy import stats
+from scipy.special import ndtri
 
 from quadformer.detectors.base import Detector, check_residues, flight_slices
 from quadformer.detectors.registry import register
@@ -158,7 +158,25 @@ def robust_scale(d: np.ndarray, q: float = 0.5) -> np.ndarray:
     if have.any():
         x = d[:, have]
         dev = np.abs(x - np.nanmedian(x, axis=0))
-        out[have] = np.nanquantile(dev, q, axis=0) / float(stats.norm.ppf(0.5 + q / 2))
+        out[have] = _nanquantile(dev, q) / float(ndtri(0.5 + q / 2))   # the normal quantile
+    return out
+
+
+def _nanquantile(x: np.ndarray, q: float) -> np.ndarray:
+    """``np.nanquantile(x, q, axis=0)`` (the same numbers) in one call per pattern of missing
+    rows: the columns of a window share theirs (the steps before the window filled), and
+    numpy's NaN-aware quantile works a column at a time."""
+    nan = np.isnan(x)
+    if not nan.any():
+        return np.quantile(x, q, axis=0)
+    out = np.full(x.shape[1], np.nan)
+    patterns: dict[bytes, list[int]] = {}
+    for j in range(x.shape[1]):
+        patterns.setdefault(nan[:, j].tobytes(), []).append(j)
+    for cols in patterns.values():
+        rows = ~nan[:, cols[0]]
+        if rows.any():
+            out[cols] = np.quantile(x[np.ix_(rows, cols)], q, axis=0)
     return out
 
 

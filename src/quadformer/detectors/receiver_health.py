@@ -151,7 +151,7 @@ class ReceiverHealth:
             while self._eph and self._eph[0][0] < t - r.window_s:
                 self._eph.popleft()
             if self._eph:
-                median = float(np.median([v for _, v in self._eph]))
+                median = _median([v for _, v in self._eph])
                 if e > r.eph_floor_m and e > r.eph_ratio * median:
                     sign = f"accuracy jump (eph {e:.1f} m, median {median:.1f} m)"
             self._eph.append((t, e))
@@ -184,7 +184,7 @@ class ReceiverHealth:
             ivs.popleft()
         out = None
         if len(ivs) >= 5:
-            m = float(np.median([v for _, v in ivs]))
+            m = _median([v for _, v in ivs])
             if dt > r.gap_ratio * m and dt >= r.gap_min_s:
                 out = f"fixes missed ({dt:.2f} s since the last report, median {m:.2f} s)"
         ivs.append((t, dt))
@@ -202,7 +202,7 @@ class ReceiverHealth:
             if not math.isfinite(v):
                 continue
             if hist:
-                m = float(np.median([x for _, x in hist]))
+                m = _median([x for _, x in hist])
                 if name == "satellites" and v <= r.sat_drop * m and m - v >= r.sat_drop_min:
                     out.append(f"satellites {v:.0f} (median {m:.0f})")
                 elif name == "noise" and m > 0 and v > r.noise_rise * m:
@@ -307,3 +307,13 @@ class ReceiverHealth:
         if self.keep is not None and len(self.alerts) > self.keep:
             del self.alerts[0]
         return AlertEvent("alert_end", 0, t, a)
+
+
+def _median(values: list[float]) -> float:
+    """``float(np.median(values))`` of a short list of floats (the same number, NaN if one is),
+    without numpy's cost per call: the medians are taken at every report."""
+    s = sorted(values)
+    n = len(s)
+    if n == 0 or any(map(math.isnan, s)):
+        return math.nan
+    return s[n // 2] if n % 2 else (s[n // 2 - 1] + s[n // 2]) / 2

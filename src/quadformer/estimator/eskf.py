@@ -14,11 +14,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-import numpy as np
 import roma
 import torch
 
-from quadformer.config import BaroConfig, MagConfig
+from quadformer.estimator.noise import simulated_noise
 from quadformer.geometry import atan2, bmm, exp_quat, exp_rotmat, log_quat, matvec, wrap_angle
 
 ERROR_STATES = ("px", "py", "pz", "vx", "vy", "vz", "thx", "thy", "thz",
@@ -243,28 +242,11 @@ def nees(s: EKFState, p, v, q) -> torch.Tensor:
 def noise_model(imu_cfg, gps_cfg, vio_cfg, ekf_cfg, imu_rate_hz: float, mag_cfg=None, baro_cfg=None
                 ) -> NoiseModel:
     """Filter noise matched to the sensor configuration unless ``ekf_cfg`` overrides it
-    (``mag_cfg`` and ``baro_cfg``: default ``MagConfig()`` and ``BaroConfig()``)."""
-    mag_cfg = MagConfig() if mag_cfg is None else mag_cfg
-    baro_cfg = BaroConfig() if baro_cfg is None else baro_cfg
-    scale = float(np.sqrt(imu_rate_hz / 2.0))
-    h = ekf_cfg.gps_pos_std_h or float(np.hypot(gps_cfg.pos_std_h, gps_cfg.gm_std))
-    vv = ekf_cfg.gps_pos_std_v or float(np.hypot(gps_cfg.pos_std_v, gps_cfg.gm_std))
-    gv = ekf_cfg.gps_vel_std or gps_cfg.vel_std
-    vvel = ekf_cfg.vio_vel_std or vio_cfg.vel_std
-    vatt = np.deg2rad(ekf_cfg.vio_att_std_deg or vio_cfg.att_std_deg)
-    # heading: the horizontal field's noise and bias across it, over its length
-    heading = (np.deg2rad(ekf_cfg.mag_heading_std_deg) if ekf_cfg.mag_heading_std_deg
-               else float(np.hypot(mag_cfg.noise_std, mag_cfg.bias_std)) / mag_cfg.field_h)
-    height = ekf_cfg.baro_std or float(np.hypot(baro_cfg.noise_std, baro_cfg.gm_std))
-    return NoiseModel(
-        accel_std=imu_cfg.accel_noise_density * scale,
-        gyro_std=imu_cfg.gyro_noise_density * scale,
-        accel_walk=imu_cfg.accel_bias_walk / scale,
-        gyro_walk=imu_cfg.gyro_bias_walk / scale,
-        gps_std=torch.tensor([h, h, vv, gv, gv, gv], dtype=torch.float64),
-        vio_std=torch.tensor([vvel] * 3 + [vatt] * 3, dtype=torch.float64),
-        mag_std=torch.tensor([heading], dtype=torch.float64),
-        baro_std=torch.tensor([height], dtype=torch.float64),
-        mag_field=torch.tensor(mag_cfg.field_enu, dtype=torch.float64),
-    )
+    (``mag_cfg`` and ``baro_cfg``: default ``MagConfig()`` and ``BaroConfig()``):
+    ``noise.simulated_noise`` as torch tensors."""
+    n = simulated_noise(imu_cfg, gps_cfg, vio_cfg, ekf_cfg, imu_rate_hz, mag_cfg, baro_cfg)
+    return NoiseModel(accel_std=n.accel_std, gyro_std=n.gyro_std, accel_walk=n.accel_walk, gyro_walk=n.gyro_walk,
+                      gps_std=torch.from_numpy(n.gps_std), vio_std=torch.from_numpy(n.vio_std),
+                      mag_std=torch.from_numpy(n.mag_std), baro_std=torch.from_numpy(n.baro_std),
+                      mag_field=torch.from_numpy(n.mag_field))
 

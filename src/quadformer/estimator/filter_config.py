@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from quadformer.config import SENSOR_NAMES
+from quadformer.estimator.noise import Noise, simulated_noise
 
 if TYPE_CHECKING:
     from quadformer.estimator.eskf import NoiseModel
@@ -72,10 +73,9 @@ class FilterConfig:
         it, so the whitened residues keep the scale the detector expects: with the floor
         alone, a receiver of 3 m reads as a 3 m spoof to a detector fit on a simulated 0.5 m."""
         from quadformer.config import SimConfig
-        from quadformer.estimator.eskf import noise_model
 
         cfg = SimConfig.from_dict(sim)
-        nm = noise_model(cfg.imu, cfg.gps, cfg.vio, cfg.ekf, 1.0 / cfg.dt, cfg.mag, cfg.baro)
+        nm = simulated_noise(cfg.imu, cfg.gps, cfg.vio, cfg.ekf, 1.0 / cfg.dt, cfg.mag, cfg.baro)
         g = nm.gps_std.tolist()
         v = nm.vio_std.tolist()
         values = dict(
@@ -111,30 +111,6 @@ class FilterConfig:
             if unknown or not {"gps", "imu"} <= parts:
                 raise ValueError(f"filter.sensors: {self.sensors!r} must join gps, imu and any of vio, mag, "
                                  f"baro with '+' (unknown: {', '.join(sorted(unknown)) or 'none'})")
-
-
-@dataclass(frozen=True)
-class Noise:
-    """The filter's noise as numpy arrays (the fields of ``eskf.NoiseModel``): per-step process
-    noise stds, measurement noise stds, and the Earth field the magnetometer heading is
-    measured against (None until known)."""
-    accel_std: float
-    gyro_std: float
-    accel_walk: float
-    gyro_walk: float
-    gps_std: np.ndarray       # (6,) position m, velocity m/s
-    vio_std: np.ndarray       # (6,) velocity m/s, attitude rad
-    mag_std: np.ndarray       # (1,) heading, rad
-    baro_std: np.ndarray      # (1,) height, m
-    mag_field: np.ndarray | None = None   # (3,) world frame (ENU), gauss
-
-    @classmethod
-    def of(cls, nm: NoiseModel) -> "Noise":
-        """The arrays of a torch ``eskf.NoiseModel`` (absent measurement stds: 1)."""
-        a = lambda t, k: np.ones(k) if t is None else t.detach().cpu().numpy().astype(float)  # noqa: E731
-        return cls(float(nm.accel_std), float(nm.gyro_std), float(nm.accel_walk), float(nm.gyro_walk),
-                   a(nm.gps_std, 6), a(nm.vio_std, 6), a(nm.mag_std, 1), a(nm.baro_std, 1),
-                   None if nm.mag_field is None else a(nm.mag_field, 3))
 
 
 def noise_for(config: FilterConfig, dt: float, mag_field: np.ndarray | None = None) -> Noise:

@@ -96,7 +96,7 @@ def run_ekf(ekf0: EKFState, nm: NoiseModel, dt: float, imu_t, imu: torch.Tensor,
     if backend == "torch":
         filt = OnlineFilter(ekf0, nm, dt, t0, gps_rate_hz, aiding=tuple(aiding), max_gap=max_gap)
     elif backend == "numeric":
-        from quadformer.estimator.filter_config import Noise
+        from quadformer.estimator.noise import Noise
         from quadformer.estimator.numeric.filter import NumericFilter
 
         e = {k: getattr(ekf0, k).numpy() for k in ("p", "v", "q", "P", "ba", "bg")}

@@ -30,6 +30,7 @@ from quadformer.experiments.cache import (batch_count, check_device, ensure_conf
 from quadformer.experiments.grid import Profile, get_profile, profile_configs
 from quadformer.experiments.zoo import ZOO_SEED, shipped_tuned
 from quadformer.experiments.pool import Backend, SharedBar, run_jobs
+from quadformer.experiments.provenance import provenance
 from quadformer.io import atomic_path, package_versions, write_json
 
 #: bootstrap resamples of the test flights for the F1 interval of a run
@@ -336,6 +337,8 @@ def _evaluate(items, methods, out: Path, head: dict[str, Any], t_start: float, t
                      f"{ZOO_SEED}); every flight of these datasets is a new test flight; thresholds: the shipped "
                      "validation-F1 ones (and the budget ones); no point adjustment"),
         "configs": configs, "versions": package_versions(),
+        "provenance": provenance({**({"dataset": head["dataset_seed"]} if "dataset_seed" in head else {}),
+                                  **({"split": seed} if shipped is None else {})}, head.get("profile")),
         "timing_s": {"simulate": t_sim, "total": time.perf_counter() - t_start},
     }
     if t_tune is not None:

@@ -53,6 +53,7 @@ from quadformer.estimator.filter_config import FilterConfig
 from quadformer.experiments.field_models import shipped_detectors, shipped_files, tune_methods
 from quadformer.experiments.field_plan import FieldLog, FieldPlan
 from quadformer.experiments.field_spoofs import inject, injected_events, log_alerts, planned_injections
+from quadformer.experiments.provenance import provenance
 from quadformer.io import package_versions, write_json
 from quadformer.logs import LogError, read_log
 from quadformer.logs.detect import log_height, log_impacts, log_rows
@@ -279,6 +280,7 @@ def run_field(paths: list[Path], out: Path, plan: FieldPlan, manifest: Path | No
                                          "air_hours": _air_hours(fl), "phase_source": _phase_source(fl),
                                          "notes": fl.notes} for fl in logs],
                                "refused": refused, "methods": {}, "versions": package_versions(),
+                               "provenance": provenance({"plan": plan.seed}, "field"),
                                "shipped": shipped, "shipped_files": shipped_files(shipped) if shipped else None}
     per_log_rows, inj_rows = [], []
     receiver_rows: list[dict[str, Any]] = []

@@ -23,6 +23,7 @@ from quadformer.detectors.alarms import Alert
 from quadformer.detectors.attack_types import alert_typer
 from quadformer.evaluation.metrics import evaluate
 from quadformer.evaluation.protocol import Tuned, split_flights, tune
+from quadformer.experiments.provenance import provenance
 from quadformer.io import atomic_path, write_json
 
 
@@ -85,5 +86,7 @@ def evaluate_model(detector, ds: Dataset, out: str | Path, model: str = "", data
     alerts = alerts_from_scores(f, s, detector, typer=alert_typer(f, typing))
     write_alerts(alerts, out / "alerts.csv")
     res["alerts"] = len(alerts)
+    split = (getattr(detector, "calibration_", None) or {}).get("split_seed")
+    res["provenance"] = provenance({} if split is None else {"split": split}, None)
     write_json(out / "results.json", res)
     return Evaluation(res, alerts, out)

@@ -25,11 +25,13 @@ from quadformer.detectors.attack_types import alert_typer
 from quadformer.estimator.schema import GROUPS, RESIDUES
 from quadformer.evaluation.protocol import TrainingBudget, split_flights
 from quadformer.evaluation.resilience import flight_metrics, summarize_policy
-from quadformer.experiments.cache import batch_count, check_device, ensure_datasets, ensure_tuned, model_dir_for, tuned_model
+from quadformer.experiments.cache import (batch_count, check_device, ensure_datasets, ensure_tuned, model_dir_for,
+                                         tuned_model)
 from quadformer.experiments.detection import training_budget_doc
 from quadformer.experiments.grid import Profile, get_profile, profile_configs
 from quadformer.experiments.zoo import shipped_tuned
 from quadformer.experiments.pool import Backend, run_jobs
+from quadformer.experiments.provenance import provenance
 from quadformer.io import atomic_path, package_versions, write_json
 from quadformer.resilience import POLICIES, READMIT_CLEAR, READMIT_STALE, Admission, AdmissionConfig
 from quadformer.config import SimConfig
@@ -234,6 +236,7 @@ def run_resilience(profile: str | Profile, detector: str, out: Path, cache_dir: 
                      f"the shipped detector {shipped} (nothing tuned); flights of these datasets, new to it, flown "
                      "again in closed loop under each policy (same missions, wind, noise and attacks)"),
         "configs": configs, "versions": package_versions(),
+        "provenance": provenance({"dataset": prof.seed, **({"split": seed} if shipped is None else {})}, prof.name),
         "timing_s": {"simulate_datasets": t_sim, "total": time.perf_counter() - t_start},
     }
     write_json(out / "results.json", results)

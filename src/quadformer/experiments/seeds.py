@@ -14,6 +14,7 @@ from quadformer.detectors import get
 from quadformer.experiments.detection import run_benchmark
 from quadformer.experiments.grid import Profile, get_profile
 from quadformer.experiments.pool import Backend
+from quadformer.experiments.provenance import provenance
 from quadformer.io import package_versions, write_json
 
 __all__ = ["SEED_METRICS", "run_seeds", "seed_summary"]
@@ -62,6 +63,7 @@ def run_seeds(profile: str | Profile, methods: list[str], out: Path, cache_dir: 
                               for c in res["configs"]} for s, res in zip(seeds, runs_)},
         "summary": seed_summary(runs_),
         "versions": package_versions(),
+        "provenance": provenance({"runs": seeds}, prof.name),
         "timing_s": {"total": time.perf_counter() - t_start,
                      "per_seed": {str(s): r["timing_s"]["total"] for s, r in zip(seeds, runs_)}},
     }

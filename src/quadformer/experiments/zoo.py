@@ -36,6 +36,7 @@ from quadformer.detectors import pretrained
 from quadformer.evaluation.metrics import bootstrap_f1, evaluate
 from quadformer.evaluation.protocol import Tuned, split_flights, tune
 from quadformer.experiments.cache import ensure_configs
+from quadformer.experiments.provenance import provenance
 from quadformer.experiments.zoo_recipes import FLEET_NOISE, PAPER_PROFILE_F1, RECIPES, Recipe
 from quadformer.io import atomic_dir, package_versions, write_json
 
@@ -220,7 +221,8 @@ def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: l
     set_threads(THREADS)
     kept = _kept(out, {r.set for r in chosen}) if sets is not None else {"sets": {}, "detectors": {}}
     doc: dict[str, Any] = {"format": pretrained.FORMAT, "format_version": pretrained.FORMAT_VERSION,
-                           "seed": seed, "sets": {}, "detectors": {}}
+                           "seed": seed, "sets": {}, "detectors": {},
+                           "provenance": provenance({"zoo": seed}, None)}
     t_all = time.perf_counter()
     with atomic_dir(out, overwrite=True) as tmp:
         for name, entry in kept["detectors"].items():

@@ -171,8 +171,12 @@ def _stamp_field(fmt) -> tuple[str, int] | None:
 
 
 def _records(data: np.ndarray, offsets: np.ndarray, fmt) -> np.ndarray:
-    """The messages of format ``fmt`` starting at ``offsets``, as a structured array."""
-    dtype = np.dtype([(c, _NUMPY[ch]) for c, ch in zip(fmt.columns, fmt.format)])
+    """The messages of format ``fmt`` starting at ``offsets``, as a structured array. Fields the
+    format declares beyond its named columns (an early log's FMT, which names four of its five)
+    are kept unnamed, as ``DFReader`` reads and ignores them."""
+    fields = [(c, _NUMPY[ch]) for c, ch in zip(fmt.columns, fmt.format)]
+    fields += [(f"_unnamed{i}", _NUMPY[ch]) for i, ch in enumerate(fmt.format[len(fields):])]
+    dtype = np.dtype(fields)
     if dtype.itemsize != fmt.len - 3:
         raise ValueError(f"{fmt.name}: format of {dtype.itemsize} bytes, messages of {fmt.len - 3}")
     body = data[offsets[:, None] + (3 + np.arange(fmt.len - 3))]
@@ -240,7 +244,7 @@ def _indexed_messages(path: Path, size: int):
             return decoded[tid]
 
         if _FMT in offsets:
-            defined = records(_FMT)["Type"]
+            defined = data[offsets[_FMT] + 3]             # each FMT's first field: the type it defines
             if len(np.unique(defined)) != len(defined):
                 return None                            # a format redefined on the way
         # every timed message's stamp, in file order

@@ -257,8 +257,10 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
     by its spoofed accuracies (eph, epv, speed accuracy; the other flights keep the log's), its
     rows' receiver columns (``RECEIVER``) from them, and the fixes its receiver lost not fused:
     flights that fuse different fixes are replayed as separate batches."""
-    from quadformer.attacks import inject_fixes, spoofed_reports
     from quadformer.estimator.online import CALL_ORDER, ResidueStream
+
+    if any(a is not None for a in attacks):           # (the attacks' module loads torch)
+        from quadformer.attacks import inject_fixes, spoofed_reports
 
     part = log.segment(seg) if len(log.segments) > 1 else log
     sensors = _sensors_of(part, config)

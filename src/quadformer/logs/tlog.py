@@ -15,6 +15,9 @@ the others time since boot), so ``boot_t0`` is NaN. Streams:
 * receiver: every ``GPS_RAW_INT`` (``sensors.mavlink.gps_status``), fix or not: fix_type,
   satellites, accuracies; noise, jamming and spoofing are not in the message.
 
+The records are read at once where they are all whole MAVLink packets (``tlog_records``), else
+message by message with pymavlink's reader: the same messages either way.
+
 A telemetry link's streams are slow (an IMU at a few Hz): the ekf replay refuses an IMU under
 the filter's least rate, naming it. ``HEARTBEAT`` arming changes and ``STATUSTEXT`` texts go to
 the notes and ``vehicle["messages"]``. Events (``FlightLog.events``) are the vehicle's messages
@@ -37,12 +40,15 @@ from pymavlink import mavutil
 
 from quadformer.geometry import frames
 from quadformer.logs.flightlog import GPS_GAP, IMU_GAP, FlightLog, LogError, assemble, gps_stream, make_stream
-from quadformer.sensors.mavlink import (ARMED, IMU_MESSAGES, Estimate, Gps, GpsStatus, Origin, VehicleEvents, decode,
-                                        gps_status, vehicle_heartbeat)
+from quadformer.logs.tlog_records import whole_messages
+from quadformer.sensors.mavlink import (ARMED, DECODED, IMU_MESSAGES, Estimate, Gps, GpsStatus, Origin, VehicleEvents,
+                                        decode, gps_status, vehicle_heartbeat)
 
 __all__ = ["looks_like_tlog", "read_tlog"]
 
 _MAGIC = (0xFE, 0xFD)                     # MAVLink 1 and 2 start bytes
+#: the message types ``read_tlog`` takes something from (the others are only counted)
+TAKEN = frozenset((*DECODED, "HEARTBEAT", "STATUSTEXT", "EXTENDED_SYS_STATE"))
 _UNIX_US = (1.0e15, 4.0e15)               # plausible receive times: 2001 to 2096
 
 
@@ -68,29 +74,40 @@ def read_tlog(path: str | Path, *, imu_gap: float = IMU_GAP, gps_gap: float = GP
     rows: list[tuple[float, str, str]] = []
     armed, bad, count = None, 0, 0
     sink = io.StringIO()
+
+    def take(m) -> None:
+        nonlocal armed
+        kind = m.get_type()
+        t = float(m._timestamp)
+        if kind == "HEARTBEAT" and vehicle_heartbeat(m):
+            now = bool(m.base_mode & ARMED)
+            if now != armed:
+                samples["arming"].append((t, now))
+                armed = now
+        elif kind == "STATUSTEXT":
+            texts.append(str(m.text))
+        rows.extend(events.message(t, m))
+        if kind == "GPS_RAW_INT":
+            samples["GpsStatus"].append((t, gps_status(m)))
+        for s in decode(m):
+            samples[type(s).__name__].append((t, s))
+
     try:
         with contextlib.redirect_stdout(sink), contextlib.redirect_stderr(sink):
             conn = mavutil.mavlink_connection(str(path), robust_parsing=True, dialect="ardupilotmega")
             try:
-                while (m := conn.recv_msg()) is not None:
-                    count += 1
-                    kind = m.get_type()
-                    if kind == "BAD_DATA":
-                        bad += 1
-                        continue
-                    t = float(m._timestamp)
-                    if kind == "HEARTBEAT" and vehicle_heartbeat(m):
-                        now = bool(m.base_mode & ARMED)
-                        if now != armed:
-                            samples["arming"].append((t, now))
-                            armed = now
-                    elif kind == "STATUSTEXT":
-                        texts.append(str(m.text))
-                    rows += events.message(t, m)
-                    if kind == "GPS_RAW_INT":
-                        samples["GpsStatus"].append((t, gps_status(m)))
-                    for s in decode(m):
-                        samples[type(s).__name__].append((t, s))
+                whole = whole_messages(path.read_bytes(), conn.mav, TAKEN)
+                if whole is not None:                  # every record a whole, valid MAVLink 1 packet
+                    count, wanted = whole
+                    for m in wanted:
+                        take(m)
+                else:
+                    while (m := conn.recv_msg()) is not None:
+                        count += 1
+                        if m.get_type() == "BAD_DATA":
+                            bad += 1
+                        else:
+                            take(m)
             finally:
                 conn.close()
     except Exception as exc:          # pymavlink raises many types on damaged input

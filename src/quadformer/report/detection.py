@@ -15,7 +15,7 @@ from quadformer.report.detection_figures import figures
 from quadformer.report.detection_tables import (TYPE_CONFUSIONS, ablation_table, confusion_table, dataset_table,
                                                 extra_table, paper_tables, stress_table, to_latex, to_markdown,
                                                 type_recall_table, typing_table)
-from quadformer.report.html import img, page, table
+from quadformer.report.html import img, page, table, versions
 
 
 def _fold(title: str, body: str, open_: bool = False) -> str:
@@ -132,7 +132,7 @@ def write_report(results: dict[str, Any], out: Path) -> Path:
             parts.append(f"<details><summary>{html.escape(m)}: attack types at alarm runs, {what}</summary>"
                          "<p>Rows: true type at the run's first alarm (none: a false alarm); columns: "
                          "predicted type; all test flights of all configurations.</p>" + table(conf) + "</details>")
-    parts.append("<h2>Versions</h2><pre>" + html.escape(str(results.get("versions", {}))) + "</pre>")
+    parts.append(versions(results.get("versions")))
     doc = page("quadformer report", parts)
     atomic_write_text(out / "report.html", doc)
     return out / "report.html"

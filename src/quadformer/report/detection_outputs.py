@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import numpy as np
 import pandas as pd
@@ -24,7 +24,7 @@ import pandas as pd
 from quadformer.detectors import alert_counts, alerts_frame
 from quadformer.estimator.filter_config import FilterConfig
 from quadformer.io import atomic_dir, atomic_path, write_json
-from quadformer.logs import LogError
+from quadformer.logs import FlightLog, LogError
 from quadformer.logs.detect import DetectorInputError, LogDetection, NothingToScore, detect_log
 from quadformer.report.logs import write_log_report, write_unscored_report
 
@@ -102,7 +102,7 @@ class LogsDetection:
 def detect_logs(paths: list[str | Path], detector, out: str | Path, residues: str = "ekf",
                 config: FilterConfig = FilterConfig(), format: str | None = None, typing: str = "shape",
                 model: str = "", on_log: Callable[[LogOutcome], None] | None = None,
-                workers: int = 1) -> LogsDetection:
+                workers: int = 1, read: Mapping[Path, FlightLog] | None = None) -> LogsDetection:
     """``logs.detect.detect_log`` on each log of ``paths``, the outputs written under ``out``:
     a folder per log (``folder_names``), and summary.csv and alerts.csv over the logs scored
     (none when no log was). A log that cannot be read or scored (LogError, a detector that
@@ -112,11 +112,13 @@ def detect_logs(paths: list[str | Path], detector, out: str | Path, residues: st
 
     ``workers``: processes scoring one log each at a time (spawned interpreters, one thread
     each, the detector sent to each once); 1 scores them here, one after the other. The
-    outputs are the same either way."""
+    outputs are the same either way. ``read``: logs of ``paths`` the caller has already read
+    (the one a shipped detector was chosen for), not read again."""
     out, paths = Path(out), [Path(p) for p in paths]
     if not (isinstance(workers, int) and workers >= 1):
         raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
-    jobs = [(path, out / name, residues, config, format, typing, model)
+    read = {Path(p): log for p, log in (read or {}).items()}
+    jobs = [(path, out / name, residues, config, format, typing, model, read.get(path))
             for path, name in zip(paths, folder_names(paths))]
     done: list[tuple[LogOutcome, pd.DataFrame | None] | None] = [None] * len(jobs)
 
@@ -151,10 +153,11 @@ def detect_logs(paths: list[str | Path], detector, out: str | Path, residues: st
 
 
 def _detect_one(detector, path: Path, folder: Path, residues: str, config: FilterConfig, format: str | None,
-                typing: str, model: str) -> tuple[LogOutcome, pd.DataFrame | None]:
-    """One log detected and written: its outcome and, scored, its alerts with their ``log``."""
+                typing: str, model: str, log: FlightLog | None = None) -> tuple[LogOutcome, pd.DataFrame | None]:
+    """One log detected and written: its outcome and, scored, its alerts with their ``log``
+    (``log``: the log of ``path`` already read, or None)."""
     try:
-        res = detect_log(path, detector, residues, config, format=format, typing=typing)
+        res = detect_log(path if log is None else log, detector, residues, config, format=format, typing=typing)
     except NothingToScore as e:                      # readable, but no GPS or too short: say so
         info = write_unscored(e, folder, path)
         return LogOutcome(path, "skipped", folder, reason=str(e), summary=info), None

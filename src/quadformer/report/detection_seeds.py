@@ -10,7 +10,7 @@ from typing import Any
 import pandas as pd
 
 from quadformer.io import atomic_write_text
-from quadformer.report.html import page, table
+from quadformer.report.html import page, table, versions
 
 
 def seeds_table(results: dict[str, Any], metric: str = "f1") -> pd.DataFrame:
@@ -49,7 +49,7 @@ def write_seeds_report(results: dict[str, Any], out: Path) -> Path:
         atomic_write_text(out / f"seeds_{metric}.md", _markdown_plain(df))
         parts.append(f"<h2>{html.escape(title)} over seeds (test flights)</h2>")
         parts.append(table(df))
-    parts.append("<h2>Versions</h2><pre>" + html.escape(str(results.get("versions", {}))) + "</pre>")
+    parts.append(versions(results.get("versions")))
     atomic_write_text(out / "report.html", page("quadformer report over seeds", parts))
     return out / "report.html"
 

@@ -16,7 +16,7 @@ import pandas as pd
 
 from quadformer.io import atomic_write_text
 from quadformer.logs.calibration import poisson_interval
-from quadformer.report.html import img, page, png, table
+from quadformer.report.html import img, page, png, table, versions
 
 BIG_OFFSET_M = 2.0          # the targets' offsets and drifts
 BIG_DRIFT_MPS = 0.2
@@ -174,7 +174,8 @@ def write_field_report(results: dict[str, Any], per_log: pd.DataFrame, injection
              "simulation only (fleet noise from the clean logs); thresholds: the simulation's (<i>sim</i>) and "
              f"calibrated on the other clean logs at {results['plan']['budget_per_hour']:g} false alarm per "
              "in-air hour (<i>calibrated</i>, the scored log left out). Alerts are counted in air; ground and "
-             "take-off or landing transition alerts, and alerts typed <i>degraded</i> (the receiver's own signs), apart.</p>"]
+             "take-off or landing transition alerts, and alerts typed <i>degraded</i> (the receiver's own signs), "
+             "apart.</p>"]
     figs = []
     if len(fa):
         figs.append(false_alarm_figure(fa))
@@ -198,5 +199,6 @@ def write_field_report(results: dict[str, Any], per_log: pd.DataFrame, injection
     if results["refused"]:
         parts.append("<h2>Logs refused</h2><ul>" + "".join(
             f"<li>{html.escape(r['log'])}: {html.escape(r['reason'])}</li>" for r in results["refused"]) + "</ul>")
+    parts.append(versions(results.get("versions")))
     atomic_write_text(path, page("quadformer field benchmark", parts, width_px=1400))
     return path

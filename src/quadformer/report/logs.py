@@ -11,8 +11,8 @@ import numpy as np
 import pandas as pd
 
 from quadformer.detectors import alert_counts, alerts_frame
-from quadformer.io import atomic_write_text
-from quadformer.report.html import img, page, png, table
+from quadformer.io import atomic_write_text, package_versions
+from quadformer.report.html import img, page, png, table, versions
 
 
 #: alerts listed open in a log's report up to this many (more: the section starts folded)
@@ -124,7 +124,7 @@ def _notes(notes: list[str]) -> str:
 def write_unscored_report(log, reason: str, out: Path) -> Path:
     """report.html of a readable log with nothing to score, saying why."""
     parts = [f"<h1>quadformer detect: {html.escape(log.path.name)}</h1>", _info_table(_log_info(log)),
-             f"<h2>Nothing scored</h2><p>{html.escape(reason)}</p>", _notes(log.notes)]
+             f"<h2>Nothing scored</h2><p>{html.escape(reason)}</p>", _notes(log.notes), versions(package_versions())]
     atomic_write_text(Path(out) / "report.html", page(f"quadformer detect {log.path.name}", parts, width_px=1000))
     return Path(out) / "report.html"
 
@@ -142,7 +142,8 @@ def write_log_report(det, out: Path, model: str) -> Path:
     out = Path(out)
     log = det.log
     info: dict[str, Any] = {
-        **_log_info(log), "residues": det.residues, "sensors fused": det.sensors, "detector": f"{det.detector.name} ({model})",
+        **_log_info(log), "residues": det.residues, "sensors fused": det.sensors,
+        "detector": f"{det.detector.name} ({model})",
         "threshold": f"{det.detector.threshold_:.4g}", "GPS steps scored": len(det.rows),
         "steps under alarm": int(np.sum(det.alarms)), **_alert_lines(det.alerts),
     }
@@ -156,5 +157,6 @@ def write_log_report(det, out: Path, model: str) -> Path:
                  f"({n})</h2></summary>"
                  + (table(alerts_frame(det.alerts), ".3g", index=False) if n else "<p>none</p>") + "</details>")
     parts.append(_notes([*log.notes, *det.notes]))
+    parts.append(versions(package_versions()))
     atomic_write_text(out / "report.html", page(f"quadformer detect {log.path.name}", parts, width_px=1000))
     return out / "report.html"

@@ -11,7 +11,7 @@ import pandas as pd
 
 from quadformer.evaluation.resilience import summarize_policy
 from quadformer.io import atomic_write_text
-from quadformer.report.html import img, page, png, table
+from quadformer.report.html import img, page, png, table, versions
 
 COLUMNS = {
     "max_dev_median_m": "max deviation from mission, median (m)",
@@ -164,7 +164,7 @@ def write_resilience_report(results: dict[str, Any], out: Path) -> Path:
     if len(trajectories) > 1:
         parts.append("<details><summary><h2 style='display:inline'>The other configurations' flights</h2>"
                      "</summary>" + "".join(trajectories[1:]) + "</details>")
-    parts.append("<h2>Versions</h2><pre>" + html.escape(str(results.get("versions", {}))) + "</pre>")
+    parts.append(versions(results.get("versions")))
     doc = page("quadformer resilience", parts, width_px=1300)
     atomic_write_text(out / "report.html", doc)
     return out / "report.html"

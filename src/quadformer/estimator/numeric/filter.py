@@ -16,7 +16,7 @@ from dataclasses import replace
 import numpy as np
 
 from quadformer.estimator.feed import AIDING, EPS, GapError, StreamError
-from quadformer.estimator.filter_config import Noise
+from quadformer.estimator.noise import Noise
 from quadformer.estimator.numeric import kernels
 from quadformer.estimator.numeric.reference import Reference
 from quadformer.estimator.schema import CORR_TAU, CORR_TAUS

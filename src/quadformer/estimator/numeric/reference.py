@@ -78,7 +78,9 @@ class Reference:
 
     def on_gps(self, pos: np.ndarray, vel: np.ndarray, std: np.ndarray | None = None) -> dict[str, np.ndarray]:
         c = self.cfg
-        std = np.broadcast_to(self.noise.gps_std if std is None else std, (self.n, 6))
+        std = self.noise.gps_std if std is None else std
+        if np.shape(std) != (self.n, 6):
+            std = np.broadcast_to(std, (self.n, 6))
         d = np.concatenate([pos - self.x[..., 0], vel - self.x[..., 1]], -1)
         if self.steps == 0:
             self.a = d
@@ -102,20 +104,27 @@ class Reference:
         gps_var = white * (self.alpha / (2.0 - self.alpha))
         Pvv = self.C[..., 1, 1]
 
-        def whiten(diff, G_then, seconds):
-            grow = np.maximum(Gt - G_then, 0.0)
-            slow = 2.0 * c.gps_slow_std ** 2 * (1.0 - np.exp(-np.asarray(seconds, dtype=float) / c.gps_slow_tau))
-            var_p = grow[:, :3] + 2.0 * gps_var[:, :3] + np.reshape(slow, (-1, 1))
-            var_v = grow[:, 3:] + 2.0 * Pvv + 2.0 * gps_var[:, 3:]
-            return diff / np.sqrt(np.concatenate([var_p, var_v], -1))
-
         self.age = self.age + 1.0 / self.rate
-        w = whiten(self.a - self.A, self.GA, self.age)
-        out = {"res_ref_d": self.a - self.A, "res_ref_w": w}
-        for name, h in zip(("res_ref_h5", "res_ref_h30"), self.h_steps):
+        # the four comparisons whitened together (element by element the same arithmetic as one by
+        # one): against the anchor, the two horizons back, and the anchor as it would be refreshed
+        d = self.a - self.A
+        diffs, then_g, seconds = [d], [self.GA], [self.age]
+        names = ("res_ref_h5", "res_ref_h30")[:len(self.h_steps)]
+        for h in self.h_steps[:len(names)]:
             k = max(0, min(h, self.steps - 1 - self.settle))
             then = self.hist[:, (self.steps - 1 - k) % self.size]
-            out[name] = whiten(self.a - then[:, :6], then[:, 6:], np.full(self.n, k / self.rate))
+            diffs.append(self.a - then[:, :6])
+            then_g.append(then[:, 6:])
+            seconds.append(np.full(self.n, k / self.rate))
+        diffs.append(d)
+        then_g.append(self.GA)
+        seconds.append(np.full(self.n, self.lag / self.rate))
+        grow = np.maximum(Gt - np.array(then_g), 0.0)
+        slow = 2.0 * c.gps_slow_std ** 2 * (1.0 - np.exp(-np.array(seconds) / c.gps_slow_tau))
+        var_p = grow[..., :3] + 2.0 * gps_var[:, :3] + slow[..., None]
+        var_v = grow[..., 3:] + 2.0 * Pvv + 2.0 * gps_var[:, 3:]
+        w, *back, fresh = np.array(diffs) / np.sqrt(np.concatenate([var_p, var_v], -1))
+        out = {"res_ref_d": d, "res_ref_w": w, **dict(zip(names, back))}
         e = self.vm_extra
         var_m = std[:, 3:] ** 2 * (self.alpha_v / (2.0 - self.alpha_v)) + Pvv + e * (2.0 * np.sqrt(Pvv) + e)
         out["res_ref_vmean"] = self.vmean / np.sqrt(var_m)
@@ -132,7 +141,7 @@ class Reference:
             dv = vbar - (fixes[:, 0, :3] - fixes[:, -1, :3]) / span
             var = 2.0 * std[:, :3] ** 2 / span ** 2 + std[:, 3:] ** 2 / k
             out["res_gps_pv"] = dv / np.sqrt(var)
-        self._w, self._w_fresh = w, whiten(self.a - self.A, self.GA, np.full(self.n, self.lag / self.rate))
+        self._w, self._w_fresh = w, fresh
         return out
 
     def anchor(self, p: np.ndarray, v: np.ndarray, P: np.ndarray) -> None:
