@@ -1,12 +1,13 @@
 """Start-up time of the command line: what a user waits before a command does its work.
 
-Commands: ``--help``, ``logs info`` and ``detect`` (a classical detector, the project's filter
-replayed) on a small PX4 log, and the imports of the package and of the live monitor. Each
-command runs in a fresh interpreter (``python -m quadformer.cli``, what the ``quadformer``
-console script runs), three times; the best wall time counts (a warm file cache, the least
-disturbed run). Also printed: whether the command's imports load torch (a second run with
-``-X importtime``, whose log names every module imported). Prints one line per command; the last
-line is one JSON object (seconds per command, and which ones loaded torch).
+Commands: ``--help``, ``logs info`` and ``detect`` (a classical detector, then the shipped
+detector ``detect`` picks; the project's filter replayed) on a small PX4 log, and the imports of
+the package and of the live monitor. Each command runs in a fresh interpreter (``python -m
+quadformer.cli``, what the ``quadformer`` console script runs), three times; the best wall time
+counts (a warm file cache, the least disturbed run). Also printed: whether the command's imports
+load torch (a second run with ``-X importtime``, whose log names every module imported). Prints
+one line per command; the last line is one JSON object (seconds per command, and which ones
+loaded torch).
 
     python benchmarks/startup.py [--repeat 3] [--log tests/fixtures/logs/sample_log_small.ulg]
 """
@@ -47,6 +48,7 @@ def commands(log: Path, model: Path, out: Path) -> dict[str, list[str]]:
     return {"quadformer --help": [*cli, "--help"],
             "quadformer logs info": [*cli, "logs", "info", str(log)],
             "quadformer detect (chi2)": [*cli, "detect", str(log), "--model", str(model), "--out", str(out)],
+            "quadformer detect (shipped)": [*cli, "detect", str(log), "--out", str(out / "shipped")],
             "import the live monitor": ["-c", "import quadformer.live.monitor"],
             "import quadformer": ["-c", "import quadformer"]}
 

@@ -66,3 +66,16 @@ def test_the_neural_detectors_load_when_named():
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     assert run.stdout.split() == ["True", "quadformer-nosup"]
+
+
+def test_detect_with_the_shipped_detector_loads_no_torch_nor_scikit_learn(tmp_path):
+    """The command a user runs first (no --model): the shipped detector for the log, replayed with
+    the tuning of the simulation it learned from, a report per log; none of it needs torch or the
+    benchmark's metrics."""
+    code = ("import sys; from quadformer.cli import app; "
+            f"app(['detect', {str(FIX / 'sample_log_small.ulg')!r}, '--out', {str(tmp_path)!r}, '--quiet'], "
+            "standalone_mode=False); print(sorted(m for m in ('torch', 'sklearn', 'scipy.stats') if m in sys.modules))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "detector: shipped" in run.stdout and (tmp_path / "sample_log_small.ulg" / "report.html").exists()
+    assert run.stdout.splitlines()[-1] == "[]"
