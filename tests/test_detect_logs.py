@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +15,6 @@ from logs_support import FIX
 from pyulog import ULog
 from typer.testing import CliRunner
 
-import quadformer
 from quadformer.cli import app
 from quadformer.dataset import load_dataset, write_dataset
 from quadformer.detectors import load
@@ -153,11 +151,6 @@ def test_benchmark_on_given_datasets(bias_dataset, tmp_path):
     assert "fleet-a-F1" in res.output
     r = json.loads((out / "results.json").read_text())
     assert r["profile"] is None and [c["name"] for c in r["configs"]] == ["fleet-a", "fleet-b"]
-    # how it was produced: given datasets (no profile), split seed 0, from this command line
-    assert {k: r["provenance"][k] for k in ("seeds", "profile", "version")} == {
-        "seeds": {"split": 0}, "profile": None, "version": quadformer.__version__}
-    assert r["provenance"]["argv"] == sys.argv
-    assert "<th>package</th><th>version</th>" in (out / "report.html").read_text()
     # the same data and protocol give the same figures
     assert r["configs"][0]["methods"]["cusum"]["f1"] == r["configs"][1]["methods"]["cusum"]["f1"]
     table = pd.read_csv(out / "table_datasets.csv", index_col=0)

@@ -63,3 +63,23 @@ def test_no_commit_without_git_or_outside_a_checkout(tmp_path):
     assert source_commit(tmp_path) == (None, None)
     p = provenance({"split": 0}, None)
     assert p["version"] == quadformer.__version__ and set(p) >= {"command", "commit", "seeds", "profile"}
+
+
+def test_a_benchmarks_results_record_how_they_were_produced(bias_dataset, tmp_path):
+    """A small real run (``benchmark --data``): its results.json says the command line, the
+    commit, the split seed and that no profile was run; its report lists the versions."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from quadformer.cli import app
+    from quadformer.dataset import write_dataset
+
+    data = write_dataset(bias_dataset, tmp_path / "ds")
+    res = CliRunner().invoke(app, ["benchmark", "--data", str(data), "--methods", "chi2", "--out",
+                                   str(tmp_path / "run"), "--quiet"])
+    assert res.exit_code == 0, res.output
+    p = json.loads((tmp_path / "run" / "results.json").read_text())["provenance"]
+    assert (p["seeds"], p["profile"], p["argv"]) == ({"split": 0}, None, sys.argv)   # the process's own line
+    assert (p["commit"], p["modified"]) == source_commit() and p["version"] == quadformer.__version__
+    assert "<th>package</th><th>version</th>" in (tmp_path / "run" / "report.html").read_text()
