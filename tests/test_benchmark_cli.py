@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from quadformer.cli import app
 from quadformer.detectors import load
-from quadformer.estimator.schema import ATTACK_TYPES
+from quadformer.detectors.attack_types import SHAPE_TYPES
 from quadformer.dataset import write_dataset
 from quadformer.experiments.cache import dataset_key
 from quadformer.experiments.grid import PROFILES, profile_configs
@@ -71,7 +71,8 @@ def test_benchmark_writes_schema_tables_report_and_reuses_cache(dataset_dir, tmp
     assert html.index("At a glance") < html.index("data:image/png;base64,") < html.index("<table")
     assert html.index("<details open><summary>") < html.index("<table")
     alerts = pd.read_csv(out / "alerts.csv")
-    assert {"config", "method", "flight_id", "start_s", "onset_s", "attack_type", "score", "end_s"} <= set(alerts.columns)
+    assert {"config", "method", "flight_id", "start_s", "onset_s", "attack_type", "score",
+            "end_s"} <= set(alerts.columns)
     assert set(alerts.method) <= {"chi2", "cusum"} and len(alerts) > 0
     assert len(list((cache / "models").rglob("cusum-*.tuned.json"))) == 8      # tuned detectors cached
 
@@ -170,7 +171,8 @@ def test_fit_then_evaluate_round_trip(dataset_dir, tmp_path):
     res = runner.invoke(app, ["evaluate", "--model", str(model), "--data", str(dataset_dir),
                               "--out", str(tmp_path / "e2"), "--test-only"])
     assert res.exit_code == 0
-    assert pd.read_parquet(tmp_path / "e2" / "scores.parquet").flight_id.nunique() == len(det.calibration_["test_flights"])
+    scored = pd.read_parquet(tmp_path / "e2" / "scores.parquet")
+    assert scored.flight_id.nunique() == len(det.calibration_["test_flights"])
 
 
 @pytest.mark.parametrize("args, message", [
@@ -366,7 +368,7 @@ def test_benchmark_mixed_profile_reports_types(mixed_dir, tmp_path):
                 set(got["type_confusion_shape_confirmed"])
             assert sum(map(sum, (row.values() for row in got["type_confusion_shape"].values()))) == \
                 sum(map(sum, (row.values() for row in got["type_confusion"].values())))
-            assert all(set(row) <= set(ATTACK_TYPES) for row in got["type_confusion_shape"].values())
+            assert all(set(row) <= set(SHAPE_TYPES) for row in got["type_confusion_shape"].values())
     html = (out / "report.html").read_text()
     assert "Attack typing at alarms" in html and "shape typer at the first alarm" in html
     typing = pd.read_csv(out / "typing.csv", index_col=0)

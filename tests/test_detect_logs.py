@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 from quadformer.cli import app
 from quadformer.dataset import load_dataset, write_dataset
 from quadformer.detectors import load
-from quadformer.estimator.schema import ATTACK_TYPES
+from quadformer.detectors.attack_types import SHAPE_TYPES
 from quadformer.logs import read_log
 from quadformer.logs.dataflash_writer import write_dataflash
 from quadformer.logs.replay import autopilot_rows
@@ -373,7 +373,7 @@ def test_logs_import_injects_labelled_spoofs_the_residues_see(models, tmp_path):
     assert r["metrics"]["event_recall"] > 0.5
     # alerts typed by shape from the logs' own reference residues (IMU + barometer, no camera)
     alerts = pd.read_csv(out / "alerts.csv")
-    assert len(alerts) and set(alerts.attack_type) <= set(ATTACK_TYPES)
+    assert len(alerts) and set(alerts.attack_type) <= set(SHAPE_TYPES)
     res = runner.invoke(app, ["evaluate", "--model", str(models["chi2"]), "--data", str(ds_dir), "--out",
                               str(tmp_path / "own"), "--typing", "detector"])
     assert res.exit_code == 0, res.output

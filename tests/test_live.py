@@ -24,6 +24,7 @@ from quadformer.detectors import alert_counts
 from quadformer.detectors.alarms import Alert
 from quadformer.evaluation.protocol import tune
 from quadformer.estimator.online import FilterConfig
+from quadformer.detectors.attack_types import SHAPE_TYPES
 from quadformer.estimator.schema import ATTACK_TYPES
 from quadformer.geometry.frames import euler_to_quat, geodetic_to_enu, quat_ned_frd_to_enu_flu, quat_to_matrix
 from quadformer.live.alerts import describe, statustext
@@ -326,7 +327,9 @@ def test_a_simulated_spoofed_flight_scores_as_offline_detection(detector, sim_st
     assert summary["flight"]["phase"] == "air" and summary["flight"]["phase_source"] == "events"
     # what the vehicle and the records were told
     texts = report.statustexts          # rate-limited on the wall clock: the first five at least
-    assert texts[0] == (M.mavlink2.MAV_SEVERITY_ALERT, "GPS SPOOF ALERT bias in takeoff GPS excluded")
+    # the type at the alarm (the attack's first step: a guess) and the bias confirmed 5 s later
+    assert texts[0] == (M.mavlink2.MAV_SEVERITY_ALERT, f"GPS SPOOF ALERT {first.attack_type} in takeoff GPS excluded")
+    assert first.confirmed_type == "bias"
     assert all(t.startswith("GPS DEGRADED: fix lost" if sev == M.mavlink2.MAV_SEVERITY_WARNING else "GPS ")
                and len(t) <= 50 for sev, t in texts), texts
     assert any("spoofing in the take-off transition" in line for line in lines)
@@ -486,7 +489,7 @@ def test_e_cli_monitor_demo(tmp_path):
                                        "--duration", f"{SAFETY_S:g}"])
     assert res.exit_code == 0, res.output
     # alerts typed by shape: a kind when raised, confirmed 5 s later (vehicle time) for every alert
-    assert re.search(rf"ALERT: ({'|'.join(ATTACK_TYPES)}), score", res.output), res.output
+    assert re.search(rf"ALERT: ({'|'.join(SHAPE_TYPES)}), score", res.output), res.output
     summary = json.loads((tmp_path / "demo" / "summary.json").read_text())
     events = [json.loads(x) for x in (tmp_path / "demo" / "alerts.jsonl").read_text().splitlines()]
     starts = [e for e in events if e["event"] == "alert_start"]

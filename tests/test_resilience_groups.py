@@ -9,7 +9,7 @@ import pytest
 
 from quadformer.config import AttackConfig, SimConfig
 from quadformer.detectors import StreamGroup, make
-from quadformer.estimator.schema import ATTACK_TYPES
+from quadformer.detectors.attack_types import SHAPE_TYPES
 from quadformer.experiments.resilience import batches_of, run_config, run_configs
 from quadformer.simulation import simulate_many
 
@@ -36,7 +36,7 @@ def test_configurations_flown_together_equal_each_flown_alone(two_configs):
         resilient = traj[traj.policy == "resilient"]
         assert (~resilient.fused[resilient.label == 1]).any()
         # its alerts typed by shape when raised and confirmed 5 s later
-        assert len(alerts) and set(alerts.attack_type) | set(alerts.confirmed_type) <= set(ATTACK_TYPES)
+        assert len(alerts) and set(alerts.attack_type) | set(alerts.confirmed_type) <= set(SHAPE_TYPES)
 
 
 def test_a_stream_group_gives_each_slice_its_own_detector(two_configs):

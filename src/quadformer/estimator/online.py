@@ -109,6 +109,7 @@ class ResidueStream:
     is returned up to D later; rows keep the fix's stamp as ``t``."""
 
     INIT_WINDOW = 1.0     # s before the first fix from which the start's attitude, tilt and field come
+    FIELD_S = 3.0         # s after the start over which the field is averaged (the autopilot's attitude)
     BARO_SETTLE = 5.0     # s after the start over which the barometer's offset to the filter's height is
                           # averaged before it is fused (one fix's vertical error would bias it for good)
 
@@ -134,13 +135,17 @@ class ResidueStream:
         self._held: deque = deque()                             # IMU samples within D of the newest
         self._first_imu: float | None = None
         self._unready = 0                                       # fixes before the start could be made
+        self._att: np.ndarray | None = None                     # the autopilot's latest attitude
+        self._field_sum, self._field_n = np.zeros(3), 0         # the Earth field's running sum
         self.notes: list[str] = []
 
     # -- raw samples ----------------------------------------------------------------------
     def attitude(self, t: float, q: np.ndarray) -> None:
-        """The autopilot's attitude estimate (xyzw, FLU body -> ENU world); used at the start."""
+        """The autopilot's attitude estimate (xyzw, FLU body -> ENU world); used at the start and
+        for the Earth field over the first ``FIELD_S`` seconds."""
         if self.filter is None:
             self._keep("att", t, np.asarray(q, dtype=float))
+        self._att = np.asarray(q, dtype=float)
 
     def imu(self, t: float, x: np.ndarray) -> list[dict[str, Any]]:
         """Specific force and body rate (n, 6) or (6,), FLU."""
@@ -220,10 +225,16 @@ class ResidueStream:
         x = per_flight(x, self.n, 3)
         if self.filter is None:
             self._keep("mag", t, x[0])
-        elif self.filter.mag_field is None:                  # no field yet: the first sample sets it
+            return
+        if self.filter.mag_field is None:                    # no field yet: the first sample sets it
             self.filter.set_mag_field(rotation(self._q0) @ x[0])
-        else:
-            self.filter.push("mag", t, np.array(x))
+            return
+        if self._att is not None and t - self.t0 <= self.FIELD_S:
+            # the field as the autopilot's attitude sees each sample, averaged from the start on
+            self._field_sum, self._field_n = self._field_sum + rotation(self._att / np.linalg.norm(self._att)) @ x[0], \
+                self._field_n + 1
+            self.filter.set_mag_field(self._field_sum / self._field_n)
+        self.filter.push("mag", t, np.array(x))
 
     def baro(self, t: float, alt: float) -> None:
         """Barometric altitude (m)."""
@@ -302,6 +313,22 @@ class ResidueStream:
             return True
         return t - self._first_imu >= self.INIT_WINDOW
 
+    def _field(self, q0: np.ndarray) -> np.ndarray:
+        """The Earth field (world, ENU) the start's magnetometer samples give: each turned to the
+        world with the autopilot's attitude nearest its time, as the vehicle may turn within the
+        window (a simulated flight starts while its vehicle settles: one attitude for the whole
+        second put the field 20 degrees off, and the heading updates against it then tilted the
+        attitude), else with the start's attitude q0 (which the field's heading came from)."""
+        att, mag = self._recent["att"], self._recent["mag"]
+        if not att:
+            return rotation(q0) @ np.mean([v for _, v in mag], axis=0)
+        times = np.array([s for s, _ in att])
+        world = []
+        for s, v in mag:
+            q = att[int(np.argmin(np.abs(times - s)))][1]
+            world.append(rotation(q / np.linalg.norm(q)) @ v)
+        return np.mean(world, axis=0)
+
     def _start(self, t0: float, fix: np.ndarray, std: np.ndarray) -> None:
         """The filter starts at the first fix that can start it (``_ready``): its position and
         velocity, the latest attitude of the autopilot, else the accelerometer's tilt with the
@@ -339,7 +366,8 @@ class ResidueStream:
         self._q0 = q0
         field = None
         if "mag" in self.aiding and self._recent["mag"]:
-            field = rotation(q0) @ np.mean([v for _, v in self._recent["mag"]], axis=0)
+            field = self._field(q0)
+            self._field_sum, self._field_n = field * len(self._recent["mag"]), len(self._recent["mag"])
         self._baro_offset, self._baro_diffs = None, []
         if self.backend == "numeric":
             from quadformer.estimator.numeric.filter import NumericFilter

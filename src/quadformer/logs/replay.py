@@ -9,7 +9,9 @@
   detectors' windows count GPS steps; the simulator's GPS runs at 10 Hz), and each fix's
   noise is the larger of a floor and the receiver's own accuracy (eph, epv, speed accuracy).
   The filter starts at the first fix of a segment, from that fix, the autopilot's attitude
-  (or the accelerometer's tilt) and the configured initial uncertainty.
+  (or the accelerometer's tilt) and the configured initial uncertainty; the magnetometer's Earth
+  field is each sample turned with the autopilot's attitude nearest it, averaged over the start's
+  second and the 3 s after.
 - ``autopilot``: the autopilot's own logged GPS innovations, whitened by its variances (PX4's
   logged ones; ArduPilot's recovered by its reader from the test ratios,
   ``ardupilot_ratios``), for logs whose raw sensors are missing or too sparse. PX4 and
