@@ -23,9 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy.signal import lfilter
 
-from quadformer.detectors.shape_noise import Whitener
+from quadformer.detectors.shape_noise import Whitener, lfilter
 
 
 #: rows before an onset that measure the noise a misfit is counted in

@@ -32,7 +32,15 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.optimize import nnls
-from scipy.signal import lfilter
+
+
+def lfilter(b, a, x, axis=-1):
+    """scipy.signal.lfilter, imported on first use (scipy.signal loads scipy.stats, which a run that
+    types no alert need not pay for)."""
+    from scipy.signal import lfilter as _lfilter
+
+    return _lfilter(b, a, x, axis=axis)
+
 
 #: lags (rows) of the differences whose variances give the drift
 LAGS = (1, 2, 4, 8, 16, 32)
