@@ -39,6 +39,7 @@ from quadformer.config import SENSOR_NAMES
 from quadformer.estimator.filter_config import MAX_GPS_DELAY, MIN_REPLAY_IMU_HZ, FilterConfig
 from quadformer.estimator.schema import GROUPS, RESIDUES, as_columns
 from quadformer.logs.flightlog import FlightLog, LogError
+from quadformer.logs.receiver_clock import latency
 
 RESIDUE_SOURCES = ("ekf", "autopilot")
 
@@ -270,12 +271,9 @@ def ekf_flights(log: FlightLog, seg: int = 0, config: FilterConfig = FilterConfi
     estimated = False
     if config.gps_delay_s is None and "gps_delay_s" not in log.vehicle and part.gps is not None:
         # neither the tuning nor the log says: the latency the log's own IMU and GPS show
-        from quadformer.logs.receiver_clock import latency
-
         found, _ = latency(part, in_air(log, part.gps["t"].to_numpy()) > 0.5)
-        config = replace(config, gps_delay_s=found or 0.0)
+        config, estimated = replace(config, gps_delay_s=found or 0.0), bool(found)
         if found:
-            estimated = True
             delay_notes.append(f"gps: each fix fused {found * 1e3:.0f} ms before its stamp (the receiver's "
                                "latency, estimated from this log's IMU and GPS: the log gives no GPS delay setting)")
     if config.gps_delay_s is None:                     # the autopilot's own setting, where logged
