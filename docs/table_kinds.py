@@ -249,6 +249,7 @@ def table_field(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
     methods = pick_methods(list(dict.fromkeys(r["method"] for r in res["false_alarms"])), spec.get("methods"), name)
     kinds = [k for k in spec.get("kinds", ("bias", "ramp")) if any(r["kind"] == k for r in res["injection"])]
     floor = any("recall_floor" in r for r in res["injection"])
+    settled = any("recall_settled" in r for r in res["injection"])
     digits = spec.get("digits", 2)
     rows = []
     for m in methods:
@@ -268,6 +269,9 @@ def table_field(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
                 if floor:
                     n = as_float(r.get("floor_injected"))
                     parts.append("-" if not n or n != n else f"{fmt(r.get('recall_floor'), digits)} ({int(n)})")
+                if settled:
+                    n = as_float(r.get("settled_injected"))
+                    parts.append("-" if not n or n != n else f"{fmt(r.get('recall_settled'), digits)} ({int(n)})")
                 delay = fmt(r["delay_median_s"], 1)
                 parts.append(delay + (" s" if delay != "-" else ""))
                 cells.append(" / ".join(parts))
@@ -278,6 +282,7 @@ def table_field(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
         what, target = FIELD_KINDS.get(kind, (kind, "the target"))
         head.append(f"injected {what}: recall / recall >= {target} / "
                     + ("recall at or above the target and the log's floor (spoofs) / " if floor else "")
+                    + ("recall of those begun after 30 s in the air (spoofs) / " if settled else "")
                     + "median delay")
     return markdown(head, rows)
 

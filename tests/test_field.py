@@ -114,6 +114,12 @@ def test_field_benchmark_counts_false_alarms_degradation_and_injected_spoofs(fie
     assert {r["kind"] for r in res["injection"]} == set(kinds)
     hit = inj[inj.detected]
     assert (hit["delay_s"] >= 0).all() and (hit["offset_at_detection_m"] >= 0).all()
+    # the seconds in the air before each onset: the onsets fall in the air, at most the span less the
+    # 5-s settle and the 12 s kept after them; none after 30 s, so every spoof counts as early
+    assert ((inj["air_before_s"] >= 0) & (inj["air_before_s"] <= SPAN - 5.0 - 12.0 + 0.2)).all()
+    for r in res["injection"]:
+        assert r["settled_injected"] == 0 and np.isnan(r["recall_settled"])
+        assert r["recall_early"] == pytest.approx(r["event_recall"])
     # the tuned detectors are cached with the simulation they were fit on (detect replays with its tuning)
     from quadformer.detectors import load
 

@@ -27,7 +27,7 @@ from quadformer.logs.detect import log_height, log_impacts, step_alerts
 from quadformer.logs.replay import ekf_flights
 
 
-__all__ = ["INJECTED", "INJECT_BEFORE_END_S", "Injected", "inject", "injected_events", "log_alerts",
+__all__ = ["INJECTED", "INJECT_BEFORE_END_S", "Injected", "air_before", "inject", "injected_events", "log_alerts",
            "planned_injections"]
 
 INJECT_BEFORE_END_S = 12.0  # s of air kept after an injected onset
@@ -123,13 +123,27 @@ def inject(plan: FieldPlan, fl: FieldLog, li: int, config: FilterConfig) -> list
 FLOOR_OF = {"bias": "offset_m", "capture": "offset_m", "ramp": "drift_ms", "drift": "drift_ms"}
 
 
+def air_before(fl: FieldLog, segment: int, t: float) -> float:
+    """Seconds the segment's rows spent in the air before ``t`` (log clock): how long a detector that
+    normalises itself in the air (``glr``) had to calibrate when a spoof began."""
+    mine = fl.rows["flight_id"].to_numpy() == segment
+    ts = fl.rows["t"].to_numpy(dtype=float)[mine]
+    if len(ts) < 2:
+        return 0.0
+    air = fl.phase[mine] == "air"
+    spent = np.concatenate([[0.0], np.cumsum(np.where(air[1:] & air[:-1], np.diff(ts), 0.0))])
+    return float(np.interp(t, ts, spent))
+
+
 def injected_events(fl: FieldLog, injected: list[Injected], method: str, dets: dict[str, Any],
                     rate: float, floor: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """One row per injected spoof and threshold: detected (a spoofing alert raised in air between the
-    onset and the end), delay, offset at detection, and the log's physical floor for the spoof's
-    kind (``floor``: the log's ``DetectionFloor`` as a dict; NaN where none applies)."""
+    onset and the end), delay, offset at detection, the seconds in the air before the onset
+    (``air_before_s``), and the log's physical floor for the spoof's kind (``floor``: the log's
+    ``DetectionFloor`` as a dict; NaN where none applies)."""
     rows_out = []
     for inj in injected:
+        before = air_before(fl, inj.segment, inj.onset)
         scores = np.asarray(next(iter(dets.values())).decision_function(inj.rows), dtype=float)
         for thr_name, det in dets.items():
             alerts = log_alerts(fl, inj.rows, scores, det, rate, receiver=inj.receiver)
@@ -140,7 +154,7 @@ def injected_events(fl: FieldLog, injected: list[Injected], method: str, dets: d
             key = FLOOR_OF.get(inj.kind)
             rows_out.append({"log": fl.path.name, "segment": inj.segment, "kind": inj.kind, "size": inj.size,
                              "method": method, "threshold": thr_name, "detected": bool(hit),
-                             "delay_s": delay, "offset_at_detection_m": offset,
+                             "delay_s": delay, "offset_at_detection_m": offset, "air_before_s": before,
                              "floor": float((floor or {}).get(key, float("nan"))) if key else float("nan")})
     return rows_out
 
