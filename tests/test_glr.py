@@ -177,6 +177,40 @@ def test_a_receiver_missing_fixes_is_degraded():
     assert a.kind == "degraded" and a.reason.startswith("fixes missed")
 
 
+def _lost_lock_then(report_after: dict, row_after: dict) -> list:
+    """A capture that begins with a lost lock: an alarm raised at 20.0 s while the receiver reports
+    no fix, standing through 20.2 and 20.4 s, when the fix is back (``report_after`` at 20.1 and
+    20.3 s) and the rows are ``row_after``; the alerts raised by the step (the receiver's own
+    degraded episode left out)."""
+    health = ReceiverHealth()
+    step = OnlineStep(ScoredStream(np.full(3, 500.0), np.ones(3, bool)), flight_ids=[0], health=health)
+    for rep in _steady(t1=19.0):
+        step.receiver(rep.pop("t"), **rep)
+    step.receiver(19.9, fix_type=1, satellites=4)
+    step.update_columns(20.0, MOVING)
+    for t in (20.1, 20.3):
+        step.receiver(t, **{"fix_type": 3, "satellites": 11, "eph": 1.6, "speed_acc": 0.3, "noise": 100,
+                            **report_after})
+        step.update_columns(t + 0.1, row_after)
+    step.finish()
+    return [a for a in step.alerts if not np.isnan(a.score)]
+
+
+def test_a_capture_that_began_with_a_lost_lock_turns_the_degraded_alert_into_spoofing():
+    degraded, capture = _lost_lock_then({"satellites": 5, "noise": 139}, MOVING)
+    assert degraded.kind == "degraded" and degraded.reason.startswith("fix lost")
+    assert degraded.start_s == 20.0 and degraded.end_s == pytest.approx(20.2)
+    assert capture.kind == "spoofing" and capture.reason.startswith("capture: satellites 5")
+    assert capture.start_s == pytest.approx(20.2)   # when the evidence came, not the alarm's first step
+
+
+def test_a_lost_lock_whose_fix_comes_back_agreeing_with_the_imu_stays_degraded():
+    (a,) = _lost_lock_then({"satellites": 5, "noise": 139}, STILL)      # the signs, but no motion against the IMU
+    assert a.kind == "degraded" and a.end_s is None
+    (b,) = _lost_lock_then({}, MOVING)                                  # the motion, but no capture sign
+    assert b.kind == "degraded"
+
+
 # -- the physical floor ---------------------------------------------------------------------
 
 def test_the_floor_of_a_log_the_project_writes(tmp_path):

@@ -192,6 +192,13 @@ class AlertTracker:
             del self.alerts[0], self._order[0]
         return AlertEvent("alert_end", i, t, a, step)
 
+    def end(self, i: int, t: float) -> AlertEvent | None:
+        """Close flight i's open alert at t though its alarm stands (None: none open); a new alert,
+        raised with what the next ``update`` is given, takes the alarm over from that step."""
+        if not self._is_open[i]:
+            return None
+        return self._close(int(i), float(t), int(self.steps[i]))
+
     def confirm(self, i: int, start_s: float, kind: str, t: float | None = None) -> AlertEvent | None:
         """Confirm the type of flight i's alert raised at ``start_s`` (open, or among those kept)."""
         got = self._amend(i, start_s, lambda a: dataclasses.replace(a, confirmed_type=kind))

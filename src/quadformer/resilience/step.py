@@ -16,7 +16,10 @@ driver owns only its clock and its I/O. Per step, for ``n`` flights stepped toge
 5. with a ``FlightPhase`` and a ``ReceiverHealth`` (one flight), fed the vehicle's events, the
    receiver's reports and heights between steps (``event``, ``receiver``, ``height``), an alert
    is labelled at its raise with the phase then and its kind: ``degraded`` (the health's reason)
-   while the receiver is degraded, else ``spoofing``. The receiver's own spoofing flag raises a
+   while the receiver is degraded, else ``spoofing``; an alarm raised as ``degraded`` that still
+   stands when the receiver shows a capture sign while the fix moves against the IMU (a capture
+   that began with a lost lock) ends there, and a ``spoofing`` alert (reason ``capture: ...``)
+   takes it over from that step. The receiver's own spoofing flag raises a
    spoofing alert (reason ``receiver reports spoofing``) without a detector alarm, and its
    degraded episodes are alerts of their own (``OnlineStep.alerts`` holds both, by time).
 6. a landing (the ``landed`` or ``disarmed`` event, the height's touchdown, or an impact fed to
@@ -167,6 +170,13 @@ class OnlineStep:
                 if raised[0] and self.tracker.open[0] is None:
                     kinds = np.array([self.typer.type_now()], dtype=object)
                     self.pending.append((t0, str(kinds[0])))
+        a = self.tracker.open[0] if self.health is not None else None
+        if a is not None and a.kind == "degraded" and raised[0] and label.get("kind") == "spoofing":
+            # an alarm raised while the receiver was degraded (a lost lock) goes on, and now the
+            # receiver shows a capture sign while the fix moves against the IMU (or flags spoofing):
+            # the degraded alert ends here and a spoofing one takes the alarm over
+            ended = self.tracker.end(0, float(np.asarray(t, dtype=float).reshape(-1)[0]))
+            events += [] if ended is None else [ended]
         started = self.tracker.update(t, score, raised, kinds, above, **label)
         if self.phase is not None:
             self._watch(started, TRACKER)
