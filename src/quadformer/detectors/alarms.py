@@ -111,11 +111,12 @@ class AlertTracker:
     """The alert lifecycle of ``n`` flights stepped together (see the module text).
 
     ``update`` takes one step: each flight's time, score, alarm (the detector's rule), the type,
-    kind, flight phase and reason to raise an alert with, and where the detector has an onset criterion, whether its raw score
-    is above the onset level (``StreamStep.above``); the onset of a new alert is the first step
-    of the run of such steps that ends just before the alarm (the alarm's own time otherwise), as
-    ``onset_times`` back-tracks offline. ``confirm`` sets an alert's confirmed type; ``finish``
-    closes what is open at the end of the data. Closed alerts are kept in ``alerts`` (the last
+    kind, flight phase and reason to raise an alert with, and where the detector has an onset
+    criterion, whether its raw score is above the onset level (``StreamStep.above``); the onset of
+    a new alert is the first step of the run of such steps that ends just before the alarm (the
+    alarm's own time otherwise), as ``onset_times`` back-tracks offline. ``confirm`` sets an
+    alert's confirmed type; ``end`` closes an open alert whose alarm stands (another takes the
+    alarm over); ``finish`` closes what is open at the end of the data. Closed alerts are kept in ``alerts`` (the last
     ``keep``); memory does not grow with time beyond that."""
 
     def __init__(self, n: int, flight_ids: Sequence[Any] | None = None, keep: int | None = None):
