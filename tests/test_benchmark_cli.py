@@ -3,6 +3,7 @@
 import json
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -25,32 +26,50 @@ def dataset_dir(bias_dataset, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def short_dataset_dir(tmp_path_factory):
-    """Like the bias dataset (6 flights, half of them attacked) in flights of 10 s with attacks
-    of 2.5-4 s from 2.5-4 s: the resilience run flies its test flights again under four
-    policies for each of the profile's eight configurations, so the flights' length sets the
-    test's time."""
-    from quadformer.config import AttackConfig, SimConfig
-    from quadformer.simulation import simulate
-
-    cfg = SimConfig(model="II", noise="laplace", flights=6, duration=10.0, seed=3,
-                    attack=AttackConfig(kind="bias", onset=(2.5, 4.0), duration=(2.5, 4.0)))
-    return write_dataset(simulate(cfg), tmp_path_factory.mktemp("short") / "ds")
+def short_dataset_dir(short_dataset, tmp_path_factory):
+    """The short dataset (conftest): the resilience run flies its test flights again under four
+    policies for each of the profile's configurations, and the stress run scores a copy of it
+    for each of the configurations' stress sets, so the flights' length sets the tests' time."""
+    return write_dataset(short_dataset, tmp_path_factory.mktemp("short") / "ds")
 
 
-def test_benchmark_writes_schema_tables_report_and_reuses_cache(dataset_dir, tmp_path):
-    # Fill the cache with one small real dataset under every demo configuration's key, so
-    # the test exercises the harness without simulating eight datasets.
-    cache = tmp_path / "cache"
-    for name, cfg in profile_configs(PROFILES["demo"]):
-        shutil.copytree(dataset_dir, cache / f"{name}-{dataset_key(cfg)}")
+def _fill(cache, named_configs, dataset_dir):
+    """The cache filled with one small real dataset under each named config's key (the
+    harness is tested, not the simulator)."""
+    for name, cfg in named_configs:
+        path = cache / f"{name}-{dataset_key(cfg)}"
+        if not path.exists():
+            shutil.copytree(dataset_dir, path)
+
+
+@pytest.fixture(scope="module")
+def demo_bench(short_dataset_dir, tmp_path_factory):
+    """The demo profile benchmarked once through the CLI with chi2 and CUSUM and its stress
+    sets, on a cache holding the short dataset under every configuration's and stress set's
+    key, so the test exercises the harness without simulating: a stress run is the benchmark
+    run with the stress sets scored as well, so its outputs are read by the tests of both.
+    Also the modification times of the cache's datasets before the run. A test that runs
+    more on the cache copies it first."""
+    from quadformer.experiments.stress import stress_configs
+
+    root = tmp_path_factory.mktemp("demo-bench")
+    cache, out = root / "cache", root / "bench"
+    configs = profile_configs(PROFILES["demo"])
+    _fill(cache, configs, short_dataset_dir)
+    for name, cfg in configs:
+        _fill(cache, [(n, c) for n, _, c in stress_configs(name, cfg, PROFILES["demo"].stress_flights)],
+              short_dataset_dir)
     before = {p: p.stat().st_mtime for p in cache.rglob("flights.parquet")}
-    out = tmp_path / "bench"
-    res = runner.invoke(app, ["benchmark", "--profile", "demo", "--methods", "chi2,cusum", "--cache",
+    res = runner.invoke(app, ["benchmark", "--profile", "demo", "--methods", "chi2,cusum", "--stress", "--cache",
                               str(cache), "--out", str(out), "--quiet", "--workers", "1"])
+    return SimpleNamespace(res=res, cache=cache, out=out, before=before)
+
+
+def test_benchmark_writes_schema_tables_report_and_reuses_cache(demo_bench):
+    res, cache, out = demo_bench.res, demo_bench.cache, demo_bench.out
     assert res.exit_code == 0, res.output
     assert "Model I" in res.output and "Model II" in res.output and "report.html" in res.output
-    assert before == {p: p.stat().st_mtime for p in cache.rglob("flights.parquet")}   # reused, not simulated
+    assert demo_bench.before == {p: p.stat().st_mtime for p in cache.rglob("flights.parquet")}   # reused
 
     r = json.loads((out / "results.json").read_text())
     assert r["profile"] == "demo" and len(r["configs"]) == 8
@@ -77,14 +96,12 @@ def test_benchmark_writes_schema_tables_report_and_reuses_cache(dataset_dir, tmp
     assert len(list((cache / "models").rglob("cusum-*.tuned.json"))) == 8      # tuned detectors cached
 
 
-def test_resilience_cli_flies_four_policies_and_reuses_tuned_detectors(short_dataset_dir, tmp_path):
+def test_resilience_cli_flies_four_policies_and_reuses_tuned_detectors(demo_bench, tmp_path):
+    assert demo_bench.res.exit_code == 0, demo_bench.res.output
     cache = tmp_path / "cache"
-    for name, cfg in profile_configs(PROFILES["demo"]):
-        shutil.copytree(short_dataset_dir, cache / f"{name}-{dataset_key(cfg)}")
+    shutil.copytree(demo_bench.cache, cache)                 # the datasets and the CUSUMs the benchmark tuned
     out = tmp_path / "res"
     args = ["--profile", "demo", "--cache", str(cache), "--quiet", "--workers", "1"]     # no worker to spawn
-    res = runner.invoke(app, ["benchmark", "--methods", "cusum", "--out", str(tmp_path / "bench"), *args])
-    assert res.exit_code == 0, res.output
     res = runner.invoke(app, ["resilience", "--detector", "cusum", "--out", str(out), *args])
     assert res.exit_code == 0, res.output
     assert "naive" in res.output and "oracle" in res.output and "alerts.csv" in res.output
@@ -209,15 +226,6 @@ from quadformer.experiments.grid import config_seed  # noqa: E402
 from quadformer.experiments.stress import STRESS_SETS, stress_configs  # noqa: E402
 
 
-def _fill(cache, named_configs, dataset_dir):
-    """The cache filled with one small real dataset under each named config's key (the
-    harness is tested, not the simulator)."""
-    for name, cfg in named_configs:
-        path = cache / f"{name}-{dataset_key(cfg)}"
-        if not path.exists():
-            shutil.copytree(dataset_dir, path)
-
-
 def test_paper_grid_keys_and_seeds_are_unchanged_and_the_mixed_profile_has_its_own():
     """The seeds of the paper's configurations are those recorded before mixed attacks and the
     mixed profile existed; their dataset keys are those of dataset format version 3 (the
@@ -268,19 +276,12 @@ def test_stress_sets_pair_with_the_tuning_attack_and_leave_its_ranges():
     assert {c.model for _, _, c in bias} == {"I"}
 
 
-def test_benchmark_stress_scores_the_tuned_detectors_on_stress_sets(dataset_dir, tmp_path):
+def test_benchmark_stress_scores_the_tuned_detectors_on_stress_sets(demo_bench):
     from quadformer.dataset import load_dataset
     from quadformer.evaluation.metrics import evaluate
     from quadformer.experiments.cache import model_dir_for
 
-    cache = tmp_path / "cache"
-    configs = profile_configs(PROFILES["demo"])
-    _fill(cache, configs, dataset_dir)
-    for name, cfg in configs:
-        _fill(cache, [(n, c) for n, _, c in stress_configs(name, cfg, PROFILES["demo"].stress_flights)], dataset_dir)
-    out = tmp_path / "bench"
-    res = runner.invoke(app, ["benchmark", "--profile", "demo", "--methods", "chi2,cusum", "--stress", "--cache",
-                              str(cache), "--out", str(out), "--quiet", "--workers", "1"])
+    res, cache, out = demo_bench.res, demo_bench.cache, demo_bench.out
     assert res.exit_code == 0, res.output
     assert "Stress sets" in res.output and "slow-drifts" in res.output and "Model I" in res.output
     r = json.loads((out / "results.json").read_text())
@@ -385,12 +386,18 @@ def test_benchmark_mixed_profile_reports_types(mixed_dir, tmp_path):
 
 
 def test_benchmark_over_seeds_keeps_each_run_and_the_spread(short_dataset_dir, tmp_path):
+    # two of the profile's configurations (the spread is per configuration; each one more would
+    # add two entries tuned and scored, nothing else), on the short flights: 4 entries
+    from quadformer.experiments.grid import select_configs
+
+    picked = "modelI-exponential-bias,modelII-laplace-ramp"
     cache = tmp_path / "cache"
-    for s in (0, 1):      # the short flights: 16 entries tuned and scored
-        _fill(cache, profile_configs(dataclasses.replace(PROFILES["demo"], seed=s)), short_dataset_dir)
+    for s in (0, 1):
+        _fill(cache, profile_configs(dataclasses.replace(select_configs(PROFILES["demo"], picked), seed=s)),
+              short_dataset_dir)
     out = tmp_path / "seeds"
-    res = runner.invoke(app, ["benchmark", "--profile", "demo", "--methods", "chi2,cusum", "--seeds", "2",
-                              "--cache", str(cache), "--out", str(out), "--quiet", "--workers", "1"])
+    res = runner.invoke(app, ["benchmark", "--profile", "demo", "--configs", picked, "--methods", "chi2,cusum",
+                              "--seeds", "2", "--cache", str(cache), "--out", str(out), "--quiet", "--workers", "1"])
     assert res.exit_code == 0, res.output
     assert "over seeds 0, 1" in res.output and "±" in res.output
     r = json.loads((out / "results.json").read_text())
@@ -407,5 +414,6 @@ def test_benchmark_over_seeds_keeps_each_run_and_the_spread(short_dataset_dir, t
     assert summ["std"] == pytest.approx(np.std(f1, ddof=1)) and (summ["min"], summ["max"]) == (min(f1), max(f1))
     assert r["per_seed"]["1"][name]["cusum"]["f1"] == f1[1]
     df = pd.read_csv(out / "seeds_f1.csv", index_col=0)
-    assert list(df.index) == ["chi2", "cusum"] and len(df.columns) == 8
+    assert list(df.index) == ["chi2", "cusum"] and list(df.columns) == [c["name"] for c in runs[0]["configs"]]
+    assert sorted(df.columns) == sorted(picked.split(","))
     assert (out / "report.html").exists() and (out / "seed-1" / "report.html").exists()

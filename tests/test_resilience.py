@@ -13,10 +13,10 @@ from quadformer.cli import app
 from quadformer.config import AttackConfig, SimConfig
 from quadformer.detectors import make
 from quadformer.evaluation.protocol import best_f1_threshold
-from quadformer.detectors import alerts_from_scores
+from quadformer.detectors import StreamGroup, alerts_from_scores
 from quadformer.evaluation.resilience import flight_metrics
 from quadformer.resilience import POLICIES, Admission, AdmissionConfig, AdmissionGroup
-from quadformer.simulation.closed_loop import simulate_batch, simulate_groups
+from quadformer.simulation.closed_loop import simulate_groups
 
 
 def _drive(policy, alarm, nis=None, w=None, attacked=None, cfg=None, corrections=None):
@@ -249,21 +249,52 @@ def test_alerts_from_hand_made_scores():
         alerts_from_scores(X, s[:-1], threshold=1.0)
 
 
+# The closed-loop runs of this file, flown together in one batch of 24 s flights (the simulator's
+# time goes with the flights' length, hardly with their number; each configuration's flights
+# are those it flies alone, bit for bit):
+# - "loop": the 6 flights of the bias dataset flown again under every policy (CUSUM drives the
+#   resilient one);
+# - "main", "no_rollback", "no_blend": one flight with a 15 m bias on x from 6 s to 16 s, flown
+#   by the resilient policy (BHT driving it) and by the PX4-like gate, and again with the
+#   rollback or the blend switched off;
+# - "stale": two flights flown by the resilient policy with the CUSUM, whose statistic keeps the
+#   attack's memory for minutes after a spoof: flight 172 draws a 3.7 m bias, mostly on x, from
+#   2.5 s to 7.9 s, flight 7 a 0.27 m/s drift on x from 2.5 s to the end (in 15 s flights flight
+#   25 drew a bias like 172's: a flight's draws depend on the flights' length).
+_JUMP = SimConfig(model="I", noise="gaussian", flights=1, duration=24.0, seed=2,
+                  attack=AttackConfig(kind="bias", fraction=1.0, onset=(6.0, 6.0), duration=(10.0, 10.0),
+                                      magnitude=(15.0, 15.0), axes="x"))
+_STALE = SimConfig(model="I", noise="gaussian", flights=1, duration=24.0, seed=2,
+                   attack=AttackConfig(kind="mix", mix=("bias", "ramp"), fraction=1.0, onset=(2.5, 2.5),
+                                       duration=(3.0, 30.0), magnitude=(3.0, 5.0), rate=(0.2, 0.4)))
+
+
 @pytest.fixture(scope="module")
-def loop(bias_dataset):
-    """The 6 flights of the bias dataset flown again under every policy (CUSUM drives the
-    resilient one)."""
+def flown(bias_dataset):
     cfg = bias_dataset.config
     f = bias_dataset.flights
-    det = make("cusum").fit(f, f.label.to_numpy())
-    s = det.decision_function(f)
-    det.calibrate(best_f1_threshold(s, f.label.to_numpy())[0])
+    cusum = make("cusum").fit(f, f.label.to_numpy())
+    s = cusum.decision_function(f)
+    cusum.calibrate(best_f1_threshold(s, f.label.to_numpy())[0])
+    bht = make("bht", inflation=3.0).fit(f, f.label.to_numpy()).calibrate(0.0)   # posterior above 1/2
     att = bias_dataset.scenarios.attacked.to_numpy(bool)
-    ids = np.arange(6)
     P = len(POLICIES)
-    r = simulate_batch(cfg, np.tile(ids, P), np.tile(att, P), admission=Admission(np.repeat(POLICIES, 6), 10.0),
-                       stream=det.stream(6 * P))
-    return {"r": r, "offline": s.reshape(6, -1), "att": att}
+    loop = (cfg, np.tile(np.arange(6), P), np.tile(att, P), Admission(np.repeat(POLICIES, 6), 10.0))
+    # the three jump runs, each under its own admission configuration
+    jump = [Admission(["resilient", "px4"], 10.0), Admission(["resilient"], 10.0, AdmissionConfig(rollback_s=0.0)),
+            Admission(["resilient"], 10.0, AdmissionConfig(blend_s=0.0))]
+    jump = [(_JUMP, np.zeros(len(a.policies), int), np.ones(len(a.policies), bool), a) for a in jump]
+    stale = (_STALE, np.array([172, 7]), np.ones(2, bool), Admission(["resilient"] * 2, 10.0))
+    runs = [loop, *jump, stale]
+    stream = StreamGroup([cusum.stream(6 * P), bht.stream(4), cusum.stream(2)])
+    r = simulate_groups([g[:3] for g in runs], admission=AdmissionGroup([g[3] for g in runs]), stream=stream)
+    return {**dict(zip(("loop", "main", "no_rollback", "no_blend", "stale"), r)), "offline": s.reshape(6, -1),
+            "att": att}
+
+
+@pytest.fixture(scope="module")
+def loop(flown):
+    return {"r": flown["loop"], "offline": flown["offline"], "att": flown["att"]}
 
 
 def _rows(loop, policy):
@@ -340,23 +371,9 @@ def test_readmission_blend_spreads_a_large_correction():
     assert left_b < 0.1 and left_a < 0.1       # both end on GPS
 
 
-# One flight with a 15 m bias on x from 6 s to 16 s, flown by the resilient policy (BHT
-# driving it) and by the PX4-like gate, and again with the rollback or the blend switched off.
-_JUMP = SimConfig(model="I", noise="gaussian", flights=1, duration=26.0, seed=2,
-                  attack=AttackConfig(kind="bias", fraction=1.0, onset=(6.0, 6.0), duration=(10.0, 10.0),
-                                      magnitude=(15.0, 15.0), axes="x"))
-
-
 @pytest.fixture(scope="module")
-def jump(bias_dataset):
-    f = bias_dataset.flights
-    det = make("bht", inflation=3.0).fit(f, f.label.to_numpy()).calibrate(0.0)   # posterior above 1/2
-    # the three runs in one batch, each under its own admission configuration
-    parts = [Admission(["resilient", "px4"], 10.0), Admission(["resilient"], 10.0, AdmissionConfig(rollback_s=0.0)),
-             Admission(["resilient"], 10.0, AdmissionConfig(blend_s=0.0))]
-    groups = [(_JUMP, np.zeros(len(p.policies), int), np.ones(len(p.policies), bool)) for p in parts]
-    flown = simulate_groups(groups, admission=AdmissionGroup(parts), stream=det.stream(4))
-    return dict(zip(("main", "no_rollback", "no_blend"), flown))
+def jump(flown):
+    return {k: flown[k] for k in ("main", "no_rollback", "no_blend")}
 
 
 def test_px4_gate_resets_onto_the_spoofed_fix_after_seven_seconds_in_the_loop(jump):
@@ -411,24 +428,13 @@ def test_readmission_blends_the_gps_correction_in_the_loop(jump):
     assert total_b == pytest.approx(total_n, rel=0.5, abs=0.1)
 
 
-# Two flights of 15 s flown by the resilient policy with a CUSUM detector, whose statistic
-# keeps the attack's memory for minutes after a spoof: flight 25 draws a 4.3 m bias on x from
-# 2.5 s to 8 s, flight 7 a 0.27 m/s drift on x from 2.5 s to the end.
-_STALE = SimConfig(model="I", noise="gaussian", flights=1, duration=15.0, seed=2,
-                   attack=AttackConfig(kind="mix", mix=("bias", "ramp"), fraction=1.0, onset=(2.5, 2.5),
-                                       duration=(3.0, 30.0), magnitude=(3.0, 5.0), rate=(0.2, 0.4)))
-
-
-def test_stale_cusum_alarm_readmits_after_a_bias_but_never_during_a_drift(bias_dataset):
+def test_stale_cusum_alarm_readmits_after_a_bias_but_never_during_a_drift(flown):
     from quadformer.resilience.admission import EXCLUDE_ALARM, READMIT_STALE
 
-    f = bias_dataset.flights
-    det = make("cusum").fit(f, f.label.to_numpy())
-    det.calibrate(best_f1_threshold(det.decision_function(f), f.label.to_numpy())[0])
-    r = simulate_batch(_STALE, np.array([25, 7]), np.ones(2, bool), admission=Admission(["resilient"] * 2, 10.0),
-                       stream=det.stream(2))
+    r = flown["stale"]
     a, t, att = r["admission"], r["t"], r["attacks"]
-    assert list(att.kind) == ["bias", "ramp"] and att.end[0] < 8.5 and att.end[1] > 15.0, (att.kind, att.end)
+    assert list(att.kind) == ["bias", "ramp"], att.kind
+    assert att.end[0] < 8.5 and att.end[1] >= _STALE.duration, att.end       # the drift lasts to the end
     stale = AdmissionConfig().stale_hold_s
     for b in (0, 1):
         first = np.nonzero(r["label"][b])[0][0]
