@@ -1,21 +1,27 @@
 """The EKF on its own over recorded sensor streams reproduces the closed loop's residues,
 for every sensor configuration."""
 
+import functools
+
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
+import quadformer.estimator.reference as reference
 from quadformer.config import SENSOR_CONFIGS, AttackConfig, SimConfig
+from quadformer.detectors import ShapeTyper
+from quadformer.estimator.reference_config import ReferenceConfig
 from quadformer.estimator.replay import StreamError, run_ekf
-from quadformer.estimator.schema import RESIDUES
+from quadformer.estimator.schema import RESIDUES, columns
 from quadformer.simulation.closed_loop import simulate_batch
 
 CFG = SimConfig(model="II", noise="exponential", flights=2, duration=8.0, seed=9,
                 attack=AttackConfig(kind="ramp", onset=(3.0, 4.0), fraction=1.0))
 # the other configurations, shorter
 CONFIGS = {s: CFG if s == CFG.sensors else CFG.replace(sensors=s, duration=5.0) for s in SENSOR_CONFIGS}
-PERSISTENT = ["res_gps_corr5", "res_gps_corr120", "res_ref_d", "res_ref_w", "res_ref_h5", "res_ref_h30", "res_ref_vmean",
-              "res_ref_age", "res_gps_pv"]
+PERSISTENT = ["res_gps_corr5", "res_gps_corr120", "res_ref_d", "res_ref_w", "res_ref_h5", "res_ref_h30",
+              "res_ref_vmean", "res_ref_age", "res_gps_pv", "res_ref_reset"]
 GROUPS = {
     "gps+imu+vio": ["res_gps_r", "res_gps_w", "res_gps_s", "res_gps_nis", "res_gps_corr", "res_vio_r",
                     "res_vio_nis", "res_vio_nis_mean", *PERSISTENT],
@@ -80,6 +86,31 @@ def test_a_flight_alone_equals_the_same_flight_in_a_batch(run):
     alone = simulate_batch(cfg, np.array([1]), np.array([False]))
     for name in GROUPS[cfg.sensors] + ["est_pos", "true_pos"]:
         assert np.array_equal(alone[name][0], r[name][1]), name
+
+
+@pytest.mark.parametrize("run", ["gps+imu+mag+baro"], indirect=True)
+def test_the_typer_reads_the_reference_as_it_would_have_run_without_its_resets(run, monkeypatch):
+    """Without a camera the reference is reset to the main filter every few seconds; with
+    ``res_ref_reset`` the typer's GPS minus the reference is, horizontally, that of a reference
+    never reset (replayed here with the reset threshold out of reach), to rounding."""
+    _, r = run
+
+    def rows(res, i):
+        X = pd.DataFrame({"t": np.asarray(r["t"], dtype=float)})
+        for g in ("res_ref_d", "res_ref_w", "res_ref_age", "res_ref_reset", "gps_vel"):
+            for j, c in enumerate(columns(g)):
+                X[c] = res[g][i, :, j]
+        return ShapeTyper().prepare(X)
+
+    monkeypatch.setattr(reference, "ReferenceConfig", functools.partial(ReferenceConfig, reset_std=1e9))
+    never = _replay(r["sensors"])
+    assert not never["res_ref_reset"].any()
+    for i in range(2):
+        assert np.abs(r["res_ref_reset"][i, :, :2]).max() > 0.1          # the resets moved it
+        a, b = rows(r, i), rows({**never, "gps_vel": r["gps_vel"]}, i)
+        for x, y in ((a.dp, b.dp), (a.dv, b.dv)):
+            d = (x - y)[:, :2]
+            np.testing.assert_allclose(d - d[0], 0.0, atol=1e-9)
 
 
 def _first(s, seconds):

@@ -34,7 +34,7 @@ def test_default_configuration_reproduces_the_recorded_dataset():
     tests/fixtures/pins/make_default_sensors.py says how it was made."""
     pin = np.load(PIN)
     f = simulate(PIN_CFG).flights
-    new = columns(*PERSISTENT)              # added later, after every pinned column
+    new = columns(*PERSISTENT, "res_ref_reset")     # added later, after every pinned column
     assert list(f.columns) == [*pin["columns"][:3], "attack_type", *pin["columns"][3:], *new]
     f = f.drop(columns=new)
     got = f.drop(columns=["attack_type"]).to_numpy(dtype=np.float64)

@@ -6,9 +6,17 @@ compares GPS with a reference that never fuses it: D = GPS - reference in positi
 velocity, smoothed (``smooth_tau``) into a, and ``res_ref_d`` = a - A, A the anchor: the value
 of a ``res_ref_age`` seconds earlier. The typer takes the anchor off again (``Unanchored``: a_k =
 res_ref_d_k + a_j, j the row the anchor was taken at, from the flight's first row) and undoes the
-smoothing: D itself, in position and velocity, known up to a constant. With a camera the
-reference's velocity is absolute, so a drift spoofed with its matching velocity stays in it for
-the whole attack, even one too slow for the anchor to stop following (0.05-0.2 m/s).
+smoothing: D itself, in position and velocity, known up to a constant. Without a camera the
+reference is reset to the main filter every few seconds; ``res_ref_d`` keeps continuous by
+shifting out each reset's jump, a constant, while the velocity a reset gives the reference goes
+on moving its position (a reset during a drift takes in the spoofed velocity the main filter
+has followed, and the drift's growth left D's position). Where the rows carry
+``res_ref_reset`` (the reference less its continuation without resets, less those shifts),
+it is added: D is GPS minus the reference as it would have run without its resets, its
+position the sum of its velocity (exactly so horizontally; the barometer's updates of the
+height follow the reset reference's gains). With a camera the reference's velocity is
+absolute, so a drift spoofed with its matching velocity stays in it for the whole attack, even
+one too slow for the anchor to stop following (0.05-0.2 m/s).
 
 Each attack kind's shape, with an onset t0, is fitted to D over the last ``window`` seconds:
 
@@ -30,7 +38,10 @@ than many spoofs. Each axis is whitened by a model of that drift estimated from 
 more uncertainty than the GPS's white noise), so a shape is fitted to what the drift does not
 explain (``shape_fit``). A shape's free amplitudes (one per axis, fitting that axis's position
 and velocity together) are least-squares fits; its nonlinear parameters (onset, frequency,
-period, delay) are searched on grids. A kind's cost is its whitened squared error plus
+period, delay) are searched on grids: onsets every ``onset_step``, then every row near each
+kind's best one and near the ``jumps`` rows where the whitened rows jump most (a spoof switched
+on at once starts at one fix, and an onset a row or two off leaves most of its step unexplained,
+for a shape with more freedom to take). A kind's cost is its whitened squared error plus
 ``penalty`` (default ``log n``, n the rows in the window: a BIC-like rule) per parameter: three
 amplitudes or offsets, the onset, and the frequency, period or delay. The cheapest kind is the
 type, unless it explains the rows no better than nothing would: where, from its onset on (at
@@ -70,6 +81,8 @@ from quadformer.estimator.schema import ATTACK_TYPES, columns
 
 #: the columns the typer reads
 TYPING_COLUMNS = ["t", *columns("res_ref_d", "res_ref_w", "res_ref_age", "gps_vel")]
+#: the columns it reads where the rows carry them (rows recorded before they existed lack them)
+RESET_COLUMNS = columns("res_ref_reset")
 _REF_D = columns("res_ref_d")
 #: the type given where the typer cannot tell (too few samples, non-finite inputs, no columns)
 UNTYPED = "attack"
@@ -142,7 +155,8 @@ class ShapeTyper:
     """Attack typing by shape fitting (see the module text). Times in s, frequencies in Hz."""
     smooth_tau: float = ReferenceConfig.smooth_tau     # the smoothing of res_ref_d
     window: float = 30.0                               # s of flight up to the step typed
-    onset_step: float = 0.5                            # grid of onsets
+    onset_step: float = 0.5                            # grid of onsets (then refined to the row)
+    jumps: int = 3                                     # rows of the largest jumps also tried as onsets
     frequencies: tuple[float, ...] = field(default=tuple(float(f) for f in np.geomspace(0.04, 0.6, 14)))
     periods: tuple[float, ...] = field(default=tuple(float(p) for p in np.arange(1.5, 7.01, 0.5)))
     delays: tuple[float, ...] = field(default=tuple(float(d) for d in np.arange(2.0, 12.01, 0.5)))
@@ -166,6 +180,8 @@ class ShapeTyper:
         unknown = [k for k in self.kinds if k not in ATTACK_TYPES]
         if unknown or not self.kinds:
             raise ValueError(f"ShapeTyper.kinds: unknown {unknown or 'empty'}; choose from {', '.join(ATTACK_TYPES)}")
+        if not (isinstance(self.jumps, (int, np.integer)) and self.jumps >= 0):
+            raise ValueError(f"ShapeTyper.jumps must be an integer >= 0, got {self.jumps!r}")
         if self.penalty is not None and not self.penalty >= 0:
             raise ValueError(f"ShapeTyper.penalty must be >= 0, got {self.penalty!r}")
 
@@ -189,6 +205,8 @@ class ShapeTyper:
             u = Unanchored(step)
             unanchored = np.array([u.push(r[i], age[i])[0] for i in range(len(r))]).reshape(-1, 6)
         raw = _unsmooth(np.asarray(unanchored, dtype=float), step, self.smooth_tau)
+        if all(c in g.columns for c in RESET_COLUMNS):      # the reference without its resets
+            raw = raw + np.nan_to_num(g[RESET_COLUMNS].to_numpy(dtype=float))
         vel = g[columns("gps_vel")].to_numpy(dtype=float) - raw[:, 3:]
         steps = np.diff(t, prepend=t[:1])[:, None]
         # the std the reference states for its velocity difference (res_ref_d / res_ref_w)
@@ -251,11 +269,48 @@ class ShapeTyper:
         noise = whiteners(f.dp[h0:k + 1], f.dv[h0:k + 1], f.stated[h0:k + 1], n, dt)
         if noise is None:
             return Typing(UNTYPED, {})
-        onsets = np.arange(0, n - 1, max(1, int(round(self.onset_step / dt))))
-        fit = WindowFit(xp, xv, *noise, onsets)
+        # onsets on a grid of onset_step, then at every row near each kind's best one and near the
+        # rows whose whitened differences jump most: a spoof switched on at once starts at one fix,
+        # and an onset a row or two off it explains next to nothing of its step
+        grid = max(1, int(round(self.onset_step / dt)))
+        found = self._search(f, k0, rows, dt, np.arange(0, n - 1, grid), noise)
+        search = {kind: found for kind in found[2]}
+        if grid > 1:
+            near = [found[0].onsets[g] + np.arange(1 - grid, grid) for _, g in found[3].values()]
+            near += [j + np.arange(-1, 2) for j in found[0].jumps(self.jumps)]
+            near = np.unique(np.concatenate(near))
+            near = near[(near >= 0) & (near < n - 1) & (near % grid != 0)]
+            if len(near):
+                fine = self._search(f, k0, rows, dt, near, noise)
+                search.update({kind: fine for kind, c in fine[2].items() if c < found[2][kind]})
+        costs = {kind: got[2][kind] for kind, got in search.items()}
+        kind = min(costs, key=costs.get)
+        fit, shapes, _, best = search[kind]
+        onsets, on = fit.onsets, fit.gate.astype(float)
+        bp, bv, op, ov, cv, _ = shapes[kind]
+        p, g = best[kind]
+
+        def at(off, const=None):        # the offsets of the cheapest parameter and onset: (n,)
+            if off is None:
+                return None
+            return lambda a: ((x := off(a))[min(p, len(x) - 1)] + (0.0 if const is None else const(a)[g])) * on[g]
+
+        misfit, data, _ = fit.misfit(bp[min(p, len(bp) - 1)], None if bv is None else bv[min(p, len(bv) - 1)], g,
+                            at(op), at(ov, cv))
+        onset = float(f.t[k0 + onsets[g]])
+        left = (misfit - 1.0) / (data - 1.0) if data > 1.0 else 0.0
+        unexplained = (left > self.unexplained_share and misfit > self.unexplained_misfit
+                       and f.t[k] - onset >= self.unexplained_after_s - 1e-9)
+        return Typing(UNEXPLAINED if unexplained else kind, costs, onset, misfit, left)
+
+    def _search(self, f: FlightShapes, k0: int, rows: np.ndarray, dt: float, onsets: np.ndarray,
+                noise) -> tuple[WindowFit, dict[str, tuple], dict[str, float], dict[str, tuple[int, int]]]:
+        """Every kind fitted at the onsets (rows of the window): (the fit, each kind's shape, its
+        cost, its cheapest (parameter, onset) indices)."""
+        n = len(rows)
+        fit = WindowFit(f.dp[rows], f.dv[rows], *noise, onsets)
         tau = np.arange(n) * dt
         one = np.ones((1, n))
-        on = fit.gate.astype(float)                                      # (G, n)
         # each kind: its templates (P, n) in position and velocity, known offsets (callables of
         # an axis giving (P, n), taken from the onset on), a known velocity step at each onset
         # (a callable of an axis giving (G,)) and its parameters
@@ -288,23 +343,8 @@ class ShapeTyper:
             c = fit.shapes(bp, bv, op, ov, cv)
             p, g = np.unravel_index(int(np.argmin(c)), c.shape)
             costs[kind] = float(fit.base + c[p, g] + npar * pen)
-            best[kind] = (p, g)
-        kind = min(costs, key=costs.get)
-        bp, bv, op, ov, cv, _ = shapes[kind]
-        p, g = best[kind]
-
-        def at(off, const=None):        # the offsets of the cheapest parameter and onset: (n,)
-            if off is None:
-                return None
-            return lambda a: ((x := off(a))[min(p, len(x) - 1)] + (0.0 if const is None else const(a)[g])) * on[g]
-
-        misfit, data, _ = fit.misfit(bp[min(p, len(bp) - 1)], None if bv is None else bv[min(p, len(bv) - 1)], g,
-                            at(op), at(ov, cv))
-        onset = float(f.t[k0 + onsets[g]])
-        left = (misfit - 1.0) / (data - 1.0) if data > 1.0 else 0.0
-        unexplained = (left > self.unexplained_share and misfit > self.unexplained_misfit
-                       and f.t[k] - onset >= self.unexplained_after_s - 1e-9)
-        return Typing(UNEXPLAINED if unexplained else kind, costs, onset, misfit, left)
+            best[kind] = (int(p), int(g))
+        return fit, shapes, costs, best
 
 
 class OnlineTyper:
@@ -324,7 +364,8 @@ class OnlineTyper:
         """Remember a row (its ``TYPING_COLUMNS``); False when the row does not carry them."""
         if not all(c in cols for c in TYPING_COLUMNS[1:]):
             return False
-        self.history.append({"t": float(t), **{c: float(cols[c]) for c in TYPING_COLUMNS[1:]}})
+        self.history.append({"t": float(t), **{c: float(cols[c]) for c in TYPING_COLUMNS[1:]},
+                             **{c: float(cols[c]) for c in RESET_COLUMNS if c in cols}})
         self.anchored.append(self.unanchored.push(np.array([cols[c] for c in _REF_D]), cols["res_ref_age"])[0])
         return True
 

@@ -113,6 +113,12 @@ class WindowFit:
         self.gate = np.arange(self.n)[None, :] >= onsets[:, None]
         self._const = {}
 
+    def jumps(self, count: int) -> np.ndarray:
+        """The ``count`` rows whose whitened values, summed in square over the channels and axes,
+        are largest (where a step in the rows shows)."""
+        energy = sum(c.y * c.y for c in self.cp + self.cv)
+        return np.argsort(energy)[::-1][:count]
+
     def _step(self, c: _Channel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The constant template from each onset on: products with y and U (G, 1 + m), energy
         (G,), and L' L of it kept from the onset on (G, n)."""

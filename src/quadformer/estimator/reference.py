@@ -43,7 +43,16 @@ velocity (or the reverse) shows there for as long as he does.
 
 When the reference's horizontal position std exceeds ``reset_std`` (without VIO, every few
 seconds) and GPS agrees, its position and velocity are reset to the main filter's; a and the
-anchor are shifted by the same amount, so the comparisons stay continuous.
+anchor are shifted by the same amount, so the comparisons stay continuous. The shift is a
+constant, while the velocity a reset gives the reference goes on moving its position (and its
+acceleration error, set to zero, its velocity): a reset while a drift GPS agrees with is on
+takes in the spoofed velocity the main filter has followed, and from then on the reference runs
+with the drift. For the shape typer, ``res_ref_reset`` is the reference less its continuation
+without resets (the same propagation and the same updates, at the reset reference's gains,
+from its state before them), less the shifts taken out of a: added to a's raw rows it gives
+GPS minus that continuation, whose position is the sum of its velocity (exactly so on an axis
+without updates: the horizontal without VIO). It is no detector input; the other residues do
+not depend on it.
 """
 
 from __future__ import annotations
@@ -81,9 +90,10 @@ def _axes_state(ekf: EKFState) -> tuple[torch.Tensor, torch.Tensor]:
     return x, C
 
 
-def _scalar_update(x, C, axes, j, r, var):
+def _scalar_update(x, C, axes, j, r, var, e=None):
     """Kalman update of the state component j on the axes ``axes`` with innovation r (B,k) and
-    noise variance var (k,)."""
+    noise variance var (k,); ``e`` (B,3,3): offsets of the state the same update moves by its
+    gain (returned third where given)."""
     xs, Cs = x[:, axes], C[:, axes]                  # (B,k,3), (B,k,3,3)
     col = Cs[..., :, j]                              # (B,k,3)
     s = Cs[..., j, j] + var                          # (B,k)
@@ -93,7 +103,18 @@ def _scalar_update(x, C, axes, j, r, var):
     Cs = 0.5 * (Cs + Cs.transpose(-1, -2))
     x, C = x.clone(), C.clone()
     x[:, axes], C[:, axes] = xs, Cs
-    return x, C
+    if e is None:
+        return x, C
+    e = e.clone()
+    e[:, axes] = e[:, axes] - K * e[:, axes, j:j + 1]
+    return x, C, e
+
+
+def carry(e: torch.Tensor, T: float) -> torch.Tensor:
+    """Offsets e (B,3,3) of the reference's state per axis (position, velocity, acceleration
+    error) carried over T seconds of propagation without updates."""
+    p = e[..., 0] + e[..., 1] * T - 0.5 * e[..., 2] * T * T
+    return torch.stack([p, e[..., 1] - e[..., 2] * T, e[..., 2]], -1)
 
 
 class GpsFreeReference:
@@ -129,6 +150,10 @@ class GpsFreeReference:
         q_b = nm.accel_walk ** 2
         self.q_b = torch.tensor([q_b + (G * nm.gyro_walk) ** 2] * 2 + [q_b], dtype=torch.float64)
         self._F: dict[float, torch.Tensor] = {}
+        # the reference less its continuation without resets (the same propagation and updates
+        # from its state before them), per axis; the offsets the resets shifted out of a; the
+        # seconds propagated since e was last carried
+        self.e, self.shifted, self.since = z(n, 3, 3), z(n, 6), 0.0
 
     # -- the filter --------------------------------------------------------------------
     def predict(self, ekf: EKFState, accel: torch.Tensor, dt: float) -> None:
@@ -147,16 +172,24 @@ class GpsFreeReference:
         C[..., 1, 1] += (self.nm.accel_std * dt) ** 2
         C[..., 2, 2] += self.q_b
         self.C = C
+        self.since += dt
+
+    def _carry(self) -> None:
+        if self.since:
+            self.e = carry(self.e, self.since)
+            self.since = 0.0
 
     def vio(self, vel: torch.Tensor) -> None:
         """VIO velocity (B,3), world frame."""
         var = self.nm.vio_std[0:3].to(torch.float64) ** 2
-        self.x, self.C = _scalar_update(self.x, self.C, [0, 1, 2], 1, vel - self.x[..., 1], var)
+        self._carry()
+        self.x, self.C, self.e = _scalar_update(self.x, self.C, [0, 1, 2], 1, vel - self.x[..., 1], var, self.e)
 
     def baro(self, height: torch.Tensor) -> None:
         """Barometric height (B,1), world frame."""
         var = self.nm.baro_std.to(torch.float64) ** 2
-        self.x, self.C = _scalar_update(self.x, self.C, [2], 0, height - self.x[:, 2:3, 0], var)
+        self._carry()
+        self.x, self.C, self.e = _scalar_update(self.x, self.C, [2], 0, height - self.x[:, 2:3, 0], var, self.e)
 
     # -- the residues ------------------------------------------------------------------
     def _growth(self) -> torch.Tensor:
@@ -213,6 +246,8 @@ class GpsFreeReference:
         var_m = std[:, 3:] ** 2 * (self.alpha_v / (2.0 - self.alpha_v)) + Pvv + e * (2.0 * torch.sqrt(Pvv) + e)
         out["res_ref_vmean"] = self.vmean / torch.sqrt(var_m)
         out["res_ref_age"] = self.age.unsqueeze(-1)
+        self._carry()
+        out["res_ref_reset"] = torch.cat([self.e[..., 0], self.e[..., 1]], -1) - self.shifted
         k = min(self.pv_steps, self.steps - 1)
         if k == 0:
             out["res_gps_pv"] = torch.zeros(self.n, 3, dtype=torch.float64)
@@ -259,6 +294,8 @@ class GpsFreeReference:
         m = mask.view(-1, 1)
         jump = torch.cat([x[..., 0] - self.x[..., 0], x[..., 1] - self.x[..., 1]], -1)
         jump = torch.where(m, jump, torch.zeros_like(jump))
+        self.e = self.e + torch.where(mask.view(-1, 1, 1), x - self.x, torch.zeros_like(x))
+        self.shifted = self.shifted + jump
         before = self._growth()
         self.vm_extra = torch.where(m, self.vm_extra + torch.sqrt(self.C[..., 1, 1]), self.vm_extra)
         self.x = torch.where(mask.view(-1, 1, 1), x, self.x)

@@ -104,9 +104,13 @@ RESIDUES = (
     Group("res_gps_pv", XYZ, "1",
           "GPS velocity averaged over 5 s minus the change of GPS position over those 5 s per second, "
           "whitened by the GPS noise; a spoofed position without the matching velocity stays in it"),
+    Group("res_ref_reset", GPS_AXES, "m, m/s",
+          "the GPS-free reference's offset from its continuation without its resets to the main filter, "
+          "less the offsets res_ref_d takes out at those resets (for the shape typer, not a detector input)"),
 )
 
-#: the persistent residues, in table order (after every other residue)
+#: the persistent residues, in table order (after every other residue but ``res_ref_reset``, which
+#: the shape typer reads and no detector)
 PERSISTENT = ("res_gps_corr5", "res_gps_corr120", "res_ref_d", "res_ref_w", "res_ref_h5", "res_ref_h30",
               "res_ref_vmean", "res_ref_age", "res_gps_pv")
 

@@ -69,9 +69,10 @@ def dataset_key(cfg: SimConfig) -> str:
     d["format_version"] = FORMAT_VERSION   # what the simulator writes
     if not cfg.has("vio"):
         # without a camera the GPS-free reference is reset every few seconds, and how a reset
-        # enters res_ref_vmean's whitening changed (2); with a camera it is never reset, so
-        # those datasets are the same and keep their keys
-        d["reference_resets"] = 2
+        # enters res_ref_vmean's whitening changed (2), and what the resets' shifts leave out is
+        # recorded for the shape typer (3: res_ref_reset); with a camera it is never reset, so
+        # those datasets are the same (res_ref_reset is 0) and keep their keys
+        d["reference_resets"] = 3
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 

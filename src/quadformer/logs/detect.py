@@ -194,7 +194,7 @@ def step_alerts(rows: pd.DataFrame, scores: np.ndarray, detector, typing: str = 
     ``transition``, as ``flight_phase.phases`` labels those steps."""
     from quadformer.detectors import flight_slices
     from quadformer.detectors.alarms import onset_flags
-    from quadformer.detectors.attack_types import TYPING_COLUMNS, OnlineTyper, alert_typer
+    from quadformer.detectors.attack_types import RESET_COLUMNS, TYPING_COLUMNS, OnlineTyper, alert_typer
     from quadformer.detectors.flight_phase import FlightPhase, timeline
     from quadformer.detectors.receiver_health import REPORT_FIELDS, ReceiverHealth
     from quadformer.detectors.streams import ScoredStream
@@ -210,7 +210,7 @@ def step_alerts(rows: pd.DataFrame, scores: np.ndarray, detector, typing: str = 
     if shape is None and hasattr(detector, "predict_type"):
         types = np.asarray(detector.predict_type(rows), dtype=object)
     above = onset_flags(rows, detector)
-    typed = [c for c in TYPING_COLUMNS[1:] if c in rows.columns] if shape is not None else []
+    typed = [c for c in (*TYPING_COLUMNS[1:], *RESET_COLUMNS) if c in rows.columns] if shape is not None else []
     # the raw GPS innovation: whether the fix moves against the IMU (a receiver's capture)
     typed += [c for c in GROUPS["res_gps_r"].columns if c in rows.columns and c not in typed]
     t = rows["t"].to_numpy(dtype=float)

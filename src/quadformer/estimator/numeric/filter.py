@@ -135,6 +135,7 @@ class NumericFilter:
         kernels.imu_step(self.p, self.v, self.q, self.ba, self.bg, self.P, ref.x, ref.C,
                          np.ascontiguousarray(x, dtype=np.float64).reshape(self.n, 6), h, qd,
                          self.noise.accel_std, ref.q_b)
+        ref.elapse(h)
         self.t = t
         rows = []
         name, stamp = "imu", t

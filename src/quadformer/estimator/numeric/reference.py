@@ -33,6 +33,13 @@ def axes_state(p: np.ndarray, v: np.ndarray, P: np.ndarray) -> tuple[np.ndarray,
     return x, C
 
 
+def carry(e: np.ndarray, T: float) -> np.ndarray:
+    """Offsets e (n,3,3) of the reference's state per axis (position, velocity, acceleration
+    error) carried over T seconds of propagation without updates."""
+    p = e[..., 0] + e[..., 1] * T - 0.5 * e[..., 2] * T * T
+    return np.stack([p, e[..., 1] - e[..., 2] * T, e[..., 2]], -1)
+
+
 class Reference:
     """The reference of ``n`` flights, started from the main filter's p, v, P; ``noise``: the
     filter's ``numeric.filter.Noise``."""
@@ -66,12 +73,33 @@ class Reference:
         q_b = noise.accel_walk ** 2
         self.q_b = np.array([q_b + (G * noise.gyro_walk) ** 2] * 2 + [q_b])
         self._w = self._w_fresh = None
+        # the reference less its continuation without resets, the shifts taken out of a, the
+        # seconds propagated since e was carried (``reference.GpsFreeReference``)
+        self.e, self.shifted, self.since = z((n, 3, 3)), z((n, 6)), 0.0
+
+    def elapse(self, dt: float) -> None:
+        """The reference was propagated over dt (in ``kernels.imu_step``): its offset from the
+        continuation without resets follows, applied at the next update."""
+        self.since += dt
+
+    def _carry(self) -> None:
+        if self.since:
+            self.e = carry(self.e, self.since)
+            self.since = 0.0
+
+    def _aided(self, first: int, j: int, var: np.ndarray, r: np.ndarray) -> None:
+        self._carry()
+        ax = slice(first, first + r.shape[1])
+        Cs = self.C[:, ax]
+        K = Cs[..., :, j] / (Cs[..., j, j] + var)[..., None]
+        kernels.scalar_updates(self.x, self.C, first, j, r, var)
+        self.e[:, ax] = self.e[:, ax] - K * self.e[:, ax, j:j + 1]
 
     def vio(self, vel: np.ndarray) -> None:
-        kernels.scalar_updates(self.x, self.C, 0, 1, vel - self.x[..., 1], self.noise.vio_std[0:3] ** 2)
+        self._aided(0, 1, self.noise.vio_std[0:3] ** 2, vel - self.x[..., 1])
 
     def baro(self, height: np.ndarray) -> None:
-        kernels.scalar_updates(self.x, self.C, 2, 0, height - self.x[:, 2:3, 0], self.noise.baro_std ** 2)
+        self._aided(2, 0, self.noise.baro_std ** 2, height - self.x[:, 2:3, 0])
 
     def _growth(self) -> np.ndarray:
         return np.concatenate([self.C[..., 0, 0], self.C[..., 1, 1]], -1) + self.drop
@@ -129,6 +157,8 @@ class Reference:
         var_m = std[:, 3:] ** 2 * (self.alpha_v / (2.0 - self.alpha_v)) + Pvv + e * (2.0 * np.sqrt(Pvv) + e)
         out["res_ref_vmean"] = self.vmean / np.sqrt(var_m)
         out["res_ref_age"] = self.age[:, None].copy()
+        self._carry()
+        out["res_ref_reset"] = np.concatenate([self.e[..., 0], self.e[..., 1]], -1) - self.shifted
         k = min(self.pv_steps, self.steps - 1)
         if k == 0:
             out["res_gps_pv"] = np.zeros((self.n, 3))
@@ -171,6 +201,8 @@ class Reference:
         m = mask[:, None]
         jump = np.concatenate([x[..., 0] - self.x[..., 0], x[..., 1] - self.x[..., 1]], -1)
         jump = np.where(m, jump, 0.0)
+        self.e = self.e + np.where(mask[:, None, None], x - self.x, 0.0)
+        self.shifted = self.shifted + jump
         before = self._growth()
         self.vm_extra = np.where(m, self.vm_extra + np.sqrt(self.C[..., 1, 1]), self.vm_extra)
         self.x = np.where(mask[:, None, None], x, self.x)
