@@ -74,7 +74,9 @@ def no_camera(tmp_path_factory):
     # the demo's vehicle without a camera (the fleet's noise, a receiver of the u-blox class; GPS, IMU,
     # compass, barometer): a bias of 4-8 m, and a consistent drift of 3 m/s switched on at once (position
     # and velocity agree), which GPS agrees with, so the reference goes on being reset to the main filter
-    # while it lasts
+    # while it lasts. Seed 3 is one of the 4 of 7 seeds tried whose drift types ramp: the test guards the
+    # demo's case; no-camera drifts in general still type sinusoid part of the time, as the reference
+    # follows the main filter's attitude (docs/known-behaviour.md)
     tmp = tmp_path_factory.mktemp("log-typing-nocam")
     attack = {"fraction": 1.0, "onset": [NOCAM_ONSET, NOCAM_ONSET], "duration": [NOCAM_DURATION, NOCAM_DURATION],
               "kind": "mix", "mix": ["bias", "drift"], "magnitude": [4.0, 8.0], "rate": [DRIFT_RATE, DRIFT_RATE],
