@@ -240,7 +240,8 @@ def test_single_kind_data_unchanged_by_mixed_attacks():
     draw of a single-kind configuration. Labels, scenarios and attack types exactly; attack
     offsets, sensors and estimates to 1e-6 (another platform's floating point moves the closed
     loop by 1e-14 to 1e-9; a shifted draw moves it by the noise, 1e-3 and more). The persistent
-    residues, added later, are appended after the pinned columns and leave them unchanged."""
+    residues and the shape typer's ``res_ref_reset``, added later, are appended after the pinned
+    columns and leave them unchanged."""
     from types import SimpleNamespace
 
     from quadformer.estimator.schema import PERSISTENT, columns
@@ -249,8 +250,8 @@ def test_single_kind_data_unchanged_by_mixed_attacks():
     mod, pin = _pin_script()
     # every kind's flights in one batch: each dataset equals simulate() of its configuration
     for kind, ds in zip(mod.KINDS, simulate_many([mod.config(kind) for kind in mod.KINDS])):
-        # the persistent residues came later, appended after every pinned column
-        new = columns(*PERSISTENT)
+        # the persistent residues and the typer's reset column came later, appended after every pinned column
+        new = columns(*PERSISTENT, "res_ref_reset")
         assert list(ds.flights.columns[-len(new):]) == new
         ds = SimpleNamespace(flights=ds.flights.drop(columns=new), scenarios=ds.scenarios)
         assert np.array_equal(ds.flights["label"].to_numpy(np.int8), pin[f"{kind}_label"]), kind
