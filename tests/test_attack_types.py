@@ -7,8 +7,10 @@ import pandas as pd
 import pytest
 
 from quadformer.detectors import ShapeTyper, alerts_from_scores
-from quadformer.detectors.attack_types import TYPING_COLUMNS, UNTYPED, Unanchored, alert_typer
+from quadformer.detectors.attack_types import TYPING_COLUMNS, UNTYPED, alert_typer
+from quadformer.detectors.reference_rows import Unanchored
 from quadformer.estimator.schema import ATTACK_TYPES, columns
+from shapes_support import circle
 
 RATE = 10.0
 ONSET = 15.0
@@ -21,12 +23,7 @@ def flight(kind: str, seed: int = 0, duration: float = 40.0, onset: float = ONSE
     truth + a slow drift; their difference smoothed (1 s), minus an anchor 3 s behind that
     freezes at the onset (``follows``: goes on following, as it does for a drift too slow to
     disagree), and whitened by a constant stated std. ``rate``: a ramp's, m/s."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(0.0, duration, 1.0 / RATE)
-    w = 0.3
-    p = np.stack([5 * np.cos(w * t), 5 * np.sin(w * t), 10 + 0 * t], 1)
-    v = np.stack([-5 * w * np.sin(w * t), 5 * w * np.cos(w * t), 0 * t], 1)
-    fix = np.concatenate([p + rng.normal(0, 0.3, p.shape), v + rng.normal(0, 0.05, v.shape)], 1)
+    rng, t, p, v, fix = circle(seed, duration, RATE)
     honest = fix.copy()
     on = t >= onset
     tau = np.where(on, t - onset, 0.0)

@@ -12,10 +12,12 @@ import pandas as pd
 import pytest
 
 from quadformer.detectors import ShapeTyper
-from quadformer.detectors.attack_types import UNEXPLAINED, _step
+from quadformer.detectors.attack_types import UNEXPLAINED
+from quadformer.detectors.reference_rows import gps_step
 from quadformer.detectors.shape_fit import WindowFit
 from quadformer.detectors.shape_noise import whiteners
 from quadformer.estimator.schema import columns
+from shapes_support import circle
 
 RATE, ONSET = 10.0, 15.0
 
@@ -27,12 +29,7 @@ def flight(kind: str, seed: int = 0, stated_v: float = 0.02, walk: float = 0.0, 
     position); the difference smoothed (1 s) and anchored 3 s behind until the onset, its
     velocity std stated ``stated_v``. ``glitch``: from the onset the fix jumps at random every
     0.3 s (3 m, 0.9 m/s), a receiver no shape explains."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(0.0, duration, 1.0 / RATE)
-    w = 0.3
-    p = np.stack([5 * np.cos(w * t), 5 * np.sin(w * t), 10 + 0 * t], 1)
-    v = np.stack([-5 * w * np.sin(w * t), 5 * w * np.cos(w * t), 0 * t], 1)
-    fix = np.concatenate([p + rng.normal(0, 0.3, p.shape), v + rng.normal(0, 0.05, v.shape)], 1)
+    rng, t, p, v, fix = circle(seed, duration, RATE)
     on = t >= ONSET
     u = np.array([0.6, 0.8, 0.0])
     if kind == "bias":
@@ -89,7 +86,7 @@ def test_every_onset_and_parameter_at_once_equals_each_template_fitted_apart(sta
     X = flight("ramp", 1, stated_v=stated_v, walk=walk, duration=12.0)
     f = ShapeTyper().prepare(X)
     k0, k = 20, 110
-    n, dt = k - k0 + 1, _step(f.t)
+    n, dt = k - k0 + 1, gps_step(f.t)
     wp, wv = whiteners(f.dp[:k + 1], f.dv[:k + 1], f.stated[:k + 1], n, dt)
     assert all((len(w.a) > 1) == (walk > 0) for w in wp + wv)      # a drift where the reference states one
     xp, xv = f.dp[k0:k + 1], f.dv[k0:k + 1]

@@ -1,6 +1,6 @@
 """What a spoof's shape is fitted against: the noise in GPS minus the GPS-free reference.
 
-GPS minus the reference, its anchor taken off (``attack_types.Unanchored``), is the spoof plus
+GPS minus the reference, its anchor taken off (``reference_rows.Unanchored``), is the spoof plus
 the GPS's white noise plus the reference's own error. With a camera the reference's velocity is
 held by the VIO velocity and its error barely shows: the rows are white noise about a constant
 (and, in position, a slow slope). Without one (IMU, magnetometer, barometer) the reference
