@@ -41,3 +41,23 @@ def test_atomic_writes_honour_the_umask(umask, tmp_path):
     for name in ("text.txt", "doc.json", "by_name.bin"):
         assert modes[name] == file_mode, (name, oct(modes[name]))
     assert modes["dataset"] == dir_mode, oct(modes["dataset"])
+
+
+def test_write_csv_reads_back_to_the_same_values_and_leaves_no_temporary_file(tmp_path):
+    import numpy as np
+    import pandas as pd
+
+    from quadformer.io import write_csv
+
+    frame = pd.DataFrame({"t": [0.1, 0.2 + 1e-13, np.nan], "n": np.array([1, 2, 3], np.int8),
+                          "whole": [3.0, -2.0, 1e20], "alarm": [True, False, True],
+                          "reason": ["fix lost", "capture: satellites 6, noise 139", None], "tiny": [5e-324, -0.0, np.inf]})
+    path = write_csv(tmp_path / "scores.csv", frame)
+    back = pd.read_csv(path)
+    assert list(back.columns) == list(frame.columns)
+    assert path.read_text().splitlines()[0] == "t,n,whole,alarm,reason,tiny"     # the header as pandas writes it
+    for c in ("t", "n", "whole", "tiny"):              # every float to the last bit, NaN and inf included
+        np.testing.assert_array_equal(back[c].to_numpy(float), frame[c].to_numpy(float))
+    assert back.alarm.tolist() == [True, False, True]
+    assert back.reason.iloc[1] == "capture: satellites 6, noise 139" and pd.isna(back.reason.iloc[2])
+    assert [p.name for p in tmp_path.iterdir()] == ["scores.csv"]

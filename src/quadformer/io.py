@@ -121,6 +121,27 @@ def write_json(path: str | os.PathLike, obj: Any) -> Path:
     return atomic_write_text(path, to_json(obj))
 
 
+def write_csv(path: str | os.PathLike, frame) -> Path:
+    """A DataFrame as CSV without its index, written atomically by pyarrow's writer (several times
+    faster than pandas' on a flight's table of ~100 float columns). It reads back with
+    ``pandas.read_csv`` to the same values; floats are written shortest round-trip, so a whole
+    number is written "3", not "3.0" (read back as an integer column), booleans "true"/"false",
+    strings quoted, missing values empty. The header line is written plain, as pandas writes it."""
+    import csv
+    import io
+
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    head = io.StringIO()
+    csv.writer(head, lineterminator="\n").writerow([str(c) for c in frame.columns])
+    table = pa.Table.from_pandas(frame, preserve_index=False)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(head.getvalue().encode())
+        pacsv.write_csv(table, f, pacsv.WriteOptions(include_header=False, quoting_style="needed"))
+    return Path(path)
+
+
 def package_versions(names: tuple[str, ...] = PACKAGES) -> dict[str, str]:
     """The Python version and each package's installed version ("not installed" where absent)."""
     return {"python": platform.python_version(), **{name: _installed(name) for name in names}}

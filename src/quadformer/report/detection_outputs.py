@@ -23,7 +23,7 @@ import pandas as pd
 
 from quadformer.detectors import alert_counts, alerts_frame
 from quadformer.estimator.filter_config import FilterConfig
-from quadformer.io import atomic_dir, atomic_path, write_json
+from quadformer.io import atomic_dir, atomic_path, write_csv, write_json
 from quadformer.logs import FlightLog, LogError
 from quadformer.logs.detect import DetectorInputError, LogDetection, NothingToScore, detect_log
 from quadformer.report.logs import write_log_report, write_unscored_report
@@ -43,7 +43,7 @@ def write_detection(res: LogDetection, folder: str | Path, log: str | Path, mode
         table["score"] = res.scores
         table["alarm"] = res.alarms.astype(np.int8)
         table.insert(table.columns.get_loc("t") + 1, "boot_t", table["t"] + res.log.boot_t0)
-        table.to_csv(tmp / "scores.csv", index=False)
+        write_csv(tmp / "scores.csv", table)
         alerts_frame(res.alerts).to_csv(tmp / "alerts.csv", index=False)
         write_log_report(res, tmp, model)
         info = {"log": str(log), "format": res.log.source, "residues": res.residues, "sensors": res.sensors,

@@ -10,14 +10,15 @@ from collections.abc import Mapping
 import pandas as pd
 
 
-def png(fig, dpi: float = 110) -> str:
+def png(fig, dpi: float = 110, tight: bool = True) -> str:
     """A matplotlib figure as base64 PNG, for an ``<img src='data:image/png;base64,...'>``: the
-    figure cut to its tight bounding box, as ``savefig(bbox_inches="tight")`` cuts it. That box is
+    figure cut to its tight bounding box, as ``savefig(bbox_inches="tight")`` cuts it (``tight``
+    False: the figure as laid out, drawn once, for a figure whose margins are set). That box is
     measured here on the canvas's renderer at the saving resolution, and given to ``savefig``,
     which then draws the figure once instead of twice (its first drawing, for the box alone, costs
     as much as the second: a report per log drew each figure twice); the same PNG, byte for byte."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi, bbox_inches=_tight_box(fig, dpi))
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches=_tight_box(fig, dpi) if tight else None)
     return base64.b64encode(buf.getvalue()).decode()
 
 
