@@ -2,5 +2,7 @@
 
 from quadformer.attacks._attacks import CAPTURE_RECEIVER, AttackBatch, concat_attacks, inject_fixes, sample_attacks
 from quadformer.attacks._receiver import spoofed_reports
+from quadformer.attacks.stealthy import StealthyAttacker
 
-__all__ = ["CAPTURE_RECEIVER", "AttackBatch", "concat_attacks", "inject_fixes", "sample_attacks", "spoofed_reports"]
+__all__ = ["CAPTURE_RECEIVER", "AttackBatch", "StealthyAttacker", "concat_attacks", "inject_fixes", "sample_attacks",
+           "spoofed_reports"]

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from quadformer.config import HORIZONTAL_KINDS, MIX, AttackConfig
+from quadformer.config import HORIZONTAL_KINDS, MIX, STEALTH, AttackConfig
 
 _SUBSETS = ("x", "y", "xy", "xz", "yz", "xyz")
 _HORIZONTAL = ("x", "y", "xy")
@@ -151,6 +151,9 @@ class AttackBatch:
             honest = torch.cat([pos, vel], -1).numpy()
             diff = fake - honest
             return diff[:, :3], diff[:, 3:], None
+        if kind == STEALTH:
+            raise ValueError("a stealthy attack has no fixed shape: its attacker chooses each fix as the flight "
+                             "goes (attacks.StealthyAttacker, in the closed loop)")
         raise ValueError(f"unknown attack kind {kind!r}")   # pragma: no cover - the config validates kinds
 
     def _capture(self, m: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -247,6 +250,8 @@ def sample_attacks(gens: list[np.random.Generator], cfg: AttackConfig, attacked:
             vals["accel"] = rng.uniform(*ranges["accel"])
             drawn = bool(rng.random() < 0.5)
             step_b = drawn if cfg.onset_step is None else bool(cfg.onset_step)
+        elif kind == STEALTH:                          # the black box's acceleration
+            vals["accel"] = rng.uniform(*ranges["accel"])
         elif kind == "capture":
             vals["capture_s"] = rng.uniform(*ranges["capture_s"])
             vals["lock_loss_s"] = rng.uniform(*ranges["lock_loss_s"])

@@ -8,7 +8,7 @@ from typing import Optional
 import typer
 
 from quadformer.cli.common import build_config, fail, log_paths, pair
-from quadformer.config import ATTACK_CHOICES, MIX_KINDS, MODELS, NOISE_SHAPES, SENSOR_CONFIGS, ConfigError
+from quadformer.config import ATTACK_CHOICES, KNOWLEDGE, MIX_KINDS, MODELS, NOISE_SHAPES, SENSOR_CONFIGS, ConfigError
 
 
 def simulate(
@@ -36,6 +36,14 @@ def simulate(
                                               help="Drift: the velocity steps to the rate at the onset, or ramps in "
                                               "at --accel (default: drawn per flight, half each)."),
     axes: Optional[str] = typer.Option(None, help="Fixed attacked axes, e.g. 'x' or 'xy'."),
+    attack_detector: Optional[str] = typer.Option(None, "--attack-detector", help="Stealthy: the detector the "
+                                                  "attacker evades, a shipped name (quadformer zoo list) or a model "
+                                                  "file; --rate caps how fast it moves the fix (default 3 m/s)."),
+    knowledge: Optional[str] = typer.Option(None, help=f"Stealthy: what the attacker knows, {', '.join(KNOWLEDGE)} "
+                                            "(default white: it runs the detector's stream on each fix it sends; "
+                                            "black: an accelerating drift at --accel, no score). See docs/stealth.md."),
+    margin: Optional[float] = typer.Option(None, help="Stealthy, white box: the score kept at or under margin x "
+                                           "the detector's threshold, in (0, 1] (default 0.9)."),
     config: Optional[Path] = typer.Option(None, "--config", help="TOML file with any SimConfig fields."),
     noise_from: list[Path] = typer.Option([], "--noise-from", help="Clean flight log(s) whose GPS, IMU, "
                                           "barometer and magnetometer noise the simulated sensors take "
@@ -85,7 +93,8 @@ def simulate(
     atk = {"kind": attack, "fraction": attack_fraction, "onset": pair("--onset", onset),
            "duration": pair("--attack-duration", attack_duration), "magnitude": pair("--magnitude", magnitude),
            "rate": pair("--rate", rate), "accel": pair("--accel", accel), "onset_step": onset_step, "axes": axes,
-           "mix": mix.split(",") if mix is not None else None}
+           "mix": mix.split(",") if mix is not None else None, "detector": attack_detector,
+           "knowledge": knowledge, "margin": margin}
     fitted = None
     if noise_from:
         from quadformer.logs import LogError, read_log
@@ -112,6 +121,12 @@ def simulate(
             fail(_name_option(str(e)))
     if out.exists() and not overwrite:
         fail(f"{out} already exists (use --overwrite to replace it)")
+    from quadformer.simulation.stealth import check_stealth
+
+    try:
+        check_stealth(cfg)
+    except ValueError as e:
+        fail(str(e))
     set_threads()
     if formats:
         from quadformer.experiments.flight_logs import SUFFIX, simulate_with_logs

@@ -14,15 +14,16 @@ import dataclasses
 from dataclasses import dataclass, field, fields
 from typing import Any, Mapping
 
-from quadformer.config.base import (ATTACK_CHOICES, ATTACK_KINDS, MISSION_KINDS, MIX, MIX_KINDS, MIXABLE_KINDS,
-                                    MODELS, NOISE_SHAPES, SENSOR_CONFIGS, SENSOR_NAMES, SHAPE_KINDS, ConfigError,
+from quadformer.config.base import (ATTACK_CHOICES, ATTACK_KINDS, KNOWLEDGE, MISSION_KINDS, MIX, MIX_KINDS,
+                                    MIXABLE_KINDS, MODELS, NOISE_SHAPES, SENSOR_CONFIGS, SENSOR_NAMES, SHAPE_KINDS,
+                                    STEALTH, ConfigError,
                                     _positive, _range, _require, parse_sensors)
 from quadformer.config.sensors import BaroConfig, GPSConfig, IMUConfig, MagConfig, VIOConfig
 
-__all__ = ["ATTACK_CHOICES", "ATTACK_KINDS", "HORIZONTAL_KINDS", "KIND_FIELDS", "MISSION_KINDS", "MIX", "MIX_KINDS",
-           "MIXABLE_KINDS", "MODELS", "NOISE_SHAPES", "SENSOR_CONFIGS", "SENSOR_NAMES", "SHAPE_KINDS", "AttackConfig", "BaroConfig", "ConfigError", "EKFConfig", "GPSConfig",
-           "IMUConfig", "MagConfig", "MissionConfig", "SimConfig", "VIOConfig", "merge", "parse_sensors",
-           "unset_kind_fields"]
+__all__ = ["ATTACK_CHOICES", "ATTACK_KINDS", "HORIZONTAL_KINDS", "KIND_FIELDS", "KNOWLEDGE", "MISSION_KINDS", "MIX",
+           "MIX_KINDS", "MIXABLE_KINDS", "MODELS", "STEALTH", "NOISE_SHAPES", "SENSOR_CONFIGS", "SENSOR_NAMES",
+           "SHAPE_KINDS", "AttackConfig", "BaroConfig", "ConfigError", "EKFConfig", "GPSConfig", "IMUConfig",
+           "MagConfig", "MissionConfig", "SimConfig", "VIOConfig", "merge", "parse_sensors", "unset_kind_fields"]
 
 
 @dataclass(frozen=True)
@@ -55,16 +56,22 @@ _ATTACK_DEFAULTS: dict[str, dict[str, tuple[float, float]]] = {
     "drift": {"duration": (10.0, 30.0), "rate": (0.2, 1.0), "accel": (0.05, 0.5)},
     "capture": {"duration": (10.0, 30.0), "magnitude": (5.0, 15.0), "rate": (0.5, 3.0), "capture_s": (2.0, 2.0),
                 "lock_loss_s": (0.0, 0.6)},
+    # a stealthy attacker's fix moves at most ``rate`` m/s from the truth (white box: as fast as the
+    # detector lets it; black box: accelerating at ``accel``), from its onset to the flight's end
+    STEALTH: {"duration": (1e6, 1e6), "rate": (3.0, 3.0), "accel": (0.05, 0.05)},
     "none": {},
 }
 _GENERIC = {"duration": (5.0, 20.0), "magnitude": (1.5, 6.0), "rate": (0.2, 1.0),
             "frequency": (0.05, 0.5), "period": (2.0, 6.0), "delay": (3.0, 10.0)}
 #: the ranges only some kinds draw, and those kinds: left at None by a configuration none of whose
 #: kinds draws them (so configurations made before they existed keep their cache keys)
-KIND_FIELDS = {"accel": ("drift",), "capture_s": ("capture",), "lock_loss_s": ("capture",)}
+KIND_FIELDS = {"accel": ("drift", STEALTH), "capture_s": ("capture",), "lock_loss_s": ("capture",)}
 _KIND_GENERIC = {"accel": (0.05, 0.5), "capture_s": (2.0, 2.0), "lock_loss_s": (0.0, 0.6)}
 #: kinds whose offset runs along a horizontal direction (their axes hold no z)
-HORIZONTAL_KINDS = ("ramp", "drift", "capture")
+HORIZONTAL_KINDS = ("ramp", "drift", "capture", STEALTH)
+#: the fields only a stealthy attack takes (None in every other configuration, and then left out of
+#: its dict: ``unset_kind_fields``)
+STEALTH_FIELDS = ("detector", "knowledge", "margin")
 
 
 @dataclass(frozen=True)
@@ -92,6 +99,9 @@ class AttackConfig:
                                        # in at accel; None: drawn per flight (half the flights each)
     capture_s: tuple[float, float] | None = None       # s, a capture's pull-off time (capture)
     lock_loss_s: tuple[float, float] | None = None     # s, the fix lost at a capture's start (capture)
+    detector: str | None = None        # stealthy: the detector it evades (a shipped name or a model file)
+    knowledge: str | None = None       # stealthy: what it knows of it (``KNOWLEDGE``; default white)
+    margin: float | None = None        # stealthy, white box: the score kept under margin x threshold (0, 1]
 
     def __post_init__(self) -> None:
         _require(self.kind in ATTACK_CHOICES, "attack.kind",
@@ -131,6 +141,7 @@ class AttackConfig:
                 _require(value[0] > 0.0, f"attack.{name}", f"must be > 0 ({'m/s^2' if name == 'accel' else 's'}), "
                          f"got {getattr(self, name)!r}")
             object.__setattr__(self, name, value)
+        self._check_stealth()
         _require(self.onset_step is None or isinstance(self.onset_step, bool), "attack.onset_step",
                  f"must be true, false or unset (drawn per flight), got {self.onset_step!r}")
         if "capture" in kinds:
@@ -150,6 +161,25 @@ class AttackConfig:
                          "use x and/or y")
             object.__setattr__(self, "axes", axes)
 
+    def _check_stealth(self) -> None:
+        if self.kind != STEALTH:
+            for name in STEALTH_FIELDS:
+                _require(getattr(self, name) is None, f"attack.{name}",
+                         f"only a stealthy attack takes it (attack.kind {self.kind!r})")
+            return
+        _require(isinstance(self.detector, str) and self.detector.strip() != "", "attack.detector",
+                 "a stealthy attack needs the detector it evades: a shipped name (quadformer zoo list) or a "
+                 "model file (quadformer fit)")
+        knowledge = "white" if self.knowledge is None else self.knowledge
+        _require(knowledge in KNOWLEDGE, "attack.knowledge",
+                 f"unknown knowledge {self.knowledge!r}; choose from {', '.join(KNOWLEDGE)}")
+        margin = 0.9 if self.margin is None else self.margin
+        _require(isinstance(margin, (int, float)) and not isinstance(margin, bool) and 0.0 < margin <= 1.0,
+                 "attack.margin", f"must be in (0, 1] (the share of the threshold the score is kept under), "
+                 f"got {self.margin!r}")
+        object.__setattr__(self, "knowledge", knowledge)
+        object.__setattr__(self, "margin", float(margin))
+
     @property
     def kinds(self) -> tuple[str, ...]:
         """The kinds the attacked flights may have: ``mix`` for a mixed attack, else ``(kind,)``
@@ -162,7 +192,7 @@ class AttackConfig:
         """The ranges a flight attacked by ``kind`` (default: the config's kind) draws from:
         the config's own where given, else that kind's defaults (``_ATTACK_DEFAULTS``)."""
         kind = self.kind if kind is None else kind
-        _require(kind in ATTACK_KINDS, "attack.kind", f"ranges of a single kind, got {kind!r}")
+        _require(kind in (*ATTACK_KINDS, STEALTH), "attack.kind", f"ranges of a single kind, got {kind!r}")
         defaults = _ATTACK_DEFAULTS[kind]
         out = {}
         for name, generic in {**_GENERIC, **_KIND_GENERIC}.items():
@@ -175,7 +205,7 @@ def unset_kind_fields(attack: dict[str, Any]) -> dict[str, Any]:
     """An ``AttackConfig`` as a dict (``dataclasses.asdict``) without the kind-specific fields it
     leaves unset (``KIND_FIELDS`` and ``onset_step`` at None), in place: what a configuration made
     before those fields existed holds, so hashes of it (cache keys) stay as they were."""
-    for name in (*KIND_FIELDS, "onset_step"):
+    for name in (*KIND_FIELDS, "onset_step", *STEALTH_FIELDS):
         if name in attack and attack[name] is None:
             attack.pop(name)
     return attack

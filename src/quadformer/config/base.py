@@ -21,8 +21,15 @@ MIXABLE_KINDS = tuple(k for k in ATTACK_KINDS if k != "none")
 #: the default of ``AttackConfig.mix``: the shapes (drift and capture only where named, so the
 #: default mixed datasets draw what they drew before those kinds existed)
 MIX_KINDS = SHAPE_KINDS
+#: an attacker who knows the detector: each fix chosen as it flies (``attacks.stealthy``), not a
+#: shape drawn beforehand; never mixed with the others
+STEALTH = "stealthy"
+#: what a stealthy attacker knows: ``white`` runs the detector's own stream on the fixes it is about
+#: to send and keeps its score under ``margin`` x threshold; ``black`` sees no score and moves the fix
+#: as a slow accelerating drift (``accel``, up to ``rate``)
+KNOWLEDGE = ("white", "black")
 #: the values of ``AttackConfig.kind``
-ATTACK_CHOICES = (*ATTACK_KINDS, MIX)
+ATTACK_CHOICES = (*ATTACK_KINDS, MIX, STEALTH)
 MISSION_KINDS = ("hover", "circle", "lissajous", "minsnap")
 #: sensors a configuration may name, in the canonical order of ``SimConfig.sensors``
 SENSOR_NAMES = ("gps", "imu", "vio", "mag", "baro")

@@ -16,6 +16,7 @@ flight's admission policy allows (possibly with inflated noise, a reset or a rol
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import replace
 from typing import Callable, Sequence
@@ -25,7 +26,7 @@ import roma
 import torch
 
 from quadformer.attacks import concat_attacks, sample_attacks
-from quadformer.config import SimConfig
+from quadformer.config import STEALTH, SimConfig
 from quadformer.estimator.eskf import (
     baro_update,
     gps_update,
@@ -39,13 +40,14 @@ from quadformer.estimator.eskf import (
 )
 from quadformer.estimator.reference import GpsFreeReference
 from quadformer.estimator.residues import AIDING, ResidueTracker
-from quadformer.estimator.schema import groups_for
+from quadformer.estimator.schema import as_columns, groups_for
 from quadformer.geometry import exp_quat
 from quadformer.missions import sample_missions
 from quadformer.plant import DrydenWind, Plant, concat_wind, sample_wind
 from quadformer.resilience.step import OnlineStep
 from quadformer.rng import Stream, batch_generators
 from quadformer.sensors import GPS, IMU, VIO, Barometer, ChunkedNoise, Magnetometer
+from quadformer.simulation.stealth import stealthy_attacker
 
 
 def records(cfg: SimConfig) -> dict[str, int]:
@@ -180,6 +182,12 @@ def _simulate_loop(groups, progress, record_nees, record_sensors, admission, str
     init_err = np.stack([g.standard_normal(9) for g in scn])
     attacks = concat_attacks([sample_attacks(g, c.attack, a, c.duration)
                               for (c, _, a), g in zip(groups, scn_parts)])
+    attacker = None
+    if any(c.attack.kind == STEALTH for c, _, _ in groups):
+        if not single:
+            raise ValueError("a stealthy attack flies in a batch of its own configuration (its attacker runs one "
+                             "detector over the batch)")
+        attacker = stealthy_attacker(cfg, attacks)
     model = cfg.model if single else per_flight([c.model for c, _, _ in groups])
     shape = cfg.noise if single else per_flight([c.noise for c, _, _ in groups])
 
@@ -276,11 +284,21 @@ def _simulate_loop(groups, progress, record_nees, record_sensors, admission, str
             t = (k + 1) * dt
             pos_h, vel_h = gps.measure(state["x"], state["v"])
             history[:, j] = torch.cat([pos_h, vel_h], -1)
-            pos_g, vel_g, active, d_pos, _ = attacks.apply(t, j, pos_h, vel_h, history, cfg.gps.rate_hz)
+            if attacker is None:
+                pos_g, vel_g, active, d_pos, _ = attacks.apply(t, j, pos_h, vel_h, history, cfg.gps.rate_hz)
+            else:
+                def trial(pos_c, vel_c, ekf=ekf):     # what the filter would make of candidate fixes
+                    _, inn_c = gps_update(ekf, pos_c, vel_c, nm)
+                    res_c = {**copy.deepcopy(residues).on_gps(inn_c), **copy.deepcopy(reference).on_gps(pos_c, vel_c)}
+                    return as_columns({**res_c, "gps_pos": pos_c, "gps_vel": vel_c})
+
+                pos_g, vel_g, active, d_pos = attacker.fixes(t, pos_h, vel_h, trial)
             if sensors is not None:
                 sensors["gps"].append(torch.cat([pos_g, vel_g], -1))
             proposed, inn = gps_update(ekf, pos_g, vel_g, nm)
             res = {**residues.on_gps(inn), **reference.on_gps(pos_g, vel_g)}
+            if attacker is not None:
+                attacker.observe(as_columns({**res, "gps_pos": pos_g, "gps_vel": vel_g}))
             if admission is None:
                 ekf = proposed
             else:

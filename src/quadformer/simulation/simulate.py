@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from quadformer.attacks import CAPTURE_RECEIVER
-from quadformer.config import SimConfig
+from quadformer.config import STEALTH, SimConfig
 from quadformer.dataset import FORMAT_VERSION, Dataset, summarize
 from quadformer.estimator.schema import groups_for
 from quadformer.io import package_versions
@@ -49,6 +49,8 @@ def _batch_frames(cfg: SimConfig, r: BatchResult) -> tuple[pd.DataFrame, pd.Data
     # the parameters of drift and capture, only where the configuration may draw them (the
     # scenarios of every other configuration keep their columns)
     drawn = set(cfg.attack.kinds)
+    if STEALTH in drawn:              # its top speed is ``rate``; the black box's acceleration
+        scen["accel"] = a.accel
     if "drift" in drawn:
         scen["accel"] = a.accel
         scen["onset_step"] = a.onset_step

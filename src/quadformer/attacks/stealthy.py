@@ -1,0 +1,150 @@
+"""An attacker who knows the detector: each spoofed fix chosen as the flight goes.
+
+The offset runs along each flight's horizontal direction u, consistent: the fix's position is
+the truth plus ``s u`` and its velocity the truth's plus ``s' u``, with s' the speed the attacker
+moves its offset at this GPS step (at most ``rate`` m/s either way). The vehicle, flying on its
+estimate, is steered by -s u.
+
+- ``white`` box: the attacker runs the detector's own online stream (``detector.stream``) on the
+  fix it is about to send. The residues of a candidate fix are what the filter would make of
+  it, computed by the closed loop on copies of the filter's state (``rows``: the attacker knows
+  the filter and the vehicle's dynamics). At each GPS step it sends the fastest push toward its
+  goal whose score stays at or under ``margin`` x threshold: a grid of speeds over
+  [-rate, rate], then bisection between the fastest that passes and the next that does not.
+  Where none passes, it sends the speed of the lowest score it finds (a golden-section search
+  about the grid's lowest: pulling back or holding to hide). After the step, its stream takes
+  the residues of the fix sent, as the detector's does. It knows the fix it sends (it sits
+  where the fix is made), not what the receiver's noise will be at the next one: a score kept
+  at the bound can be pushed over it by the next fix's noise, which ``margin`` leaves room for.
+- ``black`` box: no score; the offset accelerates in at ``accel`` up to ``rate`` m/s, the
+  slow drift an attacker without access to the detector would choose.
+
+What the attacker achieves is measured on the vehicle: its true position's deviation from the
+mission until the detector's first alarm (``experiments.stealth``).
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable, Mapping
+
+import numpy as np
+import torch
+
+from quadformer.attacks._attacks import AttackBatch
+from quadformer.config import KNOWLEDGE, STEALTH
+
+#: speeds tried at each GPS step, as shares of the attacker's top speed, then bisection steps
+GRID = np.linspace(-1.0, 1.0, 9)
+REFINE = 4
+
+
+class StealthyAttacker:
+    """The stealthy attack of a batch's flights (those of ``attack`` whose kind is ``stealthy``).
+
+    stream: the detector's online stream over the batch (white box; None for black box);
+    threshold: its alarm threshold."""
+
+    def __init__(self, attack: AttackBatch, knowledge: str, margin: float, rate_hz: float, stream=None,
+                 threshold: float | None = None):
+        if knowledge not in KNOWLEDGE:
+            raise ValueError(f"knowledge: {knowledge!r}; choose from {', '.join(KNOWLEDGE)}")
+        if not 0.0 < margin <= 1.0:
+            raise ValueError(f"margin: must be in (0, 1], got {margin!r}")
+        if knowledge == "white" and (stream is None or threshold is None or not np.isfinite(threshold)):
+            raise ValueError("a white-box attacker needs the detector's stream and its threshold")
+        self.attack, self.knowledge, self.margin = attack, knowledge, float(margin)
+        self.dt = 1.0 / float(rate_hz)
+        self.stream, self.threshold = stream, threshold
+        self.mine = np.asarray(attack.attacked, bool) & (np.asarray(attack.kind) == STEALTH)
+        B = len(self.mine)
+        self.offset = np.zeros(B)          # m along u
+        self.speed = np.zeros(B)           # m/s along u, at the last fix
+        self.probes = 0                    # candidate fixes scored (white box)
+
+    @property
+    def bound(self) -> float:
+        return self.margin * float(self.threshold)
+
+    def active(self, t: float) -> np.ndarray:
+        return self.mine & self.attack.window(t)
+
+    def fixes(self, t: float, pos: torch.Tensor, vel: torch.Tensor,
+              rows: Callable[[torch.Tensor, torch.Tensor], Mapping[str, np.ndarray]] | None = None):
+        """The fixes sent at time t for the honest ones pos, vel (B, 3): (pos, vel, active (B,) bool,
+        d_pos (B, 3)). ``rows(pos, vel)``: the residue columns the filter would make of candidate
+        fixes, its state left as it is (white box)."""
+        active = self.active(t)
+        B = len(active)
+        if not active.any():
+            return pos, vel, active, np.zeros((B, 3))
+        cap = np.where(active, self.attack.rate, 0.0)
+        if self.knowledge == "black":
+            speed = np.minimum(self.speed + np.where(active, self.attack.accel, 0.0) * self.dt, cap)
+        else:
+            if rows is None:
+                raise ValueError("a white-box attacker scores its candidate fixes: pass rows")
+            speed = self._white(pos, vel, cap, rows)
+        speed = np.where(active, speed, 0.0)
+        self.offset = np.where(active, self.offset + speed * self.dt, self.offset)
+        self.speed = speed
+        u = self.attack.direction
+        d_pos = np.where(active[:, None], self.offset[:, None] * u, 0.0)
+        d_vel = np.where(active[:, None], speed[:, None] * u, 0.0)
+        return pos + torch.from_numpy(d_pos), vel + torch.from_numpy(d_vel), active, d_pos
+
+    def observe(self, columns: Mapping[str, np.ndarray]) -> None:
+        """The residues of the fixes sent: the attacker's stream steps as the detector's does."""
+        if self.stream is not None:
+            self.stream.update(columns)
+
+    # -- the white box ---------------------------------------------------------------------------
+    def _score(self, pos, vel, speed, rows) -> np.ndarray:
+        u = self.attack.direction
+        off = (self.offset + speed * self.dt)[:, None] * u
+        cols = rows(pos + torch.from_numpy(off), vel + torch.from_numpy(speed[:, None] * u))
+        self.probes += 1
+        s = np.asarray(self._trial().update(cols).score, dtype=float)
+        return np.where(np.isfinite(s), s, np.inf)
+
+    def _trial(self):
+        """A copy of the stream to try a fix on, sharing the detector (its model) with the original."""
+        det = self.stream.detector
+        memo = {id(det): det, **{id(v): v for v in vars(det).values()}}
+        return copy.deepcopy(self.stream, memo)
+
+    def _white(self, pos, vel, cap, rows) -> np.ndarray:
+        bound = self.bound
+        scores = np.stack([self._score(pos, vel, f * cap, rows) for f in GRID])        # (G, B)
+        ok = scores <= bound
+        G = len(GRID)
+        best = np.where(ok.any(0), G - 1 - np.argmax(ok[::-1], 0), np.argmin(scores, 0))
+        lo = GRID[best] * cap
+        refine = ok.any(0) & (best < G - 1)
+        hi = GRID[np.minimum(best + 1, G - 1)] * cap
+        for _ in range(REFINE if refine.any() else 0):
+            mid = 0.5 * (lo + hi)
+            good = self._score(pos, vel, np.where(refine, mid, lo), rows) <= bound
+            lo = np.where(refine & good, mid, lo)
+            hi = np.where(refine & ~good, mid, hi)
+        caught = ~ok.any(0) & (cap > 0)
+        if caught.any():
+            lo = np.where(caught, self._lowest(pos, vel, cap, rows, np.argmin(scores, 0)), lo)
+        return lo
+
+    def _lowest(self, pos, vel, cap, rows, best: np.ndarray) -> np.ndarray:
+        """The speed of the lowest score between the grid's neighbours of its lowest, ``best``
+        (golden-section search, ``REFINE`` + 2 steps)."""
+        G, phi = len(GRID), (np.sqrt(5.0) - 1.0) / 2.0
+        a, b = GRID[np.maximum(best - 1, 0)] * cap, GRID[np.minimum(best + 1, G - 1)] * cap
+        c, d = b - phi * (b - a), a + phi * (b - a)
+        fc, fd = self._score(pos, vel, c, rows), self._score(pos, vel, d, rows)
+        for _ in range(REFINE + 2):
+            left = fc <= fd                       # the lowest lies in [a, d], else in [c, b]
+            a, b = np.where(left, a, c), np.where(left, d, b)
+            keep, f_keep = np.where(left, c, d), np.where(left, fc, fd)
+            new = np.where(left, b - phi * (b - a), a + phi * (b - a))
+            f_new = self._score(pos, vel, new, rows)
+            c, fc = np.where(left, new, keep), np.where(left, f_new, f_keep)
+            d, fd = np.where(left, keep, new), np.where(left, f_keep, f_new)
+        return np.where(fc <= fd, c, d)

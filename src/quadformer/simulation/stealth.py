@@ -1,0 +1,77 @@
+"""The detector a stealthy attack evades, and its attacker for a batch of flights.
+
+``attack.detector`` names a shipped detector (``quadformer zoo list``) or a saved model file
+(``quadformer fit``; an exported ``.onnx`` with its stream graph). It must read only what the
+configuration's sensors give, and have an alarm threshold.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from quadformer.attacks import AttackBatch, StealthyAttacker
+from quadformer.config import STEALTH, SimConfig
+from quadformer.estimator.schema import groups_for
+
+#: columns of the fix itself that a detector may read beside the residues (glr)
+FIX_COLUMNS = ("gps_pos_x", "gps_pos_y", "gps_pos_z", "gps_vel_x", "gps_vel_y", "gps_vel_z")
+
+
+def attack_detector(cfg: SimConfig):
+    """The detector ``cfg.attack.detector`` names, checked against the configuration's sensors."""
+    from quadformer.detectors import pretrained
+    from quadformer.detectors.registry import load
+
+    name = cfg.attack.detector
+    path = Path(name)
+    if path.is_file():
+        if path.suffix == ".onnx":
+            from quadformer.detectors import load_model
+
+            det = load_model(path)
+        else:
+            det = load(path)
+    else:
+        try:
+            det = pretrained.load(name)
+        except pretrained.ZooError as e:
+            raise ValueError(f"attack.detector: {name!r} is neither a model file nor a shipped detector ({e})") \
+                from None
+    if getattr(det, "threshold_", None) is None:
+        raise ValueError(f"attack.detector: {name} has no alarm threshold (calibrate it: quadformer fit)")
+    given = {c for g in groups_for(cfg.sensors) for c in g.columns} | set(FIX_COLUMNS)
+    missing = [c for c in det.features_ if c not in given]
+    if missing:
+        raise ValueError(f"attack.detector: {name} reads {', '.join(missing[:4])}, which flights with sensors "
+                         f"{cfg.sensors} do not give; choose a detector of that sensor set (quadformer zoo list)")
+    return det
+
+
+def check_stealth(cfg: SimConfig) -> None:
+    """Raise ValueError, naming what is wrong, when ``cfg``'s stealthy attack cannot fly: its
+    detector unknown, unfit for the sensors, without threshold, or without a stream (white box)."""
+    if cfg.attack.kind != STEALTH:
+        return
+    det = attack_detector(cfg)
+    if cfg.attack.knowledge == "white":
+        _stream(cfg, det, 1)
+
+
+def _stream(cfg: SimConfig, det, n: int):
+    try:
+        return det.stream(n)
+    except (NotImplementedError, ValueError, AttributeError) as e:
+        raise ValueError(f"attack.knowledge white: {cfg.attack.detector} has no online stream to run ({e}); "
+                         "choose knowledge black, or the detector's saved model instead of its graph") from None
+
+
+def stealthy_attacker(cfg: SimConfig, attacks: AttackBatch, detector=None) -> StealthyAttacker:
+    """The attacker of a batch's flights: white box with ``detector``'s own stream (loaded from
+    ``cfg.attack.detector`` when None), black box without it."""
+    a = cfg.attack
+    det = attack_detector(cfg) if detector is None else detector
+    if a.knowledge == "black":
+        return StealthyAttacker(attacks, "black", a.margin, cfg.gps.rate_hz)
+    stream = _stream(cfg, det, len(attacks.kind))
+    return StealthyAttacker(attacks, "white", a.margin, cfg.gps.rate_hz, stream=stream,
+                            threshold=float(det.threshold_))
