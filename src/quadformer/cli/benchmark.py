@@ -18,7 +18,9 @@ from quadformer.cli.tables import print_field, print_resilience, print_seeds, pr
 def benchmark(
     profile: str = typer.Option("demo", help="demo (20 flights/config), quick (60), paper (600), mixed (60 "
                                 "flights/config of mixed attacks, Model I/II x exponential/Laplace noise), or field "
-                                "(detectors trained in simulation, judged on the real flight logs of --logs)."),
+                                "(detectors trained in simulation, judged on the real flight logs of --logs), or "
+                                "stealth (each shipped detector against an attacker who knows it; stealth-quick: "
+                                "two detectors, 30 s; --methods names shipped detectors; docs/stealth.md)."),
     methods: Optional[str] = typer.Option(None, help="Comma-separated detector names; default: every registered "
                                           "detector except ablations; 'all': every one."),
     data: list[Path] = typer.Option([], "--data", help="Benchmark on these dataset directories instead of a "
@@ -55,6 +57,8 @@ def benchmark(
     report. With --data, the same protocol on given datasets; with --profile field, on real logs."""
     if profile == "field" or logs or manifest is not None:
         return _field(profile, logs, manifest, methods, data, configs, out, seed, flights, injections, shipped)
+    if profile.startswith("stealth"):
+        return _stealth(profile, methods, data, configs, out, seed)
     if shipped is not None:
         fail("--shipped belongs to --profile field (the demo scores the shipped detectors on simulated flights)")
     from quadformer.dataset import DatasetError
@@ -96,6 +100,38 @@ def benchmark(
         print_tables(results)
         typer.echo(f"\nbenchmark took {results['timing_s']['total']:.0f} s "
                    f"(simulation {results['timing_s']['simulate']:.0f} s)")
+    typer.echo(f"results: {(out / 'results.json').resolve()}")
+    typer.echo(f"report:  {(out / 'report.html').resolve()}")
+
+
+def _stealth(profile, methods, data, configs, out, seed) -> None:
+    import dataclasses
+
+    from quadformer.detectors import pretrained
+    from quadformer.experiments.stealth import PROFILES, run_stealth
+    from quadformer.io import set_threads
+    from quadformer.report.stealth import stealth_table
+
+    if profile not in PROFILES:
+        fail(f"--profile {profile!r}; the stealth profiles are {', '.join(PROFILES)}")
+    if data or configs is not None:
+        fail("--profile stealth flies each shipped detector's own simulation: no --data or --configs")
+    plan = PROFILES[profile]
+    if methods is not None:
+        names = tuple(m.strip() for m in methods.split(",") if m.strip())
+        for n in names:
+            try:
+                pretrained.resolve(n)
+            except pretrained.ZooError as e:
+                fail(f"--methods: {e}")
+        plan = dataclasses.replace(plan, detectors=names)
+    plan = dataclasses.replace(plan, seed=seed)
+    set_threads()
+    try:
+        results = run_stealth(plan, out, echo=typer.echo)
+    except ValueError as e:
+        fail(str(e))
+    typer.echo(stealth_table(results).to_string(index=False))
     typer.echo(f"results: {(out / 'results.json').resolve()}")
     typer.echo(f"report:  {(out / 'report.html').resolve()}")
 

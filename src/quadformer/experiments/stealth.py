@@ -1,0 +1,227 @@
+"""The stealth benchmark: how far an attacker who knows the detector moves the vehicle before
+anything alarms.
+
+For each shipped detector of the plan, on flights of the simulation that detector was calibrated
+on (its model card's ``sim_config``: the vehicle, the sensors and their noise), every flight is
+attacked from ``onset`` to its end by a stealthy attacker (``attacks.stealthy``):
+
+- ``white`` box at each ``margin``: the attacker runs the detector's own stream on each fix it
+  sends and keeps the score under margin x threshold, moving the fix at most ``rate`` m/s;
+- ``black`` box: no score; the fix drifts in at ``accel`` m/s^2 up to ``rate`` (flown once per
+  simulation, scored by each detector of it): the slow shape an attacker without the detector
+  would choose, and the fixed shape the white box is compared with.
+
+The defender is the detector itself, scored offline on the flights (a stream's scores equal its
+offline ones) at its shipped false-alarm-budget threshold. The deviation is the vehicle's
+horizontal estimation error |estimate - truth|: flying its mission on the estimate, the vehicle
+is that far from where it believes it is. For each horizon T after the onset: the largest
+deviation reached before the first alarm within [onset, onset + T) (``deviation``: the envelope),
+and whether no alarm came by then (``hidden``); median and worst over the flights. Beside it,
+``deviation_at_alarm``: where the vehicle was when the alarm came.
+
+The physical bound (``physical_bound``): the deviation that no test of GPS against the sensors'
+GPS-free evidence could see at ``BOUND_Z`` standard deviations: the horizontal position std of
+the filter's GPS-free reference (IMU, and VIO velocity or nothing horizontal without a camera)
+propagated from a converged start over T seconds, with the fix's own position noise. Each
+envelope reads as a ratio to it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pandas as pd
+
+from quadformer.config import SimConfig
+from quadformer.report.stealth import write_stealth_report
+
+HORIZONS = (10.0, 30.0, 60.0, 120.0)
+#: the bound's standard deviations: one-sided, a false alarm in about 740 independent tests
+BOUND_Z = 3.0
+
+
+@dataclass(frozen=True)
+class StealthPlan:
+    detectors: tuple[str, ...]
+    knowledge: tuple[str, ...] = ("white", "black")
+    margins: tuple[float, ...] = (0.8,)
+    flights: int = 4
+    horizons: tuple[float, ...] = HORIZONS
+    onset: float = 10.0
+    rate: float = 3.0          # m/s, the attacker's top speed
+    accel: float = 0.05        # m/s^2, the black box's acceleration
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.detectors:
+            raise ValueError("stealth: name at least one detector")
+        bad = [k for k in self.knowledge if k not in ("white", "black")]
+        if bad:
+            raise ValueError(f"stealth: knowledge {bad[0]!r}; choose from white, black")
+        if any(not 0.0 < m <= 1.0 for m in self.margins):
+            raise ValueError(f"stealth: margins must be in (0, 1], got {self.margins}")
+        if self.flights < 1 or not self.horizons or min(self.horizons) <= 0:
+            raise ValueError("stealth: at least one flight and positive horizons")
+
+    @property
+    def duration(self) -> float:
+        return self.onset + max(self.horizons)
+
+
+#: the profiles of ``quadformer benchmark --profile``: the shipped sets' detectors (the learned
+#: default, the classical tests and the reference test of each), and a small one
+PROFILES = {
+    "stealth": StealthPlan(detectors=("vio-quadformer", "vio-cusum", "vio-chi2", "vio-cusum-ref",
+                                      "magbaro-glr", "magbaro-quadformer", "magbaro-cusum", "magbaro-chi2",
+                                      "magbaro-cusum-ref"), margins=(0.5, 0.8), flights=3),
+    "stealth-quick": StealthPlan(detectors=("vio-cusum", "magbaro-cusum"), flights=2, horizons=(10.0, 30.0)),
+}
+
+
+def stealth_config(detector: str, plan: StealthPlan, knowledge: str, margin: float | None) -> SimConfig:
+    """The flights a detector is attacked on: its calibration's simulation, every flight attacked."""
+    from quadformer.detectors import pretrained
+
+    det = pretrained.load(detector)
+    sim = dict((getattr(det, "calibration_", None) or {}).get("sim_config") or {})
+    if not sim:
+        raise ValueError(f"stealth: {detector} records no simulation it was calibrated on")
+    sim.update(flights=plan.flights, duration=plan.duration, batch_size=plan.flights, seed=plan.seed)
+    attack = {"kind": "stealthy", "detector": detector, "knowledge": knowledge, "fraction": 1.0,
+              "onset": (plan.onset, plan.onset), "rate": (plan.rate, plan.rate), "accel": (plan.accel, plan.accel)}
+    if knowledge == "white":
+        attack["margin"] = margin
+    sim["attack"] = attack
+    return SimConfig.from_dict(sim)
+
+
+def envelope(flights: pd.DataFrame, scores: np.ndarray, threshold: float, onset: float,
+             horizons: tuple[float, ...]) -> list[dict[str, Any]]:
+    """Per flight: the first alarm at or after the onset, the deviation when it came, and per
+    horizon the largest deviation before it (and whether none came by then)."""
+    out = []
+    scores = np.asarray(scores, dtype=float)
+    if len(scores) != len(flights):
+        raise ValueError(f"envelope: {len(scores)} scores for {len(flights)} rows")
+    flights = flights.reset_index(drop=True)            # row i scored scores[i]
+    for fid, g in flights.groupby("flight_id", sort=True):
+        t = g.t.to_numpy()
+        s = scores[g.index.to_numpy()]
+        dev = np.hypot(g.est_pos_x - g.true_pos_x, g.est_pos_y - g.true_pos_y).to_numpy()
+        after = t >= onset - 1e-9
+        alarm = np.flatnonzero(after & (s > threshold))
+        t_alarm = float(t[alarm[0]]) if len(alarm) else None
+        row: dict[str, Any] = {"flight": int(fid), "alarm_before_onset": bool((s[~after] > threshold).any()),
+                               "first_alarm_s": None if t_alarm is None else t_alarm - onset,
+                               "deviation_at_alarm": None if t_alarm is None else float(dev[alarm[0]]),
+                               "offset_end": float(np.hypot(g.atk_d_x, g.atk_d_y).to_numpy()[-1])}
+        for T in horizons:
+            inside = after & (t < onset + T) & (t < (np.inf if t_alarm is None else t_alarm))
+            row[f"deviation_{T:g}"] = float(dev[inside].max()) if inside.any() else 0.0
+            row[f"hidden_{T:g}"] = t_alarm is None or t_alarm >= onset + T
+        out.append(row)
+    return out
+
+
+def physical_bound(cfg: SimConfig, horizons: tuple[float, ...], z: float = BOUND_Z) -> dict[str, float]:
+    """``BOUND_Z`` x the std of GPS minus the GPS-free reference after T seconds: the reference's
+    horizontal position std propagated without GPS from the filter's converged start (IMU; VIO
+    velocity where the configuration has it), with the fix's horizontal position noise."""
+    import torch
+
+    from quadformer.estimator.eskf import init_state, noise_model
+    from quadformer.estimator.reference import GpsFreeReference
+    from quadformer.estimator.residues import AIDING
+
+    nm = noise_model(cfg.imu, cfg.gps, cfg.vio, cfg.ekf, 1.0 / cfg.dt, cfg.mag, cfg.baro)
+    e = cfg.ekf
+    std0 = np.array([e.init_pos_std] * 3 + [e.init_vel_std] * 3 + [np.deg2rad(e.init_att_std_deg)] * 3
+                    + [cfg.imu.accel_bias_std] * 3 + [cfg.imu.gyro_bias_std] * 3)
+    zero = torch.zeros(1, 3, dtype=torch.float64)
+    ekf = init_state(zero, zero, torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=torch.float64), zero, zero,
+                     torch.diag(torch.from_numpy(std0 ** 2))[None])
+    aiding = tuple(a for a in AIDING if cfg.has(a))
+    ref = GpsFreeReference(ekf, nm, cfg.gps.rate_hz, aiding)
+    gps_var = float(nm.gps_std[0]) ** 2
+    out, steps = {}, 0
+    for T in sorted(horizons):
+        while steps * cfg.dt < T - 1e-9:
+            ref.predict(ekf, torch.tensor([[0.0, 0.0, 9.81]], dtype=torch.float64), cfg.dt)
+            steps += 1
+            if "vio" in aiding and steps % cfg.steps_per_vio == 0:
+                ref.vio(torch.zeros(1, 3, dtype=torch.float64))
+        out[f"{T:g}"] = z * float(np.sqrt(ref.C[0, 0, 0, 0] + gps_var))
+    return out
+
+
+def summarise(rows: list[dict[str, Any]], horizons: tuple[float, ...]) -> dict[str, Any]:
+    out: dict[str, Any] = {"flights": len(rows)}
+    for T in horizons:
+        dev = np.array([r[f"deviation_{T:g}"] for r in rows])
+        out[f"deviation_median_{T:g}"] = float(np.median(dev))
+        out[f"deviation_worst_{T:g}"] = float(dev.max())
+        out[f"hidden_{T:g}"] = float(np.mean([r[f"hidden_{T:g}"] for r in rows]))
+    alarmed = [r["deviation_at_alarm"] for r in rows if r["deviation_at_alarm"] is not None]
+    out["alarmed"] = len(alarmed)
+    out["deviation_at_alarm_median"] = float(np.median(alarmed)) if alarmed else None
+    out["alarm_before_onset"] = int(sum(r["alarm_before_onset"] for r in rows))
+    return out
+
+
+def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = print,
+                provenance: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Every detector of the plan under each knowledge level and margin; results.json and
+    report.html in ``out``."""
+    from quadformer.detectors import pretrained
+    from quadformer.experiments.provenance import provenance as make_provenance
+    from quadformer.io import package_versions, write_json
+    from quadformer.simulation import simulate
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    black: dict[str, pd.DataFrame] = {}          # the black box's flights per simulation, flown once
+    runs, bounds, start = [], {}, time.perf_counter()
+    for name in plan.detectors:
+        det = pretrained.load(name)
+        entry = pretrained.resolve(name)
+        for knowledge in plan.knowledge:
+            for margin in (plan.margins if knowledge == "white" else (None,)):
+                cfg = stealth_config(name, plan, knowledge, margin)
+                key = cfg.to_dict()
+                key["attack"].pop("detector")
+                key = repr(key)
+                t0 = time.perf_counter()
+                if knowledge == "black" and key in black:
+                    flights = black[key]
+                else:
+                    flights = simulate(cfg).flights
+                    if knowledge == "black":
+                        black[key] = flights
+                scores = det.decision_function(flights)
+                rows = envelope(flights, scores, float(det.threshold_), plan.onset, plan.horizons)
+                set_name = entry.set.name
+                if set_name not in bounds:
+                    bounds[set_name] = physical_bound(cfg, plan.horizons)
+                summary = summarise(rows, plan.horizons)
+                runs.append({"detector": name, "set": set_name, "method": entry.method, "knowledge": knowledge,
+                             "margin": margin, "threshold": float(det.threshold_), "summary": summary,
+                             "flights": rows, "seconds": round(time.perf_counter() - t0, 1)})
+                T = max(plan.horizons)
+                echo(f"stealth: {name:20s} {knowledge:5s}" + (f" margin {margin:g}" if margin else " " * 11)
+                     + f"  deviation unseen by {T:g} s: median {summary[f'deviation_median_{T:g}']:.1f} m, worst "
+                     f"{summary[f'deviation_worst_{T:g}']:.1f} m; hidden {summary[f'hidden_{T:g}']:.0%} "
+                     f"(bound {bounds[set_name][f'{T:g}']:.1f} m; {time.perf_counter() - t0:.0f} s)")
+    results = {"benchmark": "stealth", "plan": asdict(plan), "bound_z": BOUND_Z, "bounds": bounds, "runs": runs,
+               "seconds": round(time.perf_counter() - start, 1), "versions": package_versions(),
+               "provenance": provenance or make_provenance({"dataset": plan.seed}, None)}
+    write_json(out / "results.json", results)
+    write_stealth_report(results, out / "report.html")
+    return results
+
+
+__all__ = ["BOUND_Z", "HORIZONS", "PROFILES", "StealthPlan", "envelope", "physical_bound", "run_stealth",
+           "stealth_config", "summarise"]
