@@ -128,7 +128,7 @@ def _stealth(profile, methods, data, configs, out, seed) -> None:
     plan = dataclasses.replace(plan, seed=seed)
     set_threads()
     try:
-        results = run_stealth(plan, out, echo=typer.echo)
+        results = run_stealth(plan, out, echo=typer.echo, profile=profile)
     except ValueError as e:
         fail(str(e))
     typer.echo(stealth_table(results).to_string(index=False))

@@ -173,9 +173,9 @@ def summarise(rows: list[dict[str, Any]], horizons: tuple[float, ...]) -> dict[s
 
 
 def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = print,
-                provenance: dict[str, Any] | None = None) -> dict[str, Any]:
+                profile: str | None = None) -> dict[str, Any]:
     """Every detector of the plan under each knowledge level and margin; results.json and
-    report.html in ``out``."""
+    report.html in ``out``. ``profile``: the plan's name in ``PROFILES`` (recorded)."""
     from quadformer.detectors import pretrained
     from quadformer.experiments.provenance import provenance as make_provenance
     from quadformer.io import package_versions, write_json
@@ -217,7 +217,7 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
                      f"(bound {bounds[set_name][f'{T:g}']:.1f} m; {time.perf_counter() - t0:.0f} s)")
     results = {"benchmark": "stealth", "plan": asdict(plan), "bound_z": BOUND_Z, "bounds": bounds, "runs": runs,
                "seconds": round(time.perf_counter() - start, 1), "versions": package_versions(),
-               "provenance": provenance or make_provenance({"dataset": plan.seed}, None)}
+               "provenance": make_provenance({"dataset": plan.seed}, profile)}
     write_json(out / "results.json", results)
     write_stealth_report(results, out / "report.html")
     return results
