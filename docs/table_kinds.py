@@ -338,6 +338,30 @@ def table_zoo_configs(res: dict[str, Any], spec: dict[str, Any], name: str) -> s
     return markdown(["method"] + [config_label({"name": c}) for c in configs], rows)
 
 
+def table_stealth(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
+    """The stealth benchmark: per shipped detector and attacker, the deviation unseen by each
+    horizon (median / worst over flights, m), the flights still hidden at the last horizon, and
+    the worst as a ratio to the physical bound; one row per set gives the bound itself."""
+    runs, bounds = res.get("runs"), res.get("bounds")
+    if not runs or not bounds:
+        raise TableError(f"table {name!r}: not a stealth benchmark's results (no runs or bounds)")
+    horizons = [f"{float(h):g}" for h in res["plan"]["horizons"]]
+    last = horizons[-1]
+    rows = []
+    for set_name in dict.fromkeys(r["set"] for r in runs):
+        b = bounds[set_name]
+        rows.append([f"**{set_name}: physical bound**", "-", *[f"{b[h]:.1f}" for h in horizons], "-", "1"])
+        for r in (r for r in runs if r["set"] == set_name):
+            s = r["summary"]
+            attacker = r["knowledge"] + (f" {r['margin']:g}" if r["margin"] else "")
+            rows.append([f"`{r['detector']}`", attacker,
+                         *[f"{s[f'deviation_median_{h}']:.1f} / {s[f'deviation_worst_{h}']:.1f}" for h in horizons],
+                         f"{s[f'hidden_{last}']:.0%}", f"{s[f'deviation_worst_{last}'] / b[last]:.2f}"])
+    head = ["detector", "attacker (margin)", *[f"unseen by {h} s (m)" for h in horizons],
+            f"hidden at {last} s", f"worst / bound at {last} s"]
+    return markdown(head, rows)
+
+
 KINDS = {"methods": table_methods, "seeds": table_seeds, "stress": table_stress, "typing": table_typing,
          "resilience": table_resilience, "field": table_field, "floors": table_floors, "zoo": table_zoo,
-         "zoo-configs": table_zoo_configs}
+         "zoo-configs": table_zoo_configs, "stealth": table_stealth}

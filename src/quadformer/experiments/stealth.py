@@ -20,10 +20,15 @@ and whether no alarm came by then (``hidden``); median and worst over the flight
 ``deviation_at_alarm``: where the vehicle was when the alarm came.
 
 The physical bound (``physical_bound``): the deviation that no test of GPS against the sensors'
-GPS-free evidence could see at ``BOUND_Z`` standard deviations: the horizontal position std of
-the filter's GPS-free reference (IMU, and VIO velocity or nothing horizontal without a camera)
-propagated from a converged start over T seconds, with the fix's own position noise. Each
-envelope reads as a ratio to it.
+GPS-free evidence can tell from the sensors' own errors at ``BOUND_Z`` standard deviations, T
+seconds after the onset. Over T, GPS minus the GPS-free reference changes by the reference's own
+error growth (its horizontal position variance propagated from a converged start with the
+filter's configuration: the IMU, and VIO velocity or nothing horizontal without a camera) and
+by the change of the receiver's slowly varying error (its Gauss-Markov part, ``gps.gm_std`` and
+``gps.gm_tau``: 2 gm_std^2 (1 - exp(-T / gm_tau))); the fix's white noise averages out over
+the fixes of T seconds and is left out. An attacker whose deviation stays under it is
+undetectable on these sensors; a detector whose envelope is far above it leaves room an
+attacker uses. Each envelope reads as a ratio to it.
 """
 
 from __future__ import annotations
@@ -128,9 +133,10 @@ def envelope(flights: pd.DataFrame, scores: np.ndarray, threshold: float, onset:
 
 
 def physical_bound(cfg: SimConfig, horizons: tuple[float, ...], z: float = BOUND_Z) -> dict[str, float]:
-    """``BOUND_Z`` x the std of GPS minus the GPS-free reference after T seconds: the reference's
-    horizontal position std propagated without GPS from the filter's converged start (IMU; VIO
-    velocity where the configuration has it), with the fix's horizontal position noise."""
+    """``z`` x the std of the change of GPS minus the GPS-free reference over T seconds, per
+    horizon T (keys as ``f"{T:g}"``): the reference's horizontal position variance growth without
+    GPS from the filter's converged start (IMU; VIO velocity where the configuration has it),
+    plus the change of the receiver's Gauss-Markov error over T."""
     import torch
 
     from quadformer.estimator.eskf import init_state, noise_model
@@ -146,7 +152,8 @@ def physical_bound(cfg: SimConfig, horizons: tuple[float, ...], z: float = BOUND
                      torch.diag(torch.from_numpy(std0 ** 2))[None])
     aiding = tuple(a for a in AIDING if cfg.has(a))
     ref = GpsFreeReference(ekf, nm, cfg.gps.rate_hz, aiding)
-    gps_var = float(nm.gps_std[0]) ** 2
+    start = float(ref.C[0, 0, 0, 0])
+    g = cfg.gps
     out, steps = {}, 0
     for T in sorted(horizons):
         while steps * cfg.dt < T - 1e-9:
@@ -154,7 +161,8 @@ def physical_bound(cfg: SimConfig, horizons: tuple[float, ...], z: float = BOUND
             steps += 1
             if "vio" in aiding and steps % cfg.steps_per_vio == 0:
                 ref.vio(torch.zeros(1, 3, dtype=torch.float64))
-        out[f"{T:g}"] = z * float(np.sqrt(ref.C[0, 0, 0, 0] + gps_var))
+        slow = 2.0 * g.gm_std ** 2 * (1.0 - np.exp(-T / g.gm_tau))
+        out[f"{T:g}"] = z * float(np.sqrt(max(float(ref.C[0, 0, 0, 0]) - start, 0.0) + slow))
     return out
 
 
