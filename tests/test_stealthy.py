@@ -94,3 +94,61 @@ def test_simulate_refuses_a_detector_it_cannot_evade_before_flying(tmp_path, arg
     assert res.exit_code != 0
     assert message in res.output
     assert not out.exists()
+
+
+def test_envelope_is_the_largest_deviation_before_the_first_alarm_per_horizon():
+    import pandas as pd
+
+    from quadformer.experiments.stealth import envelope
+
+    t = np.arange(0.0, 21.0)                            # one flight at 1 Hz, onset at 10 s
+    flights = pd.DataFrame({"flight_id": 0, "t": t, "est_pos_x": 0.3 * np.maximum(t - 10.0, 0.0), "true_pos_x": 0.0,
+                            "est_pos_y": 0.0, "true_pos_y": 0.0, "atk_d_x": 0.0, "atk_d_y": 0.0})
+    scores = np.where(t >= 15.0, 5.0, 0.0)              # the first alarm at 15 s
+    scores[3] = 9.0                                     # and one before the onset
+    (row,) = envelope(flights, scores, threshold=1.0, onset=10.0, horizons=(3.0, 10.0))
+    assert row["alarm_before_onset"] and row["first_alarm_s"] == 5.0
+    assert row["deviation_3"] == pytest.approx(0.6) and row["hidden_3"]          # t = 10, 11, 12
+    assert row["deviation_10"] == pytest.approx(1.2) and not row["hidden_10"]    # up to t = 14, then seen
+    assert row["deviation_at_alarm"] == pytest.approx(1.5)
+
+
+def test_physical_bound_grows_with_time_and_is_far_wider_without_a_camera():
+    from quadformer.experiments.stealth import PROFILES, physical_bound, stealth_config
+
+    plan = PROFILES["stealth"]
+    vio = physical_bound(stealth_config("vio-cusum", plan, "black", None), (10.0, 60.0, 200.0))
+    magbaro = physical_bound(stealth_config("magbaro-cusum", plan, "black", None), (10.0, 60.0))
+    assert vio["10"] < vio["60"] < vio["200"] and magbaro["10"] < magbaro["60"]
+    # with VIO the reference barely drifts: the receiver's slow error (0.5 m, 30 s) sets it, 3 sqrt(2) 0.5
+    assert vio["200"] == pytest.approx(3 * np.sqrt(2) * 0.5, rel=0.1)
+    assert magbaro["60"] > 10 * vio["60"]
+
+
+def test_stealth_benchmark_writes_its_results_and_report(tmp_path):
+    import json
+
+    from quadformer.experiments.stealth import StealthPlan, run_stealth
+
+    plan = StealthPlan(detectors=("vio-cusum",), flights=1, horizons=(2.0, 4.0), onset=4.0, margins=(0.5,))
+    res = run_stealth(plan, tmp_path, echo=lambda s: None, profile="test")
+    assert [(r["knowledge"], r["margin"]) for r in res["runs"]] == [("white", 0.5), ("black", None)]
+    saved = json.loads((tmp_path / "results.json").read_text())
+    assert saved["provenance"]["profile"] == "test" and set(saved["bounds"]) == {"vio"}
+    for r in saved["runs"]:
+        s = r["summary"]
+        assert s["deviation_median_2"] <= s["deviation_median_4"] and 0.0 <= s["hidden_4"] <= 1.0
+    page = (tmp_path / "report.html").read_text()
+    assert "worst / bound" in page and "<img" in page            # the table, and the envelope curves
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--methods", "vio-nothing"], "--methods: no shipped detector 'vio-nothing'"),
+    (["--data", "somewhere"], "--profile stealth flies each shipped detector's own simulation"),
+    (["--profile", "stealth-slow"], "the stealth profiles are stealth, stealth-quick"),
+])
+def test_stealth_benchmark_refuses_what_it_cannot_fly(tmp_path, args, message):
+    full = ["benchmark", "--out", str(tmp_path / "run"), *(["--profile", "stealth"] if "--profile" not in args else []),
+            *args]
+    res = CliRunner().invoke(app, full)
+    assert res.exit_code != 0 and message in res.output
