@@ -126,7 +126,8 @@ def _stealth(profile, methods, data, configs, out, seed) -> None:
                 fail(f"--methods: {e}")
         plan = dataclasses.replace(plan, detectors=names)
     plan = dataclasses.replace(plan, seed=seed)
-    set_threads()
+    set_threads(1)      # the closed loop's small batched operations and a detector's stream per probe: one
+                        # thread each is fastest (two threads of each of two runs on two cores ran 5-50x slower)
     try:
         results = run_stealth(plan, out, echo=typer.echo, profile=profile)
     except ValueError as e:
