@@ -362,6 +362,29 @@ def table_stealth(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
     return markdown(head, rows)
 
 
+def table_stealth_summary(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
+    """The stealth benchmark at one horizon (``horizon``, s): per detector, the attacker who went
+    farthest unseen (the worst flight), its median / worst deviation unseen, the flights it kept
+    hidden, and the worst as a ratio to the physical bound."""
+    runs, bounds = res.get("runs"), res.get("bounds")
+    if not runs or not bounds:
+        raise TableError(f"table {name!r}: not a stealth benchmark's results (no runs or bounds)")
+    h = f"{float(spec['horizon']):g}"
+    if f"deviation_worst_{h}" not in runs[0]["summary"]:
+        raise TableError(f"table {name!r}: no horizon {h} s in the results")
+    rows = []
+    for det in dict.fromkeys(r["detector"] for r in runs):
+        best = max((r for r in runs if r["detector"] == det), key=lambda r: r["summary"][f"deviation_worst_{h}"])
+        s, b = best["summary"], bounds[best["set"]][h]
+        rows.append([f"`{det}`", best["knowledge"] + (f" {best['margin']:g}" if best["margin"] else ""),
+                     f"{s[f'deviation_median_{h}']:.1f} / {s[f'deviation_worst_{h}']:.1f}",
+                     f"{s[f'hidden_{h}']:.0%}", f"{b:.1f}", f"{s[f'deviation_worst_{h}'] / b:.2f}"])
+    head = ["detector", "farthest attacker", f"deviation unseen by {h} s, median / worst (m)", f"hidden at {h} s",
+            f"physical bound at {h} s (m)", "worst / bound"]
+    return markdown(head, rows)
+
+
 KINDS = {"methods": table_methods, "seeds": table_seeds, "stress": table_stress, "typing": table_typing,
          "resilience": table_resilience, "field": table_field, "floors": table_floors, "zoo": table_zoo,
-         "zoo-configs": table_zoo_configs, "stealth": table_stealth}
+         "zoo-configs": table_zoo_configs, "stealth": table_stealth,
+         "stealth-summary": table_stealth_summary}
