@@ -60,6 +60,15 @@ TABLES: dict[str, dict[str, Any]] = {
             "command": "quadformer zoo build"},
     "zoo-vio": {"source": "../src/quadformer/detectors/pretrained/models/index.json", "kind": "zoo-configs",
                 "set": "vio", "command": "quadformer zoo build"},
+    "stealth-vio": {"source": "results/stealth-vio/results.json", "kind": "stealth",
+                    "command": "quadformer benchmark --profile stealth --methods "
+                               "vio-quadformer,vio-cusum,vio-chi2,vio-cusum-ref --out runs/stealth-vio"},
+    "stealth-summary-vio": {"source": "results/stealth-vio/results.json", "kind": "stealth-summary", "horizon": 60,
+                            "command": "quadformer benchmark --profile stealth --methods "
+                                       "vio-quadformer,vio-cusum,vio-chi2,vio-cusum-ref --out runs/stealth-vio"},
+    "stealth-magbaro": {"source": "results/stealth-magbaro/results.json", "kind": "stealth",
+                        "command": "quadformer benchmark --profile stealth --methods "
+                                   "magbaro-glr,magbaro-cusum,magbaro-cusum-ref --out runs/stealth-magbaro"},
     "field": {"source": "results/field/results.json", "kind": "field",
               "command": "quadformer benchmark --profile field --logs ../shared/data/real-flights "
                          "--manifest ../shared/data/real-flights/MANIFEST.csv --out runs/field"},

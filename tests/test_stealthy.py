@@ -152,3 +152,18 @@ def test_stealth_benchmark_refuses_what_it_cannot_fly(tmp_path, args, message):
             *args]
     res = CliRunner().invoke(app, full)
     assert res.exit_code != 0 and message in res.output
+
+
+def test_simulate_writes_a_stealthy_dataset_from_the_command_line(tmp_path):
+    import pandas as pd
+
+    out = tmp_path / "ds"
+    res = CliRunner().invoke(app, ["simulate", "--out", str(out), "--attack", "stealthy", "--attack-detector",
+                                   "vio-cusum", "--margin", "0.5", "--flights", "1", "--duration", "6",
+                                   "--onset", "2,2", "--attack-fraction", "1", "--quiet"])
+    assert res.exit_code == 0, res.output
+    scen = pd.read_parquet(out / "scenarios.parquet")
+    assert scen.attack_type.tolist() == ["stealthy"] and scen.rate.tolist() == [3.0]
+    flights = pd.read_parquet(out / "flights.parquet")
+    assert (flights.attack_type[flights.t >= 2.0] == "stealthy").all()
+    assert (np.hypot(flights.atk_d_x, flights.atk_d_y)[flights.t < 2.0] == 0).all()
