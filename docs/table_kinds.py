@@ -338,6 +338,11 @@ def table_zoo_configs(res: dict[str, Any], spec: dict[str, Any], name: str) -> s
     return markdown(["method"] + [config_label({"name": c}) for c in configs], rows)
 
 
+def _attacker(run: dict[str, Any]) -> str:
+    """A stealth run's attacker: its knowledge, and the white box's margin."""
+    return run["knowledge"] + (f" {run['margin']:g}" if run["margin"] else "")
+
+
 def table_stealth(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
     """The stealth benchmark: per shipped detector and attacker, the deviation unseen by each
     horizon (median / worst over flights, m), the flights still hidden at the last horizon, and
@@ -353,8 +358,7 @@ def table_stealth(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
         rows.append([f"**{set_name}: physical bound**", "-", *[f"{b[h]:.1f}" for h in horizons], "-", "1"])
         for r in (r for r in runs if r["set"] == set_name):
             s = r["summary"]
-            attacker = r["knowledge"] + (f" {r['margin']:g}" if r["margin"] else "")
-            rows.append([f"`{r['detector']}`", attacker,
+            rows.append([f"`{r['detector']}`", _attacker(r),
                          *[f"{s[f'deviation_median_{h}']:.1f} / {s[f'deviation_worst_{h}']:.1f}" for h in horizons],
                          f"{s[f'hidden_{last}']:.0%}", f"{s[f'deviation_worst_{last}'] / b[last]:.2f}"])
     head = ["detector", "attacker (margin)", *[f"unseen by {h} s (m)" for h in horizons],
@@ -376,7 +380,7 @@ def table_stealth_summary(res: dict[str, Any], spec: dict[str, Any], name: str) 
     for det in dict.fromkeys(r["detector"] for r in runs):
         best = max((r for r in runs if r["detector"] == det), key=lambda r: r["summary"][f"deviation_worst_{h}"])
         s, b = best["summary"], bounds[best["set"]][h]
-        rows.append([f"`{det}`", best["knowledge"] + (f" {best['margin']:g}" if best["margin"] else ""),
+        rows.append([f"`{det}`", _attacker(best),
                      f"{s[f'deviation_median_{h}']:.1f} / {s[f'deviation_worst_{h}']:.1f}",
                      f"{s[f'hidden_{h}']:.0%}", f"{b:.1f}", f"{s[f'deviation_worst_{h}'] / b:.2f}"])
     head = ["detector", "farthest attacker", f"deviation unseen by {h} s, median / worst (m)", f"hidden at {h} s",

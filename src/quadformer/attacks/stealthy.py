@@ -60,7 +60,9 @@ class StealthyAttacker:
         B = len(self.mine)
         self.offset = np.zeros(B)          # m along u
         self.speed = np.zeros(B)           # m/s along u, at the last fix
-        self.probes = 0                    # candidate fixes scored (white box)
+        # what a trial copy of the stream shares with it: the detector and its model (deepcopy's memo)
+        det = getattr(stream, "detector", None)
+        self._shared = {} if det is None else {id(det): det, **{id(v): v for v in vars(det).values()}}
 
     @property
     def bound(self) -> float:
@@ -103,15 +105,13 @@ class StealthyAttacker:
         u = self.attack.direction
         off = (self.offset + speed * self.dt)[:, None] * u
         cols = rows(pos + torch.from_numpy(off), vel + torch.from_numpy(speed[:, None] * u))
-        self.probes += 1
         s = np.asarray(self._trial().update(cols).score, dtype=float)
         return np.where(np.isfinite(s), s, np.inf)
 
     def _trial(self):
-        """A copy of the stream to try a fix on, sharing the detector (its model) with the original."""
-        det = self.stream.detector
-        memo = {id(det): det, **{id(v): v for v in vars(det).values()}}
-        return copy.deepcopy(self.stream, memo)
+        """A copy of the stream to try a fix on, sharing the detector (its model) with the original
+        (a fresh memo each time: deepcopy fills it with the copies it makes)."""
+        return copy.deepcopy(self.stream, dict(self._shared))
 
     def _white(self, pos, vel, cap, rows) -> np.ndarray:
         bound = self.bound

@@ -41,7 +41,7 @@ from typing import Any, Callable
 import numpy as np
 import pandas as pd
 
-from quadformer.config import SimConfig
+from quadformer.config import KNOWLEDGE, SimConfig
 from quadformer.report.stealth import write_stealth_report
 
 HORIZONS = (10.0, 30.0, 60.0, 120.0)
@@ -64,9 +64,9 @@ class StealthPlan:
     def __post_init__(self) -> None:
         if not self.detectors:
             raise ValueError("stealth: name at least one detector")
-        bad = [k for k in self.knowledge if k not in ("white", "black")]
+        bad = [k for k in self.knowledge if k not in KNOWLEDGE]
         if bad:
-            raise ValueError(f"stealth: knowledge {bad[0]!r}; choose from white, black")
+            raise ValueError(f"stealth: knowledge {bad[0]!r}; choose from {', '.join(KNOWLEDGE)}")
         if any(not 0.0 < m <= 1.0 for m in self.margins):
             raise ValueError(f"stealth: margins must be in (0, 1], got {self.margins}")
         if self.flights < 1 or not self.horizons or min(self.horizons) <= 0:
@@ -87,11 +87,14 @@ PROFILES = {
 }
 
 
-def stealth_config(detector: str, plan: StealthPlan, knowledge: str, margin: float | None) -> SimConfig:
-    """The flights a detector is attacked on: its calibration's simulation, every flight attacked."""
-    from quadformer.detectors import pretrained
+def stealth_config(detector: str, plan: StealthPlan, knowledge: str, margin: float | None,
+                   det=None) -> SimConfig:
+    """The flights a detector is attacked on: its calibration's simulation, every flight attacked.
+    ``det``: the shipped detector ``detector`` already loaded (else it is loaded here)."""
+    if det is None:
+        from quadformer.detectors import pretrained
 
-    det = pretrained.load(detector)
+        det = pretrained.load(detector)
     sim = dict((getattr(det, "calibration_", None) or {}).get("sim_config") or {})
     if not sim:
         raise ValueError(f"stealth: {detector} records no simulation it was calibrated on")
@@ -142,11 +145,10 @@ def physical_bound(cfg: SimConfig, horizons: tuple[float, ...], z: float = BOUND
     from quadformer.estimator.eskf import init_state, noise_model
     from quadformer.estimator.reference import GpsFreeReference
     from quadformer.estimator.residues import AIDING
+    from quadformer.simulation.closed_loop import initial_std
 
     nm = noise_model(cfg.imu, cfg.gps, cfg.vio, cfg.ekf, 1.0 / cfg.dt, cfg.mag, cfg.baro)
-    e = cfg.ekf
-    std0 = np.array([e.init_pos_std] * 3 + [e.init_vel_std] * 3 + [np.deg2rad(e.init_att_std_deg)] * 3
-                    + [cfg.imu.accel_bias_std] * 3 + [cfg.imu.gyro_bias_std] * 3)
+    std0 = initial_std(cfg)
     zero = torch.zeros(1, 3, dtype=torch.float64)
     ekf = init_state(zero, zero, torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=torch.float64), zero, zero,
                      torch.diag(torch.from_numpy(std0 ** 2))[None])
@@ -198,7 +200,7 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
         entry = pretrained.resolve(name)
         for knowledge in plan.knowledge:
             for margin in (plan.margins if knowledge == "white" else (None,)):
-                cfg = stealth_config(name, plan, knowledge, margin)
+                cfg = stealth_config(name, plan, knowledge, margin, det)
                 key = cfg.to_dict()
                 key["attack"].pop("detector")
                 key = repr(key)

@@ -19,6 +19,11 @@ from quadformer.io import atomic_write_text
 from quadformer.report.html import img, page, png, table, versions
 
 
+def attacker(run: dict[str, Any]) -> str:
+    """A run's attacker as the tables name it: its knowledge, and the white box's margin."""
+    return run["knowledge"] + (f" {run['margin']:g}" if run["margin"] else "")
+
+
 def stealth_table(results: dict[str, Any]) -> pd.DataFrame:
     """One row per detector, knowledge and margin: the median and worst deviation unseen by each
     horizon, the share of flights still hidden at the last, the bound and the ratio to it."""
@@ -26,7 +31,7 @@ def stealth_table(results: dict[str, Any]) -> pd.DataFrame:
     rows = []
     for r in results["runs"]:
         s, b = r["summary"], results["bounds"][r["set"]]
-        row = {"detector": r["detector"], "attacker": r["knowledge"] + (f" {r['margin']:g}" if r["margin"] else "")}
+        row = {"detector": r["detector"], "attacker": attacker(r)}
         for T in horizons:
             row[f"{T:g} s"] = f"{s[f'deviation_median_{T:g}']:.1f} / {s[f'deviation_worst_{T:g}']:.1f}"
         last = f"{max(horizons):g}"
@@ -45,18 +50,18 @@ def _curves(results: dict[str, Any]) -> str:
 
     horizons = [float(h) for h in results["plan"]["horizons"]]
     runs = results["runs"]
-    panels = sorted({(r["set"], r["knowledge"] + (f" {r['margin']:g}" if r["margin"] else "")) for r in runs})
+    panels = sorted({(r["set"], attacker(r)) for r in runs})
     fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.6), squeeze=False)
-    for ax, (set_name, attacker) in zip(axes[0], panels):
+    for ax, (set_name, label) in zip(axes[0], panels):
         for r in runs:
-            if r["set"] != set_name or r["knowledge"] + (f" {r['margin']:g}" if r["margin"] else "") != attacker:
+            if r["set"] != set_name or attacker(r) != label:
                 continue
             s = r["summary"]
             ax.plot([0.0, *horizons], [0.0, *[s[f"deviation_median_{h:g}"] for h in horizons]], "o-", ms=3,
                     lw=1, label=r["detector"])
         b = results["bounds"][set_name]
         ax.plot([0.0, *horizons], [0.0, *[b[f"{h:g}"] for h in horizons]], "k--", lw=1, label="physical bound")
-        ax.set_title(f"{set_name}, {attacker} box", fontsize=9)
+        ax.set_title(f"{set_name}, {label} box", fontsize=9)
         ax.set_xlabel("s since the onset")
         ax.set_ylabel("deviation unseen (m, median)")
         ax.legend(fontsize=6)
@@ -68,8 +73,7 @@ def _curves(results: dict[str, Any]) -> str:
 
 def write_stealth_report(results: dict[str, Any], path: Path) -> Path:
     plan = results["plan"]
-    flights = pd.DataFrame([{"detector": r["detector"], "attacker": r["knowledge"]
-                             + (f" {r['margin']:g}" if r["margin"] else ""), **f}
+    flights = pd.DataFrame([{"detector": r["detector"], "attacker": attacker(r), **f}
                             for r in results["runs"] for f in r["flights"]])
     parts = [
         "<h1>quadformer stealth benchmark</h1>",

@@ -56,6 +56,14 @@ def records(cfg: SimConfig) -> dict[str, int]:
     return {g.name: g.width for g in groups_for(cfg.sensors) if g.name != "ref_pos"}
 
 
+def initial_std(cfg: SimConfig) -> np.ndarray:
+    """The filter's initial error std (15,): position, velocity, attitude (rad), accelerometer and
+    gyro biases: the filter has converged on the ground before the mission."""
+    e = cfg.ekf
+    return np.array([e.init_pos_std] * 3 + [e.init_vel_std] * 3 + [np.deg2rad(e.init_att_std_deg)] * 3
+                    + [cfg.imu.accel_bias_std] * 3 + [cfg.imu.gyro_bias_std] * 3)
+
+
 class BatchResult(dict):
     """Arrays of one batch: ``records(cfg)`` entries (B, n_gps, k) plus labels and scenario info."""
 
@@ -204,9 +212,7 @@ def _simulate_loop(groups, progress, record_nees, record_sensors, admission, str
     nm = noise_model(cfg.imu, cfg.gps, cfg.vio, cfg.ekf, 1.0 / dt, cfg.mag, cfg.baro)
     aiding = tuple(a for a in AIDING if cfg.has(a))
 
-    e = cfg.ekf
-    std0 = np.array([e.init_pos_std] * 3 + [e.init_vel_std] * 3 + [np.deg2rad(e.init_att_std_deg)] * 3
-                    + [cfg.imu.accel_bias_std] * 3 + [cfg.imu.gyro_bias_std] * 3)
+    std0 = initial_std(cfg)
     err = torch.from_numpy(init_err * std0[:9])
     q0 = plant.state["q"]
     ekf = init_state(p0 + err[:, 0:3], v0 + err[:, 3:6],
