@@ -5,12 +5,14 @@ alarm spoofing; the physical floor of a log the project writes."""
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pandas as pd
 import pytest
 
 from quadformer.detectors import make
-from quadformer.detectors.glr import INPUTS, StepGLR
+from quadformer.detectors.glr import INPUTS, StepGLR, warmup_widening
 from quadformer.detectors.receiver_health import ReceiverHealth
 from quadformer.detectors.streams import ScoredStream
 from quadformer.resilience.step import OnlineStep
@@ -82,6 +84,39 @@ def test_a_noisier_vehicle_normalises_itself_after_calib_min_s_in_the_air(fitted
     assert np.all(ground[~warm] <= s[~warm] * (25.0 / 100.0) * 1.6 + 1e-9)
 
 
+def test_the_warm_up_widening_shrinks_to_one_at_calib_min_s():
+    windows, q = (0.2, 1.0, 4.0), 0.75
+    w = [warmup_widening(a, windows, 20.0, q) for a in (2.0, 5.0, 10.0, 20.0, 60.0)]
+    np.testing.assert_allclose(w[3], 1.0)
+    np.testing.assert_allclose(w[4], 1.0)
+    assert all(np.all(a > b) for a, b in zip(w[:3], w[1:4]))      # fewer seconds, wider
+    assert np.all(np.diff(w[0]) > 0)                                # longer windows, wider
+    # the robust std's relative standard error at q 0.75 is 0.914 / sqrt(n): three of them beyond
+    # what 20 s give, n = seconds / (window + 0.2 s)
+    n = lambda a, M: a / (M + 0.2)                                  # noqa: E731
+    expect = 1 + 3 * 0.9136 * (1 / np.sqrt(n(2.0, 0.2)) - 1 / np.sqrt(n(20.0, 0.2)))
+    assert abs(w[0][0] - expect) < 2e-3
+
+
+def test_a_step_early_in_the_air_scores_a_few_times_less_not_a_hundred(fitted):
+    """A velocity step 8 s after take-off: with the warm-up (the flight's own scales from 2 s in
+    the air, widened) it scores within a factor of 3 of the same step after the calibration; with
+    the noisiest vehicle's scales until 20 s (warm_s = calib_min_s, as before the warm-up) a
+    hundredth. The clean warm-up of a vehicle five times noisier than trained stays quiet."""
+    early = flight(60, vel_step=(8.0, 1.0))
+    late = flight(60, vel_step=(120.0, 1.0))
+    t = early["t"].to_numpy()
+    on_early, on_late = (t >= 8.0) & (t < 10.0), (t >= 120.0) & (t < 122.0)
+    s_early = fitted.decision_function(early)[on_early].max()
+    s_late = fitted.decision_function(late)[on_late].max()
+    old = copy.deepcopy(fitted).set_params(warm_s=fitted.calib_min_s)
+    s_old = old.decision_function(early)[on_early].max()
+    assert s_early > s_late / 3
+    assert s_old < s_late / 30
+    noisy = flight(61, seconds=30.0, noise=0.5)
+    assert fitted.decision_function(noisy)[noisy["t"].to_numpy() < 20.0].max() < 16.0
+
+
 def test_a_transient_in_the_calibration_window_does_not_teach_the_scale(fitted):
     quiet = flight(40)
     spoofed = flight(40, vel_step=(30.0, 3.0))                     # a 3 m/s onset inside the first 60 s
@@ -115,6 +150,8 @@ def test_bad_settings_and_input_are_named(fitted):
         make("glr", adapt=0.5).fit(flight(1))
     with pytest.raises(ValueError, match="windows"):
         make("glr", windows=(0.2, -1.0)).fit(flight(1))
+    with pytest.raises(ValueError, match="warm_s"):
+        make("glr", warm_s=30.0).fit(flight(1))
     st = fitted.stream(1)
     row = flight(2).iloc[5].to_dict()
     st.update(row)
@@ -238,8 +275,6 @@ def sim_glr(bias_dataset):
 
 
 def test_a_profile_on_few_minutes_keeps_the_threshold_and_says_what_it_needs(sim_glr, tmp_path):
-    import copy
-
     from quadformer.logs.calibration import vehicle_profile
 
     det = copy.deepcopy(sim_glr)
@@ -257,8 +292,6 @@ def test_a_profile_on_few_minutes_keeps_the_threshold_and_says_what_it_needs(sim
 
 
 def test_a_profile_refuses_another_vehicles_log_and_another_sensor_set(sim_glr, tmp_path):
-    import copy
-
     from quadformer.logs import LogError, read_log
     from quadformer.logs.calibration import vehicle_profile
     from quadformer.logs.detect import NothingToScore, detect_log
@@ -276,13 +309,16 @@ def test_a_profile_refuses_another_vehicles_log_and_another_sensor_set(sim_glr, 
 
 
 def test_a_vehicle_of_its_own_noise_gets_its_scales_from_enough_minutes(sim_glr):
-    """With the vehicle's scales, a profile uses them from take-off (no warm-up at the prior times adapt)."""
-    import copy
+    """With the vehicle's scales, a profile uses them from take-off: no warm-up (the prior times
+    adapt for the first 2 s in the air, then the flight's own scales widened for their few seconds)."""
 
     det = copy.deepcopy(sim_glr)
     det.vehicle_ = True
     s_vehicle = det.decision_function(flight(60, noise=0.1))
     s_prior = sim_glr.decision_function(flight(60, noise=0.1))
+    no_warm_up = copy.deepcopy(sim_glr).set_params(warm_s=sim_glr.calib_min_s)
+    s_adapt = no_warm_up.decision_function(flight(60, noise=0.1))
     t = np.arange(1, len(s_vehicle) + 1) / RATE
     early = (t > 8.0) & (t < 20.0)
-    assert s_vehicle[early].mean() > 10 * s_prior[early].mean()     # the prior x adapt until calibrated
+    assert s_vehicle[early].mean() > 1.5 * s_prior[early].mean()    # the warm-up's widening
+    assert s_vehicle[early].mean() > 10 * s_adapt[early].mean()     # the prior x adapt until calibrated

@@ -30,11 +30,16 @@ moves. The scales come from the data instead:
 
 - ``fit`` learns prior scales from training flights (their clean steps in the air): a robust
   standard deviation (1.4826 x the median absolute deviation) of each component of each d_M;
-- each flight then normalises itself. Until it has ``calib_min_s`` seconds in the air, the
-  scales are the prior's times ``adapt`` (the noisiest vehicle the test allows: a large spoof
-  is still seen, a small one waits for the calibration); with a vehicle profile (``vehicle_``,
-  written by ``quadformer calibrate`` from the vehicle's own clean flights) the prior is the
-  vehicle's and is used as it is from take-off. From then on, the scales
+- each flight then normalises itself. Until it has ``warm_s`` seconds in the air, the scales
+  are the prior's times ``adapt`` (the noisiest vehicle the test allows: a large spoof is still
+  seen); with a vehicle profile (``vehicle_``, written by ``quadformer calibrate`` from the
+  vehicle's own clean flights) the prior is the vehicle's and is used as it is from take-off.
+  From ``warm_s`` to ``calib_min_s`` seconds in the air (the warm-up) the scales are the flight's
+  own robust standard deviations so far, widened by their extra sampling error against what
+  ``calib_min_s`` seconds give (``warmup_widening``: a scale from a few seconds is uncertain, the
+  more so for the long windows, of which a few seconds hold fewer independent values), within
+  ``adapt`` times the prior either way: the score of a spoof begun early in a flight is a few
+  times smaller than later, not a hundred times. From ``calib_min_s`` on, the scales
   are the robust standard deviations of the flight's own d_M over its steps in the air so far,
   up to its first ``calib_s`` seconds in the air (then frozen), refreshed every ``refresh_s``
   seconds of data; each is kept within ``adapt`` times the prior either way. The robust std is
@@ -81,6 +86,9 @@ EDGE = 1e-6               # s: a step exactly M seconds old is outside the windo
 PERIOD_FIXES = 50         # intervals before a fix whose median is the receiver's period
 PERIOD_MIN = 5            # intervals needed before the period is used
 SNAP = 0.25               # periods an interval may differ from a whole number of them to be snapped
+WARM_SIGMAS = 3.0         # the warm-up widens a scale by this many of its estimate's standard errors
+WARM_SPACING_S = 0.2      # s between two windows counted as independent, beyond their length
+WARM_MIN_VALUES = 10      # values a column's own scale needs in the warm-up
 
 
 def _check_settings(det: "StepGLR") -> None:
@@ -98,6 +106,29 @@ def _check_settings(det: "StepGLR") -> None:
         raise ValueError(f"glr: groups must name some of {', '.join(GROUP_NAMES)}, got {det.groups!r}")
     if det.adapt < 1:
         raise ValueError(f"glr: adapt must be at least 1, got {det.adapt!r}")
+    warm = getattr(det, "warm_s", det.calib_min_s)
+    if not (isinstance(warm, (int, float)) and 0 <= warm <= det.calib_min_s):
+        raise ValueError(f"glr: warm_s must be from 0 to calib_min_s ({det.calib_min_s!r}), got {warm!r}")
+
+
+def warmup_widening(air_s, windows, calib_min_s: float, quantile: float) -> np.ndarray:
+    """Per window, the factor a flight's own scale is widened by after ``air_s`` seconds in the
+    air (one number, or one per window: the seconds its values cover), before ``calib_min_s`` (1
+    from then on): 1 + ``WARM_SIGMAS`` x the estimate's relative
+    standard error now less that at ``calib_min_s``. The robust std (the ``quantile`` of the
+    absolute deviation) of n independent normal values has relative standard error
+    sqrt(q (1 - q)) / (2 phi(z) z) / sqrt(n), z the normal quantile of (1 + q) / 2 (0.91 / sqrt(n)
+    at q 0.75); a window of M seconds gives about one independent value every M + ``WARM_SPACING_S``
+    seconds. The calibration trusts the scale from ``calib_min_s`` on; before, it is widened by
+    the uncertainty it has beyond that trust, so the factor meets 1 there without a jump."""
+    z = float(ndtri(0.5 + quantile / 2))
+    rel = math.sqrt(quantile * (1 - quantile)) / (2 * math.exp(-0.5 * z * z) / math.sqrt(2 * math.pi) * z)
+    out = []
+    for M, a in zip(windows, np.broadcast_to(np.asarray(air_s, dtype=float), (len(windows),))):
+        n_now = max(float(a), 1e-9) / (M + WARM_SPACING_S)
+        n_trust = max(calib_min_s, 1e-9) / (M + WARM_SPACING_S)
+        out.append(1.0 + WARM_SIGMAS * rel * max(0.0, 1.0 / math.sqrt(n_now) - 1.0 / math.sqrt(n_trust)))
+    return np.asarray(out)
 
 
 def epoch_interval(dt: float, recent) -> float:
@@ -189,7 +220,8 @@ class _Calibration:
         self.prior = np.maximum(np.asarray(det.scale_, dtype=float), TINY)
         # the prior is the vehicle's own (a vehicle profile: ``logs.calibration.vehicle_profile``):
         # trusted from take-off; else the noisiest vehicle allowed until the flight has calibrated
-        self.scale = self.prior.copy() if getattr(det, "vehicle_", None) else self.prior * det.adapt
+        self.vehicle = bool(getattr(det, "vehicle_", None))
+        self.scale = self.prior.copy() if self.vehicle else self.prior * det.adapt
         self.rows: deque[tuple[float, np.ndarray]] = deque()   # (t, d) of steps in the air
         self.air_s = 0.0               # s of steps in the air taken so far
         self.last_t = math.nan         # the previous step's time
@@ -199,7 +231,10 @@ class _Calibration:
 
     def scales(self, t: float) -> np.ndarray:
         det = self.det
-        if self.frozen or t < self.refreshed + det.refresh_s - EDGE or self.air_s < det.calib_min_s - EDGE:
+        if self.frozen or t < self.refreshed + det.refresh_s - EDGE:
+            return self.scale
+        warming = self.air_s < det.calib_min_s - EDGE
+        if warming and (self.vehicle or self.air_s < getattr(det, "warm_s", det.calib_min_s) - EDGE):
             return self.scale
         rows = self.rows
         if det.track_s is not None:          # a trailing window, the last guard_s left out
@@ -210,7 +245,15 @@ class _Calibration:
             use = [d for _, d in rows]
         if len(use) >= 2:
             own = robust_scale(np.asarray(use), det.quantile)
-            own = np.where(np.isfinite(own), own, self.prior)
+            if warming:
+                # each column's own scale widened for the seconds its values cover; one with fewer
+                # than WARM_MIN_VALUES values keeps the noisiest vehicle's scale
+                have = np.isfinite(np.asarray(use)).sum(axis=0)
+                covered = (have.reshape(len(det.windows), WIDTH).min(axis=1) / len(use)) * self.air_s
+                wide = np.repeat(warmup_widening(covered, det.windows, det.calib_min_s, det.quantile), WIDTH)
+                own = np.where(np.isfinite(own) & (have >= WARM_MIN_VALUES), own * wide, self.prior * det.adapt)
+            else:
+                own = np.where(np.isfinite(own), own, self.prior)
             self.scale = np.clip(own, self.prior / det.adapt, self.prior * det.adapt)
             self.refreshed = t
             if det.track_s is None and self.air_s >= det.calib_s - EDGE:
@@ -242,7 +285,7 @@ class StepGLR(Detector):
                  calib_s: float = 60.0, calib_min_s: float = 20.0, refresh_s: float = 1.0,
                  adapt: float = 10.0, quantile: float = 0.75, track_s: float | None = None,
                  guard_s: float = 10.0, groups: tuple[str, ...] = ("position", "velocity", "consistency"),
-                 learn_below: float = 25.0) -> None:
+                 learn_below: float = 25.0, warm_s: float = 2.0) -> None:
         self.windows = tuple(windows)
         self.reference_s = reference_s
         self.calib_s = calib_s
@@ -254,6 +297,7 @@ class StepGLR(Detector):
         self.guard_s = guard_s
         self.groups = tuple(groups)
         self.learn_below = learn_below
+        self.warm_s = warm_s
 
     # -- fitting ------------------------------------------------------------------------
     def _features(self, X: pd.DataFrame) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray]:
