@@ -102,7 +102,8 @@ def test_a_step_early_in_the_air_scores_a_few_times_less_not_a_hundred(fitted):
     """A velocity step 8 s after take-off: with the warm-up (the flight's own scales from 2 s in
     the air, widened) it scores within a factor of 3 of the same step after the calibration; with
     the noisiest vehicle's scales until 20 s (warm_s = calib_min_s, as before the warm-up) a
-    hundredth. The clean warm-up of a vehicle five times noisier than trained stays quiet."""
+    hundredth. The clean warm-up of a vehicle five times noisier than trained stays quiet, and so
+    does a calm hover's before its first manoeuvre."""
     early = flight(60, vel_step=(8.0, 1.0))
     late = flight(60, vel_step=(120.0, 1.0))
     t = early["t"].to_numpy()
@@ -115,6 +116,14 @@ def test_a_step_early_in_the_air_scores_a_few_times_less_not_a_hundred(fitted):
     assert s_old < s_late / 30
     noisy = flight(61, seconds=30.0, noise=0.5)
     assert fitted.decision_function(noisy)[noisy["t"].to_numpy() < 20.0].max() < 16.0
+    # a calm hover (a fifth of the trained noise) until the first manoeuvre at 6 s (the trained
+    # noise): the warm-up never takes a scale below the prior, so the manoeuvre scores as a clean
+    # step, not 25 times one
+    calm = flight(62, seconds=30.0)
+    quiet = calm["t"].to_numpy() < 6.0
+    for c in INPUTS[:6]:
+        calm.loc[quiet, c] = calm.loc[quiet, c] / 5.0
+    assert fitted.decision_function(calm).max() < 16.0
 
 
 def test_a_transient_in_the_calibration_window_does_not_teach_the_scale(fitted):

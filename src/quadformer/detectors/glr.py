@@ -37,8 +37,10 @@ moves. The scales come from the data instead:
   From ``warm_s`` to ``calib_min_s`` seconds in the air (the warm-up) the scales are the flight's
   own robust standard deviations so far, widened by their extra sampling error against what
   ``calib_min_s`` seconds give (``warmup_widening``: a scale from a few seconds is uncertain, the
-  more so for the long windows, of which a few seconds hold fewer independent values), within
-  ``adapt`` times the prior either way: the score of a spoof begun early in a flight is a few
+  more so for the long windows, of which a few seconds hold fewer independent values), never
+  below the prior (a few seconds may show a flight noisier than the trained vehicles, not
+  quieter: a hover's calm before the first manoeuvre is not the vehicle's noise) and at most
+  ``adapt`` times it: the score of a spoof begun early in a flight is a few
   times smaller than later, not a hundred times. From ``calib_min_s`` on, the scales
   are the robust standard deviations of the flight's own d_M over its steps in the air so far,
   up to its first ``calib_s`` seconds in the air (then frozen), refreshed every ``refresh_s``
@@ -252,6 +254,9 @@ class _Calibration:
                 covered = (have.reshape(len(det.windows), WIDTH).min(axis=1) / len(use)) * self.air_s
                 wide = np.repeat(warmup_widening(covered, det.windows, det.calib_min_s, det.quantile), WIDTH)
                 own = np.where(np.isfinite(own) & (have >= WARM_MIN_VALUES), own * wide, self.prior * det.adapt)
+                # a few seconds may show a flight noisier than the prior, not quieter: a hover's
+                # calm before the first manoeuvre is not the vehicle's noise
+                own = np.maximum(own, self.prior)
             else:
                 own = np.where(np.isfinite(own), own, self.prior)
             self.scale = np.clip(own, self.prior / det.adapt, self.prior * det.adapt)
