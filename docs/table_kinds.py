@@ -343,13 +343,20 @@ def _attacker(run: dict[str, Any]) -> str:
     return run["knowledge"] + (f" {run['margin']:g}" if run["margin"] else "")
 
 
+def stealth_runs(res: dict[str, Any], spec: dict[str, Any], name: str) -> list[dict[str, Any]]:
+    """A stealth benchmark's runs, of the detectors ``methods`` names (default every one)."""
+    runs, bounds = res.get("runs"), res.get("bounds")
+    if not runs or not bounds:
+        raise TableError(f"table {name!r}: not a stealth benchmark's results (no runs or bounds)")
+    keep = pick_methods(list(dict.fromkeys(r["detector"] for r in runs)), spec.get("methods"), name)
+    return [r for r in runs if r["detector"] in keep]
+
+
 def table_stealth(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
     """The stealth benchmark: per shipped detector and attacker, the deviation unseen by each
     horizon (median / worst over flights, m), the flights still hidden at the last horizon, and
     the worst as a ratio to the physical bound; one row per set gives the bound itself."""
-    runs, bounds = res.get("runs"), res.get("bounds")
-    if not runs or not bounds:
-        raise TableError(f"table {name!r}: not a stealth benchmark's results (no runs or bounds)")
+    runs, bounds = stealth_runs(res, spec, name), res["bounds"]
     horizons = [f"{float(h):g}" for h in res["plan"]["horizons"]]
     last = horizons[-1]
     rows = []
@@ -370,9 +377,7 @@ def table_stealth_summary(res: dict[str, Any], spec: dict[str, Any], name: str) 
     """The stealth benchmark at one horizon (``horizon``, s): per detector, the attacker who went
     farthest unseen (the worst flight), its median / worst deviation unseen, the flights it kept
     hidden, and the worst as a ratio to the physical bound."""
-    runs, bounds = res.get("runs"), res.get("bounds")
-    if not runs or not bounds:
-        raise TableError(f"table {name!r}: not a stealth benchmark's results (no runs or bounds)")
+    runs, bounds = stealth_runs(res, spec, name), res["bounds"]
     h = f"{float(spec['horizon']):g}"
     if f"deviation_worst_{h}" not in runs[0]["summary"]:
         raise TableError(f"table {name!r}: no horizon {h} s in the results")
