@@ -141,3 +141,20 @@ def test_each_table_says_how_its_results_were_produced(tmp_path):
         "seeds: runs [0, 1]; profile demo.")
     assert "with uncommitted changes" in tables.provenance_line(
         {"provenance": {**recorded["provenance"], "modified": True}})
+
+
+def test_a_partly_rebuilt_zoo_says_how_each_set_was_built():
+    """A zoo whose sets were built by different commands: a set's table names its own build, the
+    table of every set names each group's."""
+    tables = _tables()
+    build = {"command": "quadformer zoo build --sets magbaro", "argv": [], "commit": "abcdef0123456789",
+             "modified": False, "version": "0.1.0", "seeds": {"zoo": 1000}, "profile": None}
+    zoo = {"seed": 1000, "provenance": build, "detectors": {},
+           "sets": {"magbaro": {"provenance": build}, "ardupilot": {"provenance": build}, "vio": {}}}
+    own = ("Produced by `quadformer zoo build --sets magbaro` at commit `abcdef012345`; seeds: zoo 1000; "
+           "profile none.")
+    old = "Provenance: no command line or commit recorded (written before runs recorded them); recorded: seed 1000."
+    assert tables.provenance_lines(zoo, {"set": "magbaro"}) == own
+    assert tables.provenance_lines(zoo, {"set": "vio"}) == old
+    assert tables.provenance_lines(zoo, {}) == f"- magbaro, ardupilot: {own}\n- vio: {old}"
+    assert tables.provenance_lines({"provenance": build}, {}) == own           # any other results file

@@ -235,6 +235,7 @@ def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: l
             elif r in chosen:
                 doc["sets"][r.set], built = _build_set(r, tmp, cache_dir, flights, seed, progress, workers, echo,
                                                        duration)
+                doc["sets"][r.set]["provenance"] = doc["provenance"]    # a kept set keeps its own
                 doc["detectors"].update(built)
         if field is not None:
             echo(f"field figures of the {attach_field(doc, field)} set from {field}")
