@@ -40,8 +40,8 @@ moves. The scales come from the data instead:
   more so for the long windows, of which a few seconds hold fewer independent values), never
   below the prior (a few seconds may show a flight noisier than the trained vehicles, not
   quieter: a hover's calm before the first manoeuvre is not the vehicle's noise) and at most
-  ``adapt`` times it: the score of a spoof begun early in a flight is a few
-  times smaller than later, not a hundred times. From ``calib_min_s`` on, the scales
+  ``adapt`` times it: a spoof begun early in a flight is judged against at most the trained
+  vehicles' noise, not ten times it. From ``calib_min_s`` on, the scales
   are the robust standard deviations of the flight's own d_M over its steps in the air so far,
   up to its first ``calib_s`` seconds in the air (then frozen), refreshed every ``refresh_s``
   seconds of data; each is kept within ``adapt`` times the prior either way. The robust std is
@@ -116,8 +116,8 @@ def _check_settings(det: "StepGLR") -> None:
 def warmup_widening(air_s, windows, calib_min_s: float, quantile: float) -> np.ndarray:
     """Per window, the factor a flight's own scale is widened by after ``air_s`` seconds in the
     air (one number, or one per window: the seconds its values cover), before ``calib_min_s`` (1
-    from then on): 1 + ``WARM_SIGMAS`` x the estimate's relative
-    standard error now less that at ``calib_min_s``. The robust std (the ``quantile`` of the
+    from then on): 1 + ``WARM_SIGMAS`` x the estimate's relative standard error now less that at
+    ``calib_min_s``. The robust std (the ``quantile`` of the
     absolute deviation) of n independent normal values has relative standard error
     sqrt(q (1 - q)) / (2 phi(z) z) / sqrt(n), z the normal quantile of (1 + q) / 2 (0.91 / sqrt(n)
     at q 0.75); a window of M seconds gives about one independent value every M + ``WARM_SPACING_S``
@@ -221,7 +221,7 @@ class _Calibration:
         self.det = det
         self.prior = np.maximum(np.asarray(det.scale_, dtype=float), TINY)
         # the prior is the vehicle's own (a vehicle profile: ``logs.calibration.vehicle_profile``):
-        # trusted from take-off; else the noisiest vehicle allowed until the flight has calibrated
+        # trusted from take-off; else the noisiest vehicle allowed until the warm-up begins
         self.vehicle = bool(getattr(det, "vehicle_", None))
         self.scale = self.prior.copy() if self.vehicle else self.prior * det.adapt
         self.rows: deque[tuple[float, np.ndarray]] = deque()   # (t, d) of steps in the air
