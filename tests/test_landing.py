@@ -135,6 +135,9 @@ def test_an_alert_3_s_before_the_landed_event_is_relabelled_online_and_offline_a
     assert alert_counts(alerts) == {"alerts": 1, "alerts_ground": 0, "alerts_transition": 1, "alerts_degraded": 0,
                                     "alerts_total": 2}
     assert "in the landing transition" in str(alerts[1])
+    # the landing explains the alarm: no attack shape is claimed for it (the one in the air keeps its)
+    assert alerts[1].attack_type == "unexplained" and alerts[0].attack_type == "attack"
+    assert str(alerts[1]).startswith("flight 0: unexplained alert at 47.0 s in the landing transition")
     # a longer land_s reaches the first alert too; 0 relabels nothing
     wide = PhaseRule(land_s=31.0)
     assert [a.phase for a in online(rows, scores, det, events=events, rule=wide)[0]] == ["transition"] * 2
@@ -316,3 +319,20 @@ def test_bad_input_is_refused_with_the_value_named():
         step_alerts(rows, scores, det, "shape", impacts=pd.DataFrame({"t": [1.0], "detail": ["x"]}))
     with pytest.raises(ValueError, match="impacts: 1 row.* without a finite time"):
         step_alerts(rows, scores, det, "shape", impacts=pd.DataFrame({"t": [np.nan], "crash": [True]}))
+
+
+def test_a_landing_takes_back_the_attack_shape_of_the_alert_it_explains():
+    """An alert typed by shape (raised ``ramp``, confirmed ``bias``) that a landing relabels is
+    typed ``unexplained``, confirmed type included; the tracker's other alerts keep theirs."""
+    from quadformer.detectors.alarms import AlertTracker
+
+    tr = AlertTracker(1)
+    for t, on in ((1.0, True), (1.2, False), (3.0, True), (3.2, False)):
+        tr.update(t, np.array([50.0 if on else 0.0]), np.array([on]), attack_type=np.array(["ramp"], dtype=object))
+    tr.confirm(0, 1.0, "bias")
+    tr.confirm(0, 3.0, "bias")
+    ev = tr.relabel(0, 3.0, "transition", "landing at t=4.0 s (impact: 6.1 g)", 4.0, attack_type="unexplained")
+    assert (ev.alert.attack_type, ev.alert.confirmed_type, ev.alert.phase, ev.was) == (
+        "unexplained", "unexplained", "transition", "air")
+    first = [a for _, _, a in tr.closed() if a.start_s == 1.0][0]
+    assert (first.attack_type, first.confirmed_type, first.phase) == ("ramp", "bias", "air")

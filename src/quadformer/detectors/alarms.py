@@ -206,10 +206,18 @@ class AlertTracker:
         return None if got is None else AlertEvent("alert_type", i, t, got[1], raised_as=None)
 
     def relabel(self, i: int, start_s: float, phase: str, reason: str | None,
-                t: float | None = None) -> AlertEvent | None:
+                t: float | None = None, attack_type: str | None = None) -> AlertEvent | None:
         """Set the flight phase of flight i's alert raised at ``start_s`` (open, or among those
-        kept) and add ``reason`` to its own; the ``alert_relabel`` event (None: no such alert)."""
-        got = self._amend(i, start_s, lambda a: relabelled(a, phase, reason))
+        kept) and add ``reason`` to its own; with ``attack_type``, its type (and its confirmed
+        type, where it has one) too; the ``alert_relabel`` event (None: no such alert)."""
+        def change(a: Alert) -> Alert:
+            b = relabelled(a, phase, reason)
+            if attack_type is None:
+                return b
+            return dataclasses.replace(b, attack_type=attack_type,
+                                       confirmed_type=None if a.confirmed_type is None else attack_type)
+
+        got = self._amend(i, start_s, change)
         return None if got is None else AlertEvent("alert_relabel", i, t, got[1], was=got[0].phase)
 
     def _amend(self, i: int, start_s: float, change) -> tuple[Alert, Alert] | None:

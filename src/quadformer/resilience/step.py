@@ -27,6 +27,8 @@ driver owns only its clock and its I/O. Per step, for ``n`` flights stepped toge
    ``land_s`` before: the step keeps those alerts and, when the phase declares the landing,
    relabels them ``transition`` with the landing's reason (``alert_relabel`` events, returned by
    the call that fed the landing), so a flight's alerts end with the phases ``phases`` gives.
+   The landing explains such an alarm (a hard landing's or a crash's transient), so no attack
+   shape is claimed for it: its type, and its confirmed type, become ``unexplained``.
 
 Offline scoring of a whole log (``logs.detect``) computes the same scores in one batch (every
 detector's stream equals its ``decision_function``) and runs the same ``AlertTracker`` over
@@ -43,7 +45,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 import numpy as np
 
 from quadformer.detectors.alarms import AlertEvent, AlertTracker, with_reason
-from quadformer.detectors.attack_types import OnlineTyper
+from quadformer.detectors.attack_types import UNEXPLAINED, OnlineTyper
 from quadformer.detectors.flight_phase import FlightPhase
 from quadformer.detectors.receiver_health import SPOOFED, ReceiverHealth
 from quadformer.estimator.schema import GROUPS, NIS, as_columns
@@ -126,6 +128,7 @@ class OnlineStep:
         self.phase, self.health = phase, health
         self.tracker = AlertTracker(self.n, flight_ids, keep=keep)
         self.pending: deque[tuple[float, str]] = deque(maxlen=MAX_PENDING)
+        self.unshaped: set[float] = set()   # raised at: the alerts a landing explained (typed unexplained)
         self.recent: deque[tuple[float, int]] = deque(maxlen=MAX_RECENT)   # (start_s, holder) raised in the air
         self._zeros = np.zeros(self.n)
         self._last_t: float | None = None          # the last step's time (a crash just before the end)
@@ -301,7 +304,10 @@ class OnlineStep:
             kept = deque(maxlen=MAX_RECENT)
             for start, holder in self.recent:
                 if landing.t - land_s <= start < landing.seen_t:
-                    ev = (self.tracker.relabel(0, start, "transition", landing.reason, landing.seen_t)
+                    if holder == TRACKER:       # the landing explains it: no attack shape is claimed
+                        self.unshaped.add(start)
+                    ev = (self.tracker.relabel(0, start, "transition", landing.reason, landing.seen_t,
+                                               attack_type=UNEXPLAINED)
                           if holder == TRACKER else
                           self.health.relabel(start, "transition", landing.reason, landing.seen_t))
                     if ev is not None:
@@ -317,6 +323,9 @@ class OnlineStep:
         out = []
         while self.pending and (t is None or t >= self.pending[0][0] + self.typer.typer.confirm_s):
             start, raised = self.pending.popleft()
+            if start in self.unshaped:        # a landing explained it before its type was confirmed
+                self.unshaped.discard(start)
+                continue
             ev = self.tracker.confirm(0, start, self.typer.type_now(), self.typer.last_t)
             if ev is not None:
                 out.append(AlertEvent(ev.event, ev.flight, ev.t, ev.alert, ev.step, raised_as=raised))
