@@ -224,6 +224,8 @@ def test_an_impact_relabels_an_alert_2_s_before_it_and_holds_a_transition_after(
     why = f"landing at t={hit:.1f} s (impact: {impacts(imu).g.iloc[0]:.1f} g)"
     alerts, log = online(rows, scores, det, events=events, height=height, imu=imu)
     assert labels(alerts) == [(28.0, "transition", why), (31.0, "transition", why), (37.0, "air", None)]
+    # relabelled by the impact, or raised in its hold: the landing explains them, no attack shape
+    assert [a.attack_type for a in alerts] == ["unexplained", "unexplained", "attack"]
     (relabel,) = [e for e in log if e.event == "alert_relabel"]
     assert (relabel.t, relabel.alert.start_s, relabel.was) == (hit, 28.0, "air")
     assert step_alerts(rows, scores, det, "shape", events=events, height=height, impacts=impacts(imu)) == alerts

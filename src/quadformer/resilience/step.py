@@ -28,7 +28,8 @@ driver owns only its clock and its I/O. Per step, for ``n`` flights stepped toge
    relabels them ``transition`` with the landing's reason (``alert_relabel`` events, returned by
    the call that fed the landing), so a flight's alerts end with the phases ``phases`` gives.
    The landing explains such an alarm (a hard landing's or a crash's transient), so no attack
-   shape is claimed for it: its type, and its confirmed type, become ``unexplained``.
+   shape is claimed for it: its type, and its confirmed type, become ``unexplained``, as do those
+   of the alerts raised in a landing's transition already declared (an impact's hold).
 
 Offline scoring of a whole log (``logs.detect``) computes the same scores in one batch (every
 detector's stream equals its ``decision_function``) and runs the same ``AlertTracker`` over
@@ -165,14 +166,18 @@ class OnlineStep:
             t0 = float(np.asarray(t).reshape(-1)[0])
             raised, label, events = self._label(t0, alarm, cols)
         kinds = types
+        landing = self.phase is not None and label.get("phase") == "transition" and bool(
+            self.phase.reason(float(np.asarray(t).reshape(-1)[0])))
         if self.typer is not None:
             t0 = float(np.asarray(t).reshape(-1)[0])
             row = {c: float(np.asarray(v).reshape(-1)[0]) for c, v in cols.items()}
             if self.typer.push(t0, row):
                 events += self._confirm(t0)
-                if raised[0] and self.tracker.open[0] is None:
+                if raised[0] and self.tracker.open[0] is None and not landing:
                     kinds = np.array([self.typer.type_now()], dtype=object)
                     self.pending.append((t0, str(kinds[0])))
+        if landing:                 # raised in a landing's transition: the landing explains it
+            kinds = np.full(self.n, UNEXPLAINED, dtype=object)
         a = self.tracker.open[0] if self.health is not None else None
         if a is not None and a.kind == "degraded" and raised[0] and label.get("kind") == "spoofing":
             # an alarm raised while the receiver was degraded (a lost lock) goes on, and now the
