@@ -6,7 +6,8 @@
 alert raised is counted by kind and flight phase (``detectors.alert_counts``: the headline, the
 spoofing alerts in the air, and the others beside it). An alert raised in the air shortly before
 a landing is relabelled when the landing is seen (``alert_relabel``: a console line and a record
-in ``alerts.jsonl``, nothing to the vehicle): the alerts kept and the counts take its new phase.
+in ``alerts.jsonl``, nothing to the vehicle): the alerts kept and the counts take its new phase,
+and the alerts kept its type (``unexplained``: the landing explains it).
 
 Each alert says its kind (``spoofing``, or ``degraded``: raised while the receiver was degraded,
 or the receiver's degraded episode itself), its flight phase and its reason. Its STATUSTEXT
@@ -142,7 +143,8 @@ class Alerting:
             elif ev.event == "alert_relabel":
                 event.update(start_s=a.start_s, kind=a.kind, attack_type=a.attack_type, phase=a.phase, was=ev.was,
                              reason=a.reason)
-                self._amend(a, phase=a.phase, reason=a.reason)
+                self._amend(a, phase=a.phase, reason=a.reason, attack_type=a.attack_type,
+                            confirmed_type=a.confirmed_type)
                 self.counts.subtract(alert_counts([dataclasses.replace(a, phase=ev.was)]))
                 self.counts.update(alert_counts([a]))
                 self.echo(f"[t {ev.t:.1f} s] alert of t {a.start_s:.1f} s: {phase_words(a.phase, a.reason)}, "
