@@ -287,9 +287,10 @@ def test_the_monitor_writes_the_relabel_and_its_alert_list_shows_the_new_phase(t
     assert relabel["reason"] == "landing at t=30.0 s (crash: 5.8 g)" and relabel["vehicle_t"] == pytest.approx(31.0)
     (kept,) = alerting.alerts
     assert (kept.start_s, kept.phase, kept.reason) == (27.0, "transition", relabel["reason"])
+    assert relabel["attack_type"] == kept.attack_type == "unexplained"
     assert {k: v for k, v in alerting.counts.items() if v} == {"alerts_transition": 1, "alerts_total": 1}
     assert any("alert of t 27.0 s: in the landing transition, not in the air" in line for line in lines)
-    assert statustext(kept, 50.0) == "GPS SPOOF ALERT attack s=50 in landing"
+    assert statustext(kept, 50.0) == "GPS SPOOF ALERT unexplained s=50 in landing"   # the crash explains it
 
 
 # -- bad input ---------------------------------------------------------------------------------------------
