@@ -12,7 +12,8 @@ import pandas as pd
 import pytest
 
 from quadformer.detectors import make
-from quadformer.detectors.glr import INPUTS, StepGLR, warmup_widening
+from quadformer.detectors.flight_scales import warmup_widening
+from quadformer.detectors.glr import INPUTS, StepGLR
 from quadformer.detectors.receiver_health import ReceiverHealth
 from quadformer.detectors.streams import ScoredStream
 from quadformer.resilience.step import OnlineStep

@@ -36,8 +36,9 @@ moves. The scales come from the data instead:
   vehicle's own clean flights) the prior is the vehicle's and is used as it is from take-off.
   From ``warm_s`` to ``calib_min_s`` seconds in the air (the warm-up) the scales are the flight's
   own robust standard deviations so far, widened by their extra sampling error against what
-  ``calib_min_s`` seconds give (``warmup_widening``: a scale from a few seconds is uncertain, the
-  more so for the long windows, of which a few seconds hold fewer independent values), never
+  ``calib_min_s`` seconds give (``flight_scales.warmup_widening``: a scale from a few seconds is
+  uncertain, the more so for the long windows, of which a few seconds hold fewer independent
+  values), never
   below the prior (a few seconds may show a flight noisier than the trained vehicles, not
   quieter: a hover's calm before the first manoeuvre is not the vehicle's noise) and at most
   ``adapt`` times it: a spoof begun early in a flight is judged against at most the trained
@@ -67,9 +68,9 @@ from collections.abc import Mapping
 
 import numpy as np
 import pandas as pd
-from scipy.special import ndtri
 
 from quadformer.detectors.base import Detector, check_residues, flight_slices
+from quadformer.detectors.flight_scales import EDGE, TINY, FlightCalibration, robust_scale
 from quadformer.detectors.registry import register
 from quadformer.detectors.streams import DetectorStream, StreamStep
 
@@ -82,15 +83,9 @@ WIDTH = 8                 # components per window: the six innovations and the c
 #: the four groups' names, in the order of their component pairs
 GROUP_NAMES = ("position", "velocity", "vertical", "consistency")
 AIR = "in_air"
-MAD_STD = 1.4826          # robust std of a normal variable per median absolute deviation
-TINY = 1e-6               # a scale is never below this (m or m/s)
-EDGE = 1e-6               # s: a step exactly M seconds old is outside the window, whatever the rounding of t
 PERIOD_FIXES = 50         # intervals before a fix whose median is the receiver's period
 PERIOD_MIN = 5            # intervals needed before the period is used
 SNAP = 0.25               # periods an interval may differ from a whole number of them to be snapped
-WARM_SIGMAS = 3.0         # the warm-up widens a scale by this many of its estimate's standard errors
-WARM_SPACING_S = 0.2      # s between two windows counted as independent, beyond their length
-WARM_MIN_VALUES = 10      # values a column's own scale needs in the warm-up
 
 
 def _check_settings(det: "StepGLR") -> None:
@@ -111,26 +106,6 @@ def _check_settings(det: "StepGLR") -> None:
     warm = getattr(det, "warm_s", det.calib_min_s)
     if not (isinstance(warm, (int, float)) and 0 <= warm <= det.calib_min_s):
         raise ValueError(f"glr: warm_s must be from 0 to calib_min_s ({det.calib_min_s!r}), got {warm!r}")
-
-
-def warmup_widening(air_s, windows, calib_min_s: float, quantile: float) -> np.ndarray:
-    """Per window, the factor a flight's own scale is widened by after ``air_s`` seconds in the
-    air (one number, or one per window: the seconds its values cover), before ``calib_min_s`` (1
-    from then on): 1 + ``WARM_SIGMAS`` x the estimate's relative standard error now less that at
-    ``calib_min_s``. The robust std (the ``quantile`` of the
-    absolute deviation) of n independent normal values has relative standard error
-    sqrt(q (1 - q)) / (2 phi(z) z) / sqrt(n), z the normal quantile of (1 + q) / 2 (0.91 / sqrt(n)
-    at q 0.75); a window of M seconds gives about one independent value every M + ``WARM_SPACING_S``
-    seconds. The calibration trusts the scale from ``calib_min_s`` on; before, it is widened by
-    the uncertainty it has beyond that trust, so the factor meets 1 there without a jump."""
-    z = float(ndtri(0.5 + quantile / 2))
-    rel = math.sqrt(quantile * (1 - quantile)) / (2 * math.exp(-0.5 * z * z) / math.sqrt(2 * math.pi) * z)
-    out = []
-    for M, a in zip(windows, np.broadcast_to(np.asarray(air_s, dtype=float), (len(windows),))):
-        n_now = max(float(a), 1e-9) / (M + WARM_SPACING_S)
-        n_trust = max(calib_min_s, 1e-9) / (M + WARM_SPACING_S)
-        out.append(1.0 + WARM_SIGMAS * rel * max(0.0, 1.0 / math.sqrt(n_now) - 1.0 / math.sqrt(n_trust)))
-    return np.asarray(out)
 
 
 def epoch_interval(dt: float, recent) -> float:
@@ -179,100 +154,6 @@ def step_features(t: np.ndarray, x: np.ndarray, windows, reference_s: float) -> 
         b = (c[lo] - c[lo2]) / np.where(nb > 0, nb, 1)[:, None]
         out[:, WIDTH * j:WIDTH * (j + 1)] = np.where(ok[:, None], a - b, np.nan)
     return out
-
-
-def robust_scale(d: np.ndarray, q: float = 0.5) -> np.ndarray:
-    """Per column, of the finite rows: the q-quantile of the absolute deviation about the median,
-    as a normal variable's std (q 0.5: 1.4826 x the median absolute deviation); NaN for a column
-    without a finite row."""
-    d = np.asarray(d, dtype=float)
-    out = np.full(d.shape[1], np.nan)
-    have = np.isfinite(d).any(axis=0)
-    if have.any():
-        x = d[:, have]
-        dev = np.abs(x - np.nanmedian(x, axis=0))
-        out[have] = _nanquantile(dev, q) / float(ndtri(0.5 + q / 2))   # the normal quantile
-    return out
-
-
-def _nanquantile(x: np.ndarray, q: float) -> np.ndarray:
-    """``np.nanquantile(x, q, axis=0)`` (the same numbers) in one call per pattern of missing
-    rows: the columns of a window share theirs (the steps before the window filled), and
-    numpy's NaN-aware quantile works a column at a time."""
-    nan = np.isnan(x)
-    if not nan.any():
-        return np.quantile(x, q, axis=0)
-    out = np.full(x.shape[1], np.nan)
-    patterns: dict[bytes, list[int]] = {}
-    for j in range(x.shape[1]):
-        patterns.setdefault(nan[:, j].tobytes(), []).append(j)
-    for cols in patterns.values():
-        rows = ~nan[:, cols[0]]
-        if rows.any():
-            out[cols] = np.quantile(x[np.ix_(rows, cols)], q, axis=0)
-    return out
-
-
-class _Calibration:
-    """One flight's self-normalisation (see the module text), fed step by step: ``scales(t)``
-    before the step's score, ``add(t, d, in_air)`` after it."""
-
-    def __init__(self, det: "StepGLR"):
-        self.det = det
-        self.prior = np.maximum(np.asarray(det.scale_, dtype=float), TINY)
-        # the prior is the vehicle's own (a vehicle profile: ``logs.calibration.vehicle_profile``):
-        # trusted from take-off; else the noisiest vehicle allowed until the warm-up begins
-        self.vehicle = bool(getattr(det, "vehicle_", None))
-        self.scale = self.prior.copy() if self.vehicle else self.prior * det.adapt
-        self.rows: deque[tuple[float, np.ndarray]] = deque()   # (t, d) of steps in the air
-        self.air_s = 0.0               # s of steps in the air taken so far
-        self.last_t = math.nan         # the previous step's time
-        self.last_air = False
-        self.refreshed = -math.inf     # when the scales were last computed
-        self.frozen = False
-
-    def scales(self, t: float) -> np.ndarray:
-        det = self.det
-        if self.frozen or t < self.refreshed + det.refresh_s - EDGE:
-            return self.scale
-        warming = self.air_s < det.calib_min_s - EDGE
-        if warming and (self.vehicle or self.air_s < getattr(det, "warm_s", det.calib_min_s) - EDGE):
-            return self.scale
-        rows = self.rows
-        if det.track_s is not None:          # a trailing window, the last guard_s left out
-            while rows and rows[0][0] < t - det.track_s - det.guard_s - EDGE:
-                rows.popleft()
-            use = [d for ti, d in rows if ti <= t - det.guard_s + EDGE]
-        else:
-            use = [d for _, d in rows]
-        if len(use) >= 2:
-            own = robust_scale(np.asarray(use), det.quantile)
-            if warming:
-                # each column's own scale widened for the seconds its values cover; one with fewer
-                # than WARM_MIN_VALUES values keeps the noisiest vehicle's scale
-                have = np.isfinite(np.asarray(use)).sum(axis=0)
-                covered = (have.reshape(len(det.windows), WIDTH).min(axis=1) / len(use)) * self.air_s
-                wide = np.repeat(warmup_widening(covered, det.windows, det.calib_min_s, det.quantile), WIDTH)
-                own = np.where(np.isfinite(own) & (have >= WARM_MIN_VALUES), own * wide, self.prior * det.adapt)
-                # a few seconds may show a flight noisier than the prior, not quieter: a hover's
-                # calm before the first manoeuvre is not the vehicle's noise
-                own = np.maximum(own, self.prior)
-            else:
-                own = np.where(np.isfinite(own), own, self.prior)
-            self.scale = np.clip(own, self.prior / det.adapt, self.prior * det.adapt)
-            self.refreshed = t
-            if det.track_s is None and self.air_s >= det.calib_s - EDGE:
-                self.frozen = True
-                self.rows = deque()
-        return self.scale
-
-    def add(self, t: float, d: np.ndarray, in_air: bool, score: float) -> None:
-        if in_air and self.last_air and math.isfinite(self.last_t):
-            self.air_s += max(0.0, t - self.last_t)
-        self.last_t, self.last_air = t, in_air
-        if (in_air and not self.frozen and score <= self.det.learn_below
-                and (self.det.track_s is not None or self.air_s <= self.det.calib_s + EDGE)):
-            self.rows.append((t, d))
 
 
 def _score(d: np.ndarray, scale: np.ndarray, n_windows: int, use: np.ndarray) -> float:
@@ -356,7 +237,7 @@ class StepGLR(Detector):
         nw = len(self.windows)
         use = self._use()
         for _, idx in slices:
-            cal = _Calibration(self)
+            cal = FlightCalibration(self)
             for k in idx:
                 out[k] = _score(d[k], cal.scales(t[k]), nw, use)
                 cal.add(t[k], d[k], bool(air[k]), out[k])
@@ -385,7 +266,7 @@ class GLRStream(DetectorStream):
         self.span = max(detector.windows) + detector.reference_s
         self.buf: list[deque] = [deque() for _ in range(self.n)]
         self.first_t = [math.nan] * self.n
-        self.cal = [_Calibration(detector) for _ in range(self.n)]
+        self.cal = [FlightCalibration(detector) for _ in range(self.n)]
         self.steps = 0
         self.use = detector._use()
         self.prev: list[tuple[float, np.ndarray] | None] = [None] * self.n

@@ -171,7 +171,8 @@ def vehicle_profile(detector, paths: list[str | Path], per_hour: float = 1.0, co
     the vehicle (``vehicle_identity``) and the sensors fused recorded, so that ``check_profile``
     refuses another's logs. The logs must be of one vehicle."""
     from quadformer.detectors.calibration import budget_threshold, gps_rate
-    from quadformer.detectors.glr import INPUTS, robust_scale, step_features
+    from quadformer.detectors.flight_scales import robust_scale
+    from quadformer.detectors.glr import INPUTS, step_features
 
     if getattr(detector, "name", None) != "glr":
         raise ValueError(f"a vehicle profile normalises glr (its noise scales and threshold); {detector.name} is "

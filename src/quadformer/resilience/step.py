@@ -129,7 +129,6 @@ class OnlineStep:
         self.phase, self.health = phase, health
         self.tracker = AlertTracker(self.n, flight_ids, keep=keep)
         self.pending: deque[tuple[float, str]] = deque(maxlen=MAX_PENDING)
-        self.unshaped: set[float] = set()   # raised at: the alerts a landing explained (typed unexplained)
         self.recent: deque[tuple[float, int]] = deque(maxlen=MAX_RECENT)   # (start_s, holder) raised in the air
         self._zeros = np.zeros(self.n)
         self._last_t: float | None = None          # the last step's time (a crash just before the end)
@@ -162,28 +161,28 @@ class OnlineStep:
             after = np.array(self.admission.state)
         events: list[AlertEvent] = []
         raised, label = alarm, {}
+        t0 = float(np.asarray(t).reshape(-1)[0])
         if self.phase is not None or self.health is not None:
-            t0 = float(np.asarray(t).reshape(-1)[0])
             raised, label, events = self._label(t0, alarm, cols)
         kinds = types
-        landing = self.phase is not None and label.get("phase") == "transition" and bool(
-            self.phase.reason(float(np.asarray(t).reshape(-1)[0])))
+        # an alert raised in a landing's transition: the landing explains it, no attack shape
+        landing = (self.phase is not None and raised[0] and self.tracker.open[0] is None
+                   and label.get("phase") == "transition" and self.phase.reason(t0) is not None)
         if self.typer is not None:
-            t0 = float(np.asarray(t).reshape(-1)[0])
             row = {c: float(np.asarray(v).reshape(-1)[0]) for c, v in cols.items()}
             if self.typer.push(t0, row):
                 events += self._confirm(t0)
                 if raised[0] and self.tracker.open[0] is None and not landing:
                     kinds = np.array([self.typer.type_now()], dtype=object)
                     self.pending.append((t0, str(kinds[0])))
-        if landing:                 # raised in a landing's transition: the landing explains it
+        if landing:
             kinds = np.full(self.n, UNEXPLAINED, dtype=object)
         a = self.tracker.open[0] if self.health is not None else None
         if a is not None and a.kind == "degraded" and raised[0] and label.get("kind") == "spoofing":
             # an alarm raised while the receiver was degraded (a lost lock) goes on, and now the
             # receiver shows a capture sign while the fix moves against the IMU (or flags spoofing):
             # the degraded alert ends here and a spoofing one takes the alarm over
-            ended = self.tracker.end(0, float(np.asarray(t, dtype=float).reshape(-1)[0]))
+            ended = self.tracker.end(0, t0)
             events += [] if ended is None else [ended]
         started = self.tracker.update(t, score, raised, kinds, above, **label)
         if self.phase is not None:
@@ -309,8 +308,8 @@ class OnlineStep:
             kept = deque(maxlen=MAX_RECENT)
             for start, holder in self.recent:
                 if landing.t - land_s <= start < landing.seen_t:
-                    if holder == TRACKER:       # the landing explains it: no attack shape is claimed
-                        self.unshaped.add(start)
+                    if holder == TRACKER:       # the landing explains it: its type is confirmed no more
+                        self.pending = deque((p for p in self.pending if p[0] != start), maxlen=MAX_PENDING)
                     ev = (self.tracker.relabel(0, start, "transition", landing.reason, landing.seen_t,
                                                attack_type=UNEXPLAINED)
                           if holder == TRACKER else
@@ -328,9 +327,6 @@ class OnlineStep:
         out = []
         while self.pending and (t is None or t >= self.pending[0][0] + self.typer.typer.confirm_s):
             start, raised = self.pending.popleft()
-            if start in self.unshaped:        # a landing explained it before its type was confirmed
-                self.unshaped.discard(start)
-                continue
             ev = self.tracker.confirm(0, start, self.typer.type_now(), self.typer.last_t)
             if ev is not None:
                 out.append(AlertEvent(ev.event, ev.flight, ev.t, ev.alert, ev.step, raised_as=raised))
