@@ -16,6 +16,10 @@ estimate, is steered by -s u.
   the residues of the fix sent, as the detector's does. It knows the fix it sends (it sits
   where the fix is made), not what the receiver's noise will be at the next one: a score kept
   at the bound can be pushed over it by the next fix's noise, which ``margin`` leaves room for.
+- ``grey`` box: the white box's search, run on a surrogate: the same method with its default
+  parameters, fitted and calibrated on the attacker's own flights (another vehicle, other noise
+  draws), not on the vehicle's. It knows the method, not the calibration; what it achieves is
+  judged by the vehicle's own detector.
 - ``black`` box: no score; the offset accelerates in at ``accel`` up to ``rate`` m/s, the
   slow drift an attacker without access to the detector would choose.
 
@@ -42,8 +46,9 @@ REFINE = 4
 class StealthyAttacker:
     """The stealthy attack of a batch's flights (those of ``attack`` whose kind is ``stealthy``).
 
-    stream: the detector's online stream over the batch (white box; None for black box);
-    threshold: its alarm threshold."""
+    stream: the online stream over the batch of the detector the attacker runs (the vehicle's own
+    in the white box, its surrogate in the grey box; None for black box); threshold: that
+    detector's alarm threshold."""
 
     def __init__(self, attack: AttackBatch, knowledge: str, margin: float, rate_hz: float, stream=None,
                  threshold: float | None = None):
@@ -51,8 +56,8 @@ class StealthyAttacker:
             raise ValueError(f"knowledge: {knowledge!r}; choose from {', '.join(KNOWLEDGE)}")
         if not 0.0 < margin <= 1.0:
             raise ValueError(f"margin: must be in (0, 1], got {margin!r}")
-        if knowledge == "white" and (stream is None or threshold is None or not np.isfinite(threshold)):
-            raise ValueError("a white-box attacker needs the detector's stream and its threshold")
+        if knowledge != "black" and (stream is None or threshold is None or not np.isfinite(threshold)):
+            raise ValueError(f"a {knowledge}-box attacker needs a detector's stream and its threshold")
         self.attack, self.knowledge, self.margin = attack, knowledge, float(margin)
         self.dt = 1.0 / float(rate_hz)
         self.stream, self.threshold = stream, threshold
@@ -85,7 +90,7 @@ class StealthyAttacker:
             speed = np.minimum(self.speed + np.where(active, self.attack.accel, 0.0) * self.dt, cap)
         else:
             if rows is None:
-                raise ValueError("a white-box attacker scores its candidate fixes: pass rows")
+                raise ValueError(f"a {self.knowledge}-box attacker scores its candidate fixes: pass rows")
             speed = self._white(pos, vel, cap, rows)
         speed = np.where(active, speed, 0.0)
         self.offset = np.where(active, self.offset + speed * self.dt, self.offset)

@@ -41,9 +41,13 @@ def simulate(
                                                   "file; --rate caps how fast it moves the fix (default 3 m/s)."),
     knowledge: Optional[str] = typer.Option(None, help=f"Stealthy: what the attacker knows, {', '.join(KNOWLEDGE)} "
                                             "(default white: it runs the detector's stream on each fix it sends; "
+                                            "grey: the same on --surrogate, its own fit of the method; "
                                             "black: an accelerating drift at --accel, no score). See docs/stealth.md."),
-    margin: Optional[float] = typer.Option(None, help="Stealthy, white box: the score kept at or under margin x "
-                                           "the detector's threshold, in (0, 1] (default 0.9)."),
+    margin: Optional[float] = typer.Option(None, help="Stealthy, white or grey box: the score kept at or under "
+                                           "margin x the threshold of the detector it runs, in (0, 1] (default 0.9)."),
+    surrogate: Optional[str] = typer.Option(None, help="Stealthy, grey box: the detector the attacker runs in place "
+                                            "of the vehicle's, the same method fitted on its own flights (a model "
+                                            "file from quadformer fit, or a shipped name)."),
     config: Optional[Path] = typer.Option(None, "--config", help="TOML file with any SimConfig fields."),
     noise_from: list[Path] = typer.Option([], "--noise-from", help="Clean flight log(s) whose GPS, IMU, "
                                           "barometer and magnetometer noise the simulated sensors take "
@@ -94,7 +98,7 @@ def simulate(
            "duration": pair("--attack-duration", attack_duration), "magnitude": pair("--magnitude", magnitude),
            "rate": pair("--rate", rate), "accel": pair("--accel", accel), "onset_step": onset_step, "axes": axes,
            "mix": mix.split(",") if mix is not None else None, "detector": attack_detector,
-           "knowledge": knowledge, "margin": margin}
+           "knowledge": knowledge, "margin": margin, "surrogate": surrogate}
     fitted = None
     if noise_from:
         from quadformer.logs import LogError, read_log

@@ -71,7 +71,7 @@ _KIND_GENERIC = {"accel": (0.05, 0.5), "capture_s": (2.0, 2.0), "lock_loss_s": (
 HORIZONTAL_KINDS = ("ramp", "drift", "capture", STEALTH)
 #: the fields only a stealthy attack takes (None in every other configuration, and then left out of
 #: its dict: ``unset_kind_fields``)
-STEALTH_FIELDS = ("detector", "knowledge", "margin")
+STEALTH_FIELDS = ("detector", "knowledge", "margin", "surrogate")
 
 
 @dataclass(frozen=True)
@@ -101,7 +101,9 @@ class AttackConfig:
     lock_loss_s: tuple[float, float] | None = None     # s, the fix lost at a capture's start (capture)
     detector: str | None = None        # stealthy: the detector it evades (a shipped name or a model file)
     knowledge: str | None = None       # stealthy: what it knows of it (``KNOWLEDGE``; default white)
-    margin: float | None = None        # stealthy, white box: the score kept under margin x threshold (0, 1]
+    margin: float | None = None        # stealthy, white or grey box: the score kept under margin x threshold (0, 1]
+    surrogate: str | None = None       # stealthy, grey box: the detector the attacker runs instead (the same
+                                       # method fitted on its own flights: a model file or a shipped name)
 
     def __post_init__(self) -> None:
         _require(self.kind in ATTACK_CHOICES, "attack.kind",
@@ -177,6 +179,13 @@ class AttackConfig:
         _require(isinstance(margin, (int, float)) and not isinstance(margin, bool) and 0.0 < margin <= 1.0,
                  "attack.margin", f"must be in (0, 1] (the share of the threshold the score is kept under), "
                  f"got {self.margin!r}")
+        if knowledge == "grey":
+            _require(isinstance(self.surrogate, str) and self.surrogate.strip() != "", "attack.surrogate",
+                     "a grey-box attacker runs its own copy of the method: a model file of the same method "
+                     "fitted on its own flights (quadformer fit), or a shipped detector of it")
+        else:
+            _require(self.surrogate is None, "attack.surrogate",
+                     f"only a grey-box attacker runs a surrogate (attack.knowledge {knowledge!r})")
         object.__setattr__(self, "knowledge", knowledge)
         object.__setattr__(self, "margin", float(margin))
 

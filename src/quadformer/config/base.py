@@ -27,7 +27,7 @@ STEALTH = "stealthy"
 #: what a stealthy attacker knows: ``white`` runs the detector's own stream on the fixes it is about
 #: to send and keeps its score under ``margin`` x threshold; ``black`` sees no score and moves the fix
 #: as a slow accelerating drift (``accel``, up to ``rate``)
-KNOWLEDGE = ("white", "black")
+KNOWLEDGE = ("white", "grey", "black")
 #: the values of ``AttackConfig.kind``
 ATTACK_CHOICES = (*ATTACK_KINDS, MIX, STEALTH)
 MISSION_KINDS = ("hover", "circle", "lissajous", "minsnap")

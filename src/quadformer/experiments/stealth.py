@@ -7,6 +7,11 @@ attacked from ``onset`` to its end by a stealthy attacker (``attacks.stealthy``)
 
 - ``white`` box at each ``margin``: the attacker runs the detector's own stream on each fix it
   sends and keeps the score under margin x threshold, moving the fix at most ``rate`` m/s;
+- ``grey`` box at each ``margin``: the white box's search on a surrogate the attacker made
+  itself (``fit_surrogate``): the same method with the shipped detector's parameters, fitted on
+  ``SURROGATE_FLIGHTS`` clean flights of its own (the other airframe, other seeds) and alarmed at
+  their false-alarm-budget threshold. It knows the method, not the vehicle's calibration; the
+  learned detectors are not attacked so (the attacker would train a network of its own);
 - ``black`` box: no score; the fix drifts in at ``accel`` m/s^2 up to ``rate`` (flown once per
   simulation, scored by each detector of it): the slow shape an attacker without the detector
   would choose, and the fixed shape the white box is compared with.
@@ -41,12 +46,16 @@ from typing import Any, Callable
 import numpy as np
 import pandas as pd
 
-from quadformer.config import KNOWLEDGE, SimConfig
+from quadformer.config import KNOWLEDGE, MODELS, SimConfig
 from quadformer.report.stealth import write_stealth_report
 
 HORIZONS = (10.0, 30.0, 60.0, 120.0)
 #: the bound's standard deviations: one-sided, a false alarm in about 740 independent tests
 BOUND_Z = 3.0
+#: the grey-box attacker's own clean flights: half fit its surrogate, half set its threshold
+SURROGATE_FLIGHTS = 6
+#: added to the plan's seed for the attacker's own flights (none of them is a flight it attacks)
+SURROGATE_SEED = 7919
 
 
 @dataclass(frozen=True)
@@ -65,6 +74,8 @@ class StealthPlan:
         if not self.detectors:
             raise ValueError("stealth: name at least one detector")
         bad = [k for k in self.knowledge if k not in KNOWLEDGE]
+        if not self.knowledge:
+            raise ValueError(f"stealth: name at least one attacker's knowledge of {', '.join(KNOWLEDGE)}")
         if bad:
             raise ValueError(f"stealth: knowledge {bad[0]!r}; choose from {', '.join(KNOWLEDGE)}")
         if any(not 0.0 < m <= 1.0 for m in self.margins):
@@ -82,15 +93,17 @@ class StealthPlan:
 PROFILES = {
     "stealth": StealthPlan(detectors=("vio-quadformer", "vio-cusum", "vio-chi2", "vio-cusum-ref",
                                       "magbaro-glr", "magbaro-quadformer", "magbaro-cusum", "magbaro-chi2",
-                                      "magbaro-cusum-ref"), margins=(0.5, 0.8), flights=3),
+                                      "magbaro-cusum-ref"), knowledge=("white", "grey", "black"),
+                           margins=(0.5, 0.8), flights=3),
     "stealth-quick": StealthPlan(detectors=("vio-cusum", "magbaro-cusum"), flights=2, horizons=(10.0, 30.0)),
 }
 
 
 def stealth_config(detector: str, plan: StealthPlan, knowledge: str, margin: float | None,
-                   det=None) -> SimConfig:
+                   det=None, surrogate: Path | None = None) -> SimConfig:
     """The flights a detector is attacked on: its calibration's simulation, every flight attacked.
-    ``det``: the shipped detector ``detector`` already loaded (else it is loaded here)."""
+    ``det``: the shipped detector ``detector`` already loaded (else it is loaded here);
+    ``surrogate``: the grey box's model file (``fit_surrogate``)."""
     if det is None:
         from quadformer.detectors import pretrained
 
@@ -101,10 +114,54 @@ def stealth_config(detector: str, plan: StealthPlan, knowledge: str, margin: flo
     sim.update(flights=plan.flights, duration=plan.duration, batch_size=plan.flights, seed=plan.seed)
     attack = {"kind": "stealthy", "detector": detector, "knowledge": knowledge, "fraction": 1.0,
               "onset": (plan.onset, plan.onset), "rate": (plan.rate, plan.rate), "accel": (plan.accel, plan.accel)}
-    if knowledge == "white":
+    if knowledge in ("white", "grey"):
         attack["margin"] = margin
+    if knowledge == "grey":
+        if surrogate is None:
+            raise ValueError(f"stealth: a grey-box attack on {detector} needs its surrogate (fit_surrogate)")
+        attack["surrogate"] = str(surrogate)
     sim["attack"] = attack
     return SimConfig.from_dict(sim)
+
+
+def learned(det) -> bool:
+    """Whether ``det`` is a network (its surrogate would be a network the attacker trains)."""
+    return type(det).__module__.startswith("quadformer.detectors.neural")
+
+
+def surrogate_config(det, plan: StealthPlan) -> SimConfig:
+    """The grey-box attacker's own flights: the simulation ``det`` was calibrated on, flown with
+    the other airframe and other seeds, clean."""
+    sim = dict((getattr(det, "calibration_", None) or {}).get("sim_config") or {})
+    if not sim:
+        raise ValueError(f"stealth: {det.name} records no simulation it was calibrated on")
+    model = sim.get("model", MODELS[0])
+    sim.update(model=next(m for m in MODELS if m != model), flights=SURROGATE_FLIGHTS, duration=plan.duration,
+               batch_size=SURROGATE_FLIGHTS, seed=plan.seed + SURROGATE_SEED, attack={"kind": "none"})
+    return SimConfig.from_dict(sim)
+
+
+def fit_surrogate(det, plan: StealthPlan, path: Path) -> dict[str, Any]:
+    """The grey box's surrogate of ``det``, written to ``path``: a detector of the same method and
+    parameters fitted on half the attacker's own clean flights (``surrogate_config``) and alarmed
+    at the false-alarm-budget threshold of the other half (at most one alarm run per flight-hour:
+    on a few minutes of flight, their largest score). Returns what it is, for the results."""
+    from quadformer.simulation import simulate
+
+    if learned(det):
+        raise ValueError(f"stealth: {det.name} is a network; a grey-box attacker would train its own "
+                         "(not run: knowledge grey covers the methods fitted without training)")
+    cfg = surrogate_config(det, plan)
+    flights = simulate(cfg).flights
+    ids = np.sort(flights.flight_id.unique())
+    half = len(ids) // 2
+    sur = type(det)(**det.get_params())
+    sur.fit(flights[flights.flight_id.isin(ids[:half])].reset_index(drop=True))
+    sur.calibrate(flights[flights.flight_id.isin(ids[half:])].reset_index(drop=True), criterion="budget")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sur.save(path)
+    return {"file": path.name, "threshold": float(sur.threshold_), "model": cfg.model, "seed": cfg.seed,
+            "flights_fit": int(half), "flights_threshold": int(len(ids) - half)}
 
 
 def envelope(flights: pd.DataFrame, scores: np.ndarray, threshold: float, onset: float,
@@ -194,13 +251,26 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     black: dict[str, pd.DataFrame] = {}          # the black box's flights per simulation, flown once
-    runs, bounds, start = [], {}, time.perf_counter()
+    runs, bounds, skipped, start = [], {}, [], time.perf_counter()
     for name in plan.detectors:
         det = pretrained.load(name)
         entry = pretrained.resolve(name)
+        surrogate = None
         for knowledge in plan.knowledge:
-            for margin in (plan.margins if knowledge == "white" else (None,)):
-                cfg = stealth_config(name, plan, knowledge, margin, det)
+            if knowledge == "grey" and surrogate is None:
+                if learned(det):
+                    skipped.append({"detector": name, "knowledge": "grey", "reason": "a network: the attacker "
+                                    "would train its own"})
+                    echo(f"stealth: {name:20s} grey   not run ({skipped[-1]['reason']})")
+                    continue
+                t0 = time.perf_counter()
+                surrogate = fit_surrogate(det, plan, out / "surrogates" / f"{name}.json")
+                echo(f"stealth: {name:20s} grey   surrogate fitted on the attacker's own flights (airframe "
+                     f"{surrogate['model']}): threshold {surrogate['threshold']:.4g} against the vehicle's "
+                     f"{float(det.threshold_):.4g} ({time.perf_counter() - t0:.0f} s)")
+            for margin in (plan.margins if knowledge in ("white", "grey") else (None,)):
+                cfg = stealth_config(name, plan, knowledge, margin, det,
+                                     None if knowledge != "grey" else out / "surrogates" / surrogate["file"])
                 key = cfg.to_dict()
                 key["attack"].pop("detector")
                 key = repr(key)
@@ -219,13 +289,15 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
                 summary = summarise(rows, plan.horizons)
                 runs.append({"detector": name, "set": set_name, "method": entry.method, "knowledge": knowledge,
                              "margin": margin, "threshold": float(det.threshold_), "summary": summary,
-                             "flights": rows, "seconds": round(time.perf_counter() - t0, 1)})
+                             "flights": rows, "seconds": round(time.perf_counter() - t0, 1),
+                             **({"surrogate": surrogate} if knowledge == "grey" else {})})
                 T = max(plan.horizons)
                 echo(f"stealth: {name:20s} {knowledge:5s}" + (f" margin {margin:g}" if margin else " " * 11)
                      + f"  deviation unseen by {T:g} s: median {summary[f'deviation_median_{T:g}']:.1f} m, worst "
                      f"{summary[f'deviation_worst_{T:g}']:.1f} m; hidden {summary[f'hidden_{T:g}']:.0%} "
                      f"(bound {bounds[set_name][f'{T:g}']:.1f} m; {time.perf_counter() - t0:.0f} s)")
     results = {"benchmark": "stealth", "plan": asdict(plan), "bound_z": BOUND_Z, "bounds": bounds, "runs": runs,
+               "not_run": skipped,
                "seconds": round(time.perf_counter() - start, 1), "versions": package_versions(),
                "provenance": make_provenance({"dataset": plan.seed}, profile)}
     write_json(out / "results.json", results)
@@ -233,5 +305,5 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
     return results
 
 
-__all__ = ["BOUND_Z", "HORIZONS", "PROFILES", "StealthPlan", "envelope", "physical_bound", "run_stealth",
-           "stealth_config", "summarise"]
+__all__ = ["BOUND_Z", "HORIZONS", "PROFILES", "SURROGATE_FLIGHTS", "StealthPlan", "envelope", "fit_surrogate",
+           "learned", "physical_bound", "run_stealth", "stealth_config", "summarise", "surrogate_config"]

@@ -2,7 +2,9 @@
 
 ``attack.detector`` names a shipped detector (``quadformer zoo list``) or a saved model file
 (``quadformer fit``; an exported ``.onnx`` with its stream graph). It must read only what the
-configuration's sensors give, and have an alarm threshold.
+configuration's sensors give, and have an alarm threshold. A grey-box attacker runs
+``attack.surrogate`` instead, named the same ways: a detector of the same method, with its own
+fit and threshold, under the same conditions.
 """
 
 from __future__ import annotations
@@ -19,10 +21,25 @@ FIX_COLUMNS = ("gps_pos_x", "gps_pos_y", "gps_pos_z", "gps_vel_x", "gps_vel_y", 
 
 def attack_detector(cfg: SimConfig):
     """The detector ``cfg.attack.detector`` names, checked against the configuration's sensors."""
+    return _named(cfg, cfg.attack.detector, "attack.detector")
+
+
+def surrogate_detector(cfg: SimConfig, detector=None):
+    """The grey-box attacker's own detector, ``cfg.attack.surrogate``, checked as the vehicle's is
+    and against it: the same method (``detector``: the vehicle's, loaded when None)."""
+    det = attack_detector(cfg) if detector is None else detector
+    sur = _named(cfg, cfg.attack.surrogate, "attack.surrogate")
+    if sur.name != det.name:
+        raise ValueError(f"attack.surrogate: {cfg.attack.surrogate} is a {sur.name} detector and "
+                         f"{cfg.attack.detector} a {det.name} one; a grey-box attacker knows the method: give a "
+                         f"{det.name} detector fitted on other flights (quadformer fit --method {det.name})")
+    return sur
+
+
+def _named(cfg: SimConfig, name: str, field: str):
     from quadformer.detectors import pretrained
     from quadformer.detectors.registry import load
 
-    name = cfg.attack.detector
     path = Path(name)
     if path.is_file():
         if path.suffix == ".onnx":
@@ -35,43 +52,53 @@ def attack_detector(cfg: SimConfig):
         try:
             det = pretrained.load(name)
         except pretrained.ZooError as e:
-            raise ValueError(f"attack.detector: {name!r} is neither a model file nor a shipped detector ({e})") \
+            raise ValueError(f"{field}: {name!r} is neither a model file nor a shipped detector ({e})") \
                 from None
     if getattr(det, "threshold_", None) is None:
-        raise ValueError(f"attack.detector: {name} has no alarm threshold (calibrate it: quadformer fit)")
+        raise ValueError(f"{field}: {name} has no alarm threshold (calibrate it: quadformer fit)")
     given = {c for g in groups_for(cfg.sensors) for c in g.columns} | set(FIX_COLUMNS)
     missing = [c for c in det.features_ if c not in given]
     if missing:
-        raise ValueError(f"attack.detector: {name} reads {', '.join(missing[:4])}, which flights with sensors "
+        raise ValueError(f"{field}: {name} reads {', '.join(missing[:4])}, which flights with sensors "
                          f"{cfg.sensors} do not give; choose a detector of that sensor set (quadformer zoo list)")
     return det
 
 
 def check_stealth(cfg: SimConfig) -> None:
     """Raise ValueError, naming what is wrong, when ``cfg``'s stealthy attack cannot fly: its
-    detector unknown, unfit for the sensors, without threshold, or without a stream (white box)."""
+    detector (or the grey box's surrogate) unknown, unfit for the sensors, without threshold, of
+    another method, or without a stream (white and grey box)."""
     if cfg.attack.kind != STEALTH:
         return
     det = attack_detector(cfg)
     if cfg.attack.knowledge == "white":
         _stream(cfg, det, 1)
+    elif cfg.attack.knowledge == "grey":
+        _stream(cfg, surrogate_detector(cfg, det), 1, "attack.surrogate")
 
 
-def _stream(cfg: SimConfig, det, n: int):
+def _stream(cfg: SimConfig, det, n: int, field: str = "attack.detector"):
     try:
         return det.stream(n)
     except (NotImplementedError, ValueError, AttributeError) as e:
-        raise ValueError(f"attack.knowledge white: {cfg.attack.detector} has no online stream to run ({e}); "
-                         "choose knowledge black, or the detector's saved model instead of its graph") from None
+        name = getattr(cfg.attack, field.split(".")[1])
+        raise ValueError(f"attack.knowledge {cfg.attack.knowledge}: {field} {name} has no online stream to run "
+                         f"({e}); choose knowledge black, or the detector's saved model instead of its graph") \
+            from None
 
 
 def stealthy_attacker(cfg: SimConfig, attacks: AttackBatch, detector=None) -> StealthyAttacker:
     """The attacker of a batch's flights: white box with ``detector``'s own stream (loaded from
-    ``cfg.attack.detector`` when None), black box without it."""
+    ``cfg.attack.detector`` when None), grey box with its surrogate's, black box without one."""
     a = cfg.attack
     det = attack_detector(cfg) if detector is None else detector
     if a.knowledge == "black":
         return StealthyAttacker(attacks, "black", a.margin, cfg.gps.rate_hz)
+    if a.knowledge == "grey":
+        det = surrogate_detector(cfg, det)
+        return StealthyAttacker(attacks, "grey", a.margin, cfg.gps.rate_hz,
+                                stream=_stream(cfg, det, len(attacks.kind), "attack.surrogate"),
+                                threshold=float(det.threshold_))
     stream = _stream(cfg, det, len(attacks.kind))
     return StealthyAttacker(attacks, "white", a.margin, cfg.gps.rate_hz, stream=stream,
                             threshold=float(det.threshold_))
