@@ -73,8 +73,12 @@ def test_black_box_attacker_accelerates_in_at_its_budget_up_to_its_top_speed():
     ({"kind": "stealthy"}, "attack.detector: a stealthy attack needs the detector it evades"),
     ({"kind": "stealthy", "detector": "vio-cusum", "margin": 0.0}, "attack.margin: must be in (0, 1]"),
     ({"kind": "stealthy", "detector": "vio-cusum", "margin": 1.5}, "attack.margin: must be in (0, 1]"),
+    ({"kind": "stealthy", "detector": "vio-cusum", "knowledge": "purple"},
+     "attack.knowledge: unknown knowledge 'purple'; choose from white, grey, black"),
     ({"kind": "stealthy", "detector": "vio-cusum", "knowledge": "grey"},
-     "attack.knowledge: unknown knowledge 'grey'; choose from white, black"),
+     "attack.surrogate: a grey-box attacker runs its own copy of the method"),
+    ({"kind": "stealthy", "detector": "vio-cusum", "surrogate": "vio-cusum"},
+     "attack.surrogate: only a grey-box attacker runs a surrogate (attack.knowledge 'white')"),
     ({"kind": "ramp", "margin": 0.5}, "attack.margin: only a stealthy attack takes it"),
 ])
 def test_impossible_stealthy_attacks_are_refused_naming_the_field(attack, message):
@@ -93,6 +97,56 @@ def test_simulate_refuses_a_detector_it_cannot_evade_before_flying(tmp_path, arg
                                    "--duration", "8", "--onset", "2,2", "--quiet", *args])
     assert res.exit_code != 0
     assert message in res.output
+    assert not out.exists()
+
+
+def test_grey_box_attacker_keeps_its_surrogate_under_its_bound_and_is_judged_by_the_vehicles(tmp_path):
+    # the surrogate: the shipped CUSUM with a larger drift allowance (8 against the vehicle's 4: each
+    # step's NIS may reach 6 + 8 sqrt(12) before its sum grows); kept under that, the vehicle's own
+    # CUSUM, which sums what passes 6 + 4 sqrt(12), alarms: the attacker did not know its calibration
+    det = pretrained.load("vio-cusum")
+    sur = pretrained.load("vio-cusum").set_params(drift=8.0)
+    path = sur.save(tmp_path / "surrogate.json")
+    _, grey = stealthy("vio-cusum", margin=0.7, knowledge="grey", surrogate=str(path))
+    _, white = stealthy("vio-cusum", margin=0.7)
+    assert sur.decision_function(grey).max() <= sur.threshold_          # under its own threshold
+    s = det.decision_function(grey)
+    attacked = grey.t.to_numpy() >= ONSET
+    assert (s[~attacked] <= det.threshold_).all() and s.max() > det.threshold_     # the vehicle's alarms
+    assert det.decision_function(white).max() <= det.threshold_         # as the white box's never does
+    assert (offset(grey, 18.0) > offset(white, 18.0)).all()             # it pushed harder
+
+
+def test_grey_box_surrogate_is_fitted_on_the_attackers_own_flights(tmp_path):
+    from quadformer.detectors.registry import load
+    from quadformer.experiments.stealth import StealthPlan, fit_surrogate, run_stealth, surrogate_config
+
+    det = pretrained.load("vio-cusum")
+    plan = StealthPlan(detectors=("vio-cusum", "vio-quadformer"), knowledge=("grey",), flights=1,
+                       horizons=(2.0, 4.0), onset=4.0, margins=(0.5,))
+    cfg = surrogate_config(det, plan)
+    vehicle = det.calibration_["sim_config"]
+    assert cfg.model != vehicle["model"] and cfg.seed != plan.seed and cfg.attack.kind == "none"
+    info = fit_surrogate(det, plan, tmp_path / "sur.json")
+    sur = load(tmp_path / "sur.json")
+    assert sur.name == "cusum" and sur.threshold_ == pytest.approx(info["threshold"])
+    assert sur.threshold_ != pytest.approx(det.threshold_)             # its own calibration, not the vehicle's
+    with pytest.raises(ValueError, match="is a network"):
+        fit_surrogate(pretrained.load("vio-quadformer"), plan, tmp_path / "q.json")
+    res = run_stealth(plan, tmp_path / "run", echo=lambda s: None)
+    assert [(r["detector"], r["knowledge"]) for r in res["runs"]] == [("vio-cusum", "grey")]
+    assert res["runs"][0]["surrogate"]["model"] == cfg.model
+    assert res["not_run"] == [{"detector": "vio-quadformer", "knowledge": "grey",
+                               "reason": "a network: the attacker would train its own"}]
+
+
+def test_simulate_refuses_a_surrogate_of_another_method(tmp_path):
+    out = tmp_path / "ds"
+    res = CliRunner().invoke(app, ["simulate", "--out", str(out), "--attack", "stealthy", "--attack-detector",
+                                   "vio-cusum", "--knowledge", "grey", "--surrogate", "vio-chi2", "--flights", "1",
+                                   "--duration", "8", "--onset", "2,2", "--quiet"])
+    assert res.exit_code != 0
+    assert "attack.surrogate: vio-chi2 is a chi2 detector and vio-cusum a cusum one" in res.output
     assert not out.exists()
 
 
