@@ -53,6 +53,9 @@ def benchmark(
                                           "magbaro; `quadformer zoo list`) instead of tuning --methods."),
     knowledge: Optional[str] = typer.Option(None, help="Stealth profiles: the attackers to run, comma-separated, "
                                             "of white, grey, black (default: the profile's)."),
+    policies: Optional[str] = typer.Option(None, help="Stealth profiles: the GPS policies flown, comma-separated, "
+                                           "of none (GPS always fused: the deviation unseen) and resilient (the "
+                                           "detector's alarms exclude GPS in the loop: the deviation reached)."),
     quiet: bool = typer.Option(False, help="No progress bars."),
 ) -> None:
     """Simulate (or reuse) the profile's configurations, tune and evaluate methods, write tables and a
@@ -60,9 +63,9 @@ def benchmark(
     if profile == "field" or logs or manifest is not None:
         return _field(profile, logs, manifest, methods, data, configs, out, seed, flights, injections, shipped)
     if profile.startswith("stealth"):
-        return _stealth(profile, methods, data, configs, out, seed, knowledge)
-    if knowledge is not None:
-        fail("--knowledge belongs to the stealth profiles (--profile stealth or stealth-quick)")
+        return _stealth(profile, methods, data, configs, out, seed, knowledge, policies)
+    if knowledge is not None or policies is not None:
+        fail("--knowledge and --policies belong to the stealth profiles (--profile stealth or stealth-quick)")
     if shipped is not None:
         fail("--shipped belongs to --profile field (the demo scores the shipped detectors on simulated flights)")
     from quadformer.dataset import DatasetError
@@ -108,7 +111,7 @@ def benchmark(
     typer.echo(f"report:  {(out / 'report.html').resolve()}")
 
 
-def _stealth(profile, methods, data, configs, out, seed, knowledge=None) -> None:
+def _stealth(profile, methods, data, configs, out, seed, knowledge=None, policies=None) -> None:
     import dataclasses
 
     from quadformer.detectors import pretrained
@@ -129,11 +132,12 @@ def _stealth(profile, methods, data, configs, out, seed, knowledge=None) -> None
             except pretrained.ZooError as e:
                 fail(f"--methods: {e}")
         plan = dataclasses.replace(plan, detectors=names)
-    if knowledge is not None:
-        try:
-            plan = dataclasses.replace(plan, knowledge=tuple(k.strip() for k in knowledge.split(",") if k.strip()))
-        except ValueError as e:
-            fail(f"--knowledge: {e}")
+    for option, field, value in (("--knowledge", "knowledge", knowledge), ("--policies", "policies", policies)):
+        if value is not None:
+            try:
+                plan = dataclasses.replace(plan, **{field: tuple(k.strip() for k in value.split(",") if k.strip())})
+            except ValueError as e:
+                fail(f"{option}: {e}")
     plan = dataclasses.replace(plan, seed=seed)
     set_threads(1)      # the closed loop's small batched operations and a detector's stream per probe: one
                         # thread each is fastest (two threads of each of two runs on two cores ran 5-50x slower)

@@ -17,7 +17,10 @@ attacked from ``onset`` to its end by a stealthy attacker (``attacks.stealthy``)
   would choose, and the fixed shape the white box is compared with.
 
 The defender is the detector itself, scored offline on the flights (a stream's scores equal its
-offline ones) at its shipped false-alarm-budget threshold. The deviation is the vehicle's
+offline ones) at its shipped false-alarm-budget threshold. Under the ``resilient`` policy
+(``policies``) its online alarms also act in the loop: GPS leaves the fusion on an alarm and comes
+back once trustworthy (``resilience.Admission``), and ``reached`` is the deviation the attack
+achieves by each horizon, alarm or not. The deviation is the vehicle's
 horizontal estimation error |estimate - truth|: flying its mission on the estimate, the vehicle
 is that far from where it believes it is. For each horizon T after the onset: the largest
 deviation reached before the first alarm within [onset, onset + T) (``deviation``: the envelope),
@@ -52,6 +55,8 @@ from quadformer.report.stealth import write_stealth_report
 HORIZONS = (10.0, 30.0, 60.0, 120.0)
 #: the bound's standard deviations: one-sided, a false alarm in about 740 independent tests
 BOUND_Z = 3.0
+#: the GPS policies a stealth run flies under (``StealthPlan.policies``)
+POLICIES = ("none", "resilient")
 #: the grey-box attacker's own clean flights: half fit its surrogate, half set its threshold
 SURROGATE_FLIGHTS = 6
 #: added to the plan's seed for the attacker's own flights (none of them is a flight it attacks)
@@ -69,11 +74,16 @@ class StealthPlan:
     rate: float = 3.0          # m/s, the attacker's top speed
     accel: float = 0.05        # m/s^2, the black box's acceleration
     seed: int = 0
+    #: the GPS policies flown: "none" (GPS always fused: the deviation unseen), "resilient" (the
+    #: detector's alarms drive the resilient policy in the loop: the deviation the attack reaches)
+    policies: tuple[str, ...] = ("none",)
 
     def __post_init__(self) -> None:
         if not self.detectors:
             raise ValueError("stealth: name at least one detector")
         bad = [k for k in self.knowledge if k not in KNOWLEDGE]
+        if not self.policies or set(self.policies) - set(POLICIES):
+            raise ValueError(f"stealth: policies must name some of {', '.join(POLICIES)}, got {self.policies!r}")
         if not self.knowledge:
             raise ValueError(f"stealth: name at least one attacker's knowledge of {', '.join(KNOWLEDGE)}")
         if bad:
@@ -94,7 +104,7 @@ PROFILES = {
     "stealth": StealthPlan(detectors=("vio-quadformer", "vio-cusum", "vio-chi2", "vio-cusum-ref",
                                       "magbaro-glr", "magbaro-quadformer", "magbaro-cusum", "magbaro-chi2",
                                       "magbaro-cusum-ref"), knowledge=("white", "grey", "black"),
-                           margins=(0.5, 0.8), flights=3),
+                           margins=(0.5, 0.8), flights=3, policies=("none", "resilient")),
     "stealth-quick": StealthPlan(detectors=("vio-cusum", "magbaro-cusum"), flights=2, horizons=(10.0, 30.0)),
 }
 
@@ -167,7 +177,10 @@ def fit_surrogate(det, plan: StealthPlan, path: Path) -> dict[str, Any]:
 def envelope(flights: pd.DataFrame, scores: np.ndarray, threshold: float, onset: float,
              horizons: tuple[float, ...]) -> list[dict[str, Any]]:
     """Per flight: the first alarm at or after the onset, the deviation when it came, and per
-    horizon the largest deviation before it (and whether none came by then)."""
+    horizon the largest deviation before it (and whether none came by then) and the largest
+    reached, alarm or not (``reached``: under the resilient policy, what the attack achieves
+    with the defence acting); with a ``gps_fused`` column, the share of fixes fused after the
+    onset."""
     out = []
     scores = np.asarray(scores, dtype=float)
     if len(scores) != len(flights):
@@ -185,9 +198,13 @@ def envelope(flights: pd.DataFrame, scores: np.ndarray, threshold: float, onset:
                                "deviation_at_alarm": None if t_alarm is None else float(dev[alarm[0]]),
                                "offset_end": float(np.hypot(g.atk_d_x, g.atk_d_y).to_numpy()[-1])}
         for T in horizons:
-            inside = after & (t < onset + T) & (t < (np.inf if t_alarm is None else t_alarm))
+            within = after & (t < onset + T)
+            inside = within & (t < (np.inf if t_alarm is None else t_alarm))
             row[f"deviation_{T:g}"] = float(dev[inside].max()) if inside.any() else 0.0
+            row[f"reached_{T:g}"] = float(dev[within].max()) if within.any() else 0.0
             row[f"hidden_{T:g}"] = t_alarm is None or t_alarm >= onset + T
+        if "gps_fused" in g:
+            row["fused_after_onset"] = float(g.gps_fused.to_numpy()[after].mean()) if after.any() else 1.0
         out.append(row)
     return out
 
@@ -232,6 +249,11 @@ def summarise(rows: list[dict[str, Any]], horizons: tuple[float, ...]) -> dict[s
         out[f"deviation_median_{T:g}"] = float(np.median(dev))
         out[f"deviation_worst_{T:g}"] = float(dev.max())
         out[f"hidden_{T:g}"] = float(np.mean([r[f"hidden_{T:g}"] for r in rows]))
+        reached = np.array([r.get(f"reached_{T:g}", np.nan) for r in rows])
+        out[f"reached_median_{T:g}"] = float(np.median(reached))
+        out[f"reached_worst_{T:g}"] = float(reached.max())
+    if rows and "fused_after_onset" in rows[0]:
+        out["fused_after_onset"] = float(np.mean([r["fused_after_onset"] for r in rows]))
     alarmed = [r["deviation_at_alarm"] for r in rows if r["deviation_at_alarm"] is not None]
     out["alarmed"] = len(alarmed)
     out["deviation_at_alarm_median"] = float(np.median(alarmed)) if alarmed else None
@@ -268,14 +290,17 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
                 echo(f"stealth: {name:20s} grey   surrogate fitted on the attacker's own flights (airframe "
                      f"{surrogate['model']}): threshold {surrogate['threshold']:.4g} against the vehicle's "
                      f"{float(det.threshold_):.4g} ({time.perf_counter() - t0:.0f} s)")
-            for margin in (plan.margins if knowledge in ("white", "grey") else (None,)):
+            for margin, policy in [(m, p) for m in (plan.margins if knowledge in ("white", "grey") else (None,))
+                                   for p in plan.policies]:
                 cfg = stealth_config(name, plan, knowledge, margin, det,
                                      None if knowledge != "grey" else out / "surrogates" / surrogate["file"])
                 key = cfg.to_dict()
                 key["attack"].pop("detector")
                 key = repr(key)
                 t0 = time.perf_counter()
-                if knowledge == "black" and key in black:
+                if policy == "resilient":      # the detector in the loop: flown for it alone
+                    flights = simulate(cfg, defence=det).flights
+                elif knowledge == "black" and key in black:
                     flights = black[key]
                 else:
                     flights = simulate(cfg).flights
@@ -288,14 +313,20 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
                     bounds[set_name] = physical_bound(cfg, plan.horizons)
                 summary = summarise(rows, plan.horizons)
                 runs.append({"detector": name, "set": set_name, "method": entry.method, "knowledge": knowledge,
-                             "margin": margin, "threshold": float(det.threshold_), "summary": summary,
+                             "margin": margin, "policy": policy, "threshold": float(det.threshold_),
+                             "summary": summary,
                              "flights": rows, "seconds": round(time.perf_counter() - t0, 1),
                              **({"surrogate": surrogate} if knowledge == "grey" else {})})
                 T = max(plan.horizons)
+                if policy == "resilient":
+                    said = (f"resilient GPS: deviation reached by {T:g} s: median "
+                            f"{summary[f'reached_median_{T:g}']:.1f} m, worst {summary[f'reached_worst_{T:g}']:.1f} m; "
+                            f"GPS fused {summary['fused_after_onset']:.0%} of the attack")
+                else:
+                    said = (f"deviation unseen by {T:g} s: median {summary[f'deviation_median_{T:g}']:.1f} m, worst "
+                            f"{summary[f'deviation_worst_{T:g}']:.1f} m; hidden {summary[f'hidden_{T:g}']:.0%}")
                 echo(f"stealth: {name:20s} {knowledge:5s}" + (f" margin {margin:g}" if margin else " " * 11)
-                     + f"  deviation unseen by {T:g} s: median {summary[f'deviation_median_{T:g}']:.1f} m, worst "
-                     f"{summary[f'deviation_worst_{T:g}']:.1f} m; hidden {summary[f'hidden_{T:g}']:.0%} "
-                     f"(bound {bounds[set_name][f'{T:g}']:.1f} m; {time.perf_counter() - t0:.0f} s)")
+                     + f"  {said} (bound {bounds[set_name][f'{T:g}']:.1f} m; {time.perf_counter() - t0:.0f} s)")
     results = {"benchmark": "stealth", "plan": asdict(plan), "bound_z": BOUND_Z, "bounds": bounds, "runs": runs,
                "not_run": skipped,
                "seconds": round(time.perf_counter() - start, 1), "versions": package_versions(),
@@ -305,5 +336,6 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
     return results
 
 
-__all__ = ["BOUND_Z", "HORIZONS", "PROFILES", "SURROGATE_FLIGHTS", "StealthPlan", "envelope", "fit_surrogate",
-           "learned", "physical_bound", "run_stealth", "stealth_config", "summarise", "surrogate_config"]
+__all__ = ["BOUND_Z", "HORIZONS", "POLICIES", "PROFILES", "SURROGATE_FLIGHTS", "StealthPlan", "envelope",
+           "fit_surrogate", "learned", "physical_bound", "run_stealth", "stealth_config", "summarise",
+           "surrogate_config"]

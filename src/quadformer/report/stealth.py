@@ -24,14 +24,21 @@ def attacker(run: dict[str, Any]) -> str:
     return run["knowledge"] + (f" {run['margin']:g}" if run["margin"] else "")
 
 
+def unguarded(results: dict[str, Any]) -> list[dict[str, Any]]:
+    """The runs flown with GPS always fused (every run of results written before the policies)."""
+    return [r for r in results["runs"] if r.get("policy", "none") == "none"]
+
+
 def stealth_table(results: dict[str, Any]) -> pd.DataFrame:
-    """One row per detector, knowledge and margin: the median and worst deviation unseen by each
-    horizon, the share of flights still hidden at the last, the bound and the ratio to it."""
+    """One row per detector, knowledge and margin flown with GPS always fused: the median and worst
+    deviation unseen by each horizon, the share of flights still hidden at the last, the bound and
+    the ratio to it."""
     horizons = tuple(results["plan"]["horizons"])
     rows = []
-    for r in results["runs"]:
+    for r in unguarded(results):
         s, b = r["summary"], results["bounds"][r["set"]]
-        row = {"detector": r["detector"], "attacker": attacker(r)}
+        row = {"detector": r["detector"], "attacker": attacker(r), "threshold (attacker's)":
+               f"{r['threshold']:.4g}" + (f" ({r['surrogate']['threshold']:.4g})" if r.get("surrogate") else "")}
         for T in horizons:
             row[f"{T:g} s"] = f"{s[f'deviation_median_{T:g}']:.1f} / {s[f'deviation_worst_{T:g}']:.1f}"
         last = f"{max(horizons):g}"
@@ -42,6 +49,28 @@ def stealth_table(results: dict[str, Any]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def resilient_table(results: dict[str, Any]) -> pd.DataFrame:
+    """One row per detector, knowledge and margin flown under the resilient GPS policy, its alarms
+    in the loop: the median and worst deviation reached by each horizon (alarm or not: what the
+    attack achieves with the defence acting), the flights that alarmed, the share of fixes fused
+    after the onset, the bound and the worst as a ratio to it."""
+    horizons = tuple(results["plan"]["horizons"])
+    rows = []
+    for r in results["runs"]:
+        if r.get("policy", "none") != "resilient":
+            continue
+        s, b = r["summary"], results["bounds"][r["set"]]
+        row = {"detector": r["detector"], "attacker": attacker(r)}
+        for T in horizons:
+            row[f"{T:g} s"] = f"{s[f'reached_median_{T:g}']:.1f} / {s[f'reached_worst_{T:g}']:.1f}"
+        last = f"{max(horizons):g}"
+        row["alarmed"] = f"{s['alarmed']} of {s['flights']}"
+        row["GPS fused after the onset"] = f"{s['fused_after_onset']:.0%}"
+        row[f"bound {last} s"] = f"{b[last]:.1f}"
+        row["worst / bound"] = f"{s[f'reached_worst_{last}'] / b[last]:.1f}"
+        rows.append(row)
+    return pd.DataFrame(rows)
+
 
 def _curves(results: dict[str, Any]) -> str:
     import matplotlib
@@ -49,7 +78,7 @@ def _curves(results: dict[str, Any]) -> str:
     import matplotlib.pyplot as plt
 
     horizons = [float(h) for h in results["plan"]["horizons"]]
-    runs = results["runs"]
+    runs = unguarded(results)
     panels = sorted({(r["set"], attacker(r)) for r in runs})
     fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.6), squeeze=False)
     for ax, (set_name, label) in zip(axes[0], panels):
@@ -73,7 +102,7 @@ def _curves(results: dict[str, Any]) -> str:
 
 def write_stealth_report(results: dict[str, Any], path: Path) -> Path:
     plan = results["plan"]
-    flights = pd.DataFrame([{"detector": r["detector"], "attacker": attacker(r), **f}
+    flights = pd.DataFrame([{"detector": r["detector"], "attacker": attacker(r), "policy": r.get("policy", "none"), **f}
                             for r in results["runs"] for f in r["flights"]])
     parts = [
         "<h1>quadformer stealth benchmark</h1>",
@@ -84,6 +113,14 @@ def write_stealth_report(results: dict[str, Any], path: Path) -> Path:
         "sensors' GPS-free evidence after that time.</p>",
         _curves(results),
         "<h2>Deviation unseen (m, median / worst over flights)</h2>", table(stealth_table(results), index=False),
+        *(["<h2>Under the resilient GPS policy: deviation reached (m, median / worst over flights)</h2>",
+           "<p>The detector's alarms drive the resilient policy in the loop (GPS leaves the fusion on an alarm and "
+           "comes back once trustworthy); the deviation reached by each horizon, alarm or not.</p>",
+           table(resilient_table(results), index=False)]
+          if any(r.get("policy") == "resilient" for r in results["runs"]) else []),
+        "<p>Threshold: the vehicle's detector's; in brackets the grey box's own, of the surrogate it fitted on "
+        "its own flights.</p>" + "".join(f"<p>Not run: {html.escape(n['detector'])}, {html.escape(n['knowledge'])} "
+                                          f"box ({html.escape(n['reason'])}).</p>" for n in results.get("not_run", [])),
         "<h2>Flights</h2>", table(flights, index=False),
         f"<p>command: <code>{html.escape(str(results.get('provenance', {}).get('command', '')))}</code></p>",
         versions(results.get("versions")),

@@ -78,13 +78,17 @@ def _dataset(cfg: SimConfig, frames: list[pd.DataFrame], scens: list[pd.DataFram
 
 
 def simulate(cfg: SimConfig, progress: bool | Callable[[float], None] = False,
-             on_batch: Callable[[BatchResult], None] | None = None) -> Dataset:
+             on_batch: Callable[[BatchResult], None] | None = None, defence=None) -> Dataset:
     """Simulate ``cfg.flights`` flights in batches of ``cfg.batch_size``.
 
     Flight i's data depends only on (config, seed, i): the batch size changes speed, not data.
     on_batch: called with each batch's ``BatchResult``, its raw sensor streams recorded
     (``record_sensors``), before the next batch flies (e.g. to write each flight as a log);
     the dataset is the same with or without it.
+    defence: a calibrated detector whose online alarms drive the ``resilient`` GPS policy in the
+    loop (``resilience.Admission``, its default configuration): on an alarm GPS leaves the fusion
+    and comes back once trustworthy again. The flights then also hold ``gps_fused`` (1 where the
+    step's fix was fused) and ``alarm`` (the detector's alarm at the step, online).
     """
     attacked = _attacked(cfg)
     bar = None
@@ -98,10 +102,20 @@ def simulate(cfg: SimConfig, progress: bool | Callable[[float], None] = False,
     try:
         for start in range(0, cfg.flights, cfg.batch_size):
             ids = np.arange(start, min(start + cfg.batch_size, cfg.flights))
-            r = simulate_batch(cfg, ids, attacked[ids], progress=callback, record_sensors=on_batch is not None)
+            admission = stream = None
+            if defence is not None:
+                from quadformer.resilience import Admission
+
+                admission = Admission(np.full(len(ids), "resilient", dtype=object), cfg.gps.rate_hz)
+                stream = defence.stream(len(ids))
+            r = simulate_batch(cfg, ids, attacked[ids], progress=callback, record_sensors=on_batch is not None,
+                               admission=admission, stream=stream)
             if on_batch is not None:
                 on_batch(r)
             f, s = _batch_frames(cfg, r)
+            if defence is not None:
+                f["gps_fused"] = r["admission"]["fused"].reshape(-1).astype(np.int8)
+                f["alarm"] = r["admission"]["alarm"].reshape(-1).astype(np.int8)
             frames.append(f)
             scens.append(s)
     finally:
