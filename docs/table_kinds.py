@@ -339,17 +339,25 @@ def table_zoo_configs(res: dict[str, Any], spec: dict[str, Any], name: str) -> s
 
 
 def _attacker(run: dict[str, Any]) -> str:
-    """A stealth run's attacker: its knowledge, and the white box's margin."""
-    return run["knowledge"] + (f" {run['margin']:g}" if run["margin"] else "")
+    """A stealth run's attacker: its knowledge, the white and grey box's margin, and the threshold
+    of the grey box's own surrogate."""
+    own = run.get("surrogate")
+    return (run["knowledge"] + (f" {run['margin']:g}" if run["margin"] else "")
+            + (f" (own threshold {own['threshold']:.3g}, the vehicle's {run['threshold']:.3g})" if own else ""))
 
 
 def stealth_runs(res: dict[str, Any], spec: dict[str, Any], name: str) -> list[dict[str, Any]]:
-    """A stealth benchmark's runs, of the detectors ``methods`` names (default every one)."""
+    """A stealth benchmark's runs, of the detectors ``methods`` names (default every one), flown
+    under the GPS policy ``policy`` (default none: GPS always fused)."""
     runs, bounds = res.get("runs"), res.get("bounds")
     if not runs or not bounds:
         raise TableError(f"table {name!r}: not a stealth benchmark's results (no runs or bounds)")
     keep = pick_methods(list(dict.fromkeys(r["detector"] for r in runs)), spec.get("methods"), name)
-    return [r for r in runs if r["detector"] in keep]
+    policy = spec.get("policy", "none")
+    out = [r for r in runs if r["detector"] in keep and r.get("policy", "none") == policy]
+    if not out:
+        raise TableError(f"table {name!r}: no run under the GPS policy {policy!r} in the results")
+    return out
 
 
 def table_stealth(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
@@ -393,7 +401,30 @@ def table_stealth_summary(res: dict[str, Any], spec: dict[str, Any], name: str) 
     return markdown(head, rows)
 
 
+def table_stealth_resilient(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
+    """The stealth benchmark under the resilient GPS policy (the detector's alarms exclude GPS in
+    the loop): per detector and attacker, the deviation reached by each horizon, alarm or not
+    (median / worst over flights, m), the flights that alarmed, the fixes fused after the onset,
+    and the worst as a ratio to the physical bound."""
+    runs, bounds = stealth_runs(res, {**spec, "policy": "resilient"}, name), res["bounds"]
+    horizons = [f"{float(h):g}" for h in res["plan"]["horizons"]]
+    last = horizons[-1]
+    rows = []
+    for set_name in dict.fromkeys(r["set"] for r in runs):
+        b = bounds[set_name]
+        rows.append([f"**{set_name}: physical bound**", "-", *[f"{b[h]:.1f}" for h in horizons], "-", "-", "1"])
+        for r in (r for r in runs if r["set"] == set_name):
+            s = r["summary"]
+            rows.append([f"`{r['detector']}`", _attacker(r),
+                         *[f"{s[f'reached_median_{h}']:.1f} / {s[f'reached_worst_{h}']:.1f}" for h in horizons],
+                         f"{s['alarmed']} of {s['flights']}", f"{s['fused_after_onset']:.0%}",
+                         f"{s[f'reached_worst_{last}'] / b[last]:.2f}"])
+    head = ["detector", "attacker (margin)", *[f"reached by {h} s (m)" for h in horizons], "flights alarmed",
+            "GPS fused after the onset", f"worst / bound at {last} s"]
+    return markdown(head, rows)
+
+
 KINDS = {"methods": table_methods, "seeds": table_seeds, "stress": table_stress, "typing": table_typing,
          "resilience": table_resilience, "field": table_field, "floors": table_floors, "zoo": table_zoo,
          "zoo-configs": table_zoo_configs, "stealth": table_stealth,
-         "stealth-summary": table_stealth_summary}
+         "stealth-summary": table_stealth_summary, "stealth-resilient": table_stealth_resilient}
