@@ -74,6 +74,17 @@ TABLES: dict[str, dict[str, Any]] = {
                         "methods": ["magbaro-cusum", "magbaro-cusum-ref"],
                         "command": "quadformer benchmark --profile stealth --methods "
                                    "magbaro-glr,magbaro-cusum,magbaro-cusum-ref --out runs/stealth-magbaro"},
+    "stealth-grey-vio": {"source": "results/stealth-grey-vio/results.json", "kind": "stealth",
+                         "command": "quadformer benchmark --profile stealth --methods "
+                                    "vio-cusum,vio-chi2,vio-cusum-ref,vio-quadformer --knowledge grey "
+                                    "--out runs/stealth-grey-vio"},
+    "stealth-grey-magbaro": {"source": "results/stealth-grey/results.json", "kind": "stealth",
+                             "command": "quadformer benchmark --profile stealth --methods magbaro-glr,magbaro-cusum "
+                                        "--knowledge grey --out runs/stealth-grey"},
+    "stealth-resilient-vio": {"source": "results/stealth-resilient-vio/results.json", "kind": "stealth-resilient",
+                              "command": "quadformer benchmark --profile stealth --methods "
+                                         "vio-quadformer,vio-cusum,vio-chi2,vio-cusum-ref --knowledge white,black "
+                                         "--policies resilient --out runs/stealth-resilient-vio"},
     "field": {"source": "results/field/results.json", "kind": "field",
               "command": "quadformer benchmark --profile field --logs ../shared/data/real-flights "
                          "--manifest ../shared/data/real-flights/MANIFEST.csv --out runs/field"},
