@@ -223,6 +223,11 @@ def test_under_the_resilient_policy_an_alarm_takes_gps_out_of_the_loop_and_stops
             assert g["fused_after_onset"] < 0.9
             assert g["reached_15"] < f["reached_15"] - 1.0 and g["reached_15"] < g["deviation_at_alarm"] + 1.0
     assert any(g["first_alarm_s"] is not None for g in guarded["flights"])
+    # a run of the resilient policy alone has its own table and no curves of the unguarded envelope
+    from quadformer.report.stealth import write_stealth_report
+
+    page = write_stealth_report({**res, "runs": [guarded]}, tmp_path / "resilient.html").read_text()
+    assert "Under the resilient GPS policy" in page and "Deviation unseen" not in page
 
 
 @pytest.mark.parametrize("args, message", [

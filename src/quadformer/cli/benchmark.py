@@ -117,7 +117,7 @@ def _stealth(profile, methods, data, configs, out, seed, knowledge=None, policie
     from quadformer.detectors import pretrained
     from quadformer.experiments.stealth import PROFILES, run_stealth
     from quadformer.io import set_threads
-    from quadformer.report.stealth import stealth_table
+    from quadformer.report.stealth import resilient_table, stealth_table
 
     if profile not in PROFILES:
         fail(f"--profile {profile!r}; the stealth profiles are {', '.join(PROFILES)}")
@@ -145,7 +145,11 @@ def _stealth(profile, methods, data, configs, out, seed, knowledge=None, policie
         results = run_stealth(plan, out, echo=typer.echo, profile=profile)
     except ValueError as e:
         fail(str(e))
-    typer.echo(stealth_table(results).to_string(index=False))
+    for title, frame in (("deviation unseen (m, median / worst)", stealth_table(results)),
+                         ("under the resilient GPS policy: deviation reached (m, median / worst)",
+                          resilient_table(results))):
+        if len(frame):
+            typer.echo(f"{title}:\n{frame.to_string(index=False)}")
     typer.echo(f"results: {(out / 'results.json').resolve()}")
     typer.echo(f"report:  {(out / 'report.html').resolve()}")
 

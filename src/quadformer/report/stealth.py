@@ -80,6 +80,8 @@ def _curves(results: dict[str, Any]) -> str:
     horizons = [float(h) for h in results["plan"]["horizons"]]
     runs = unguarded(results)
     panels = sorted({(r["set"], attacker(r)) for r in runs})
+    if not panels:                  # every run under the resilient policy: its table says it
+        return ""
     fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.6), squeeze=False)
     for ax, (set_name, label) in zip(axes[0], panels):
         for r in runs:
@@ -112,7 +114,8 @@ def write_stealth_report(results: dict[str, Any], path: Path) -> Path:
         f"alarm (shipped threshold). Bound: {results['bound_z']:g} standard deviations of GPS against the "
         "sensors' GPS-free evidence after that time.</p>",
         _curves(results),
-        "<h2>Deviation unseen (m, median / worst over flights)</h2>", table(stealth_table(results), index=False),
+        *(["<h2>Deviation unseen (m, median / worst over flights)</h2>", table(stealth_table(results), index=False)]
+          if unguarded(results) else []),
         *(["<h2>Under the resilient GPS policy: deviation reached (m, median / worst over flights)</h2>",
            "<p>The detector's alarms drive the resilient policy in the loop (GPS leaves the fusion on an alarm and "
            "comes back once trustworthy); the deviation reached by each horizon, alarm or not.</p>",
