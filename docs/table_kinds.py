@@ -24,6 +24,8 @@ Kinds (``kind``), and what they read:
   flights with the exposure and the Poisson interval, the alerts counted apart, and the injected
   spoofs' event recall, recall on the targets' sizes and median delay.
 
+The stealth benchmark's kinds are in ``docs/table_kinds_stealth.py``.
+
 Options common to every kind: ``methods`` (a subset of methods, in this order; default every
 method of the run), ``digits`` (default 2). Only the standard library is needed, except for
 ``resilience`` tables, which summarise flights with ``quadformer.evaluation.resilience``.
@@ -338,93 +340,6 @@ def table_zoo_configs(res: dict[str, Any], spec: dict[str, Any], name: str) -> s
     return markdown(["method"] + [config_label({"name": c}) for c in configs], rows)
 
 
-def _attacker(run: dict[str, Any]) -> str:
-    """A stealth run's attacker: its knowledge, the white and grey box's margin, and the threshold
-    of the grey box's own surrogate."""
-    own = run.get("surrogate")
-    return (run["knowledge"] + (f" {run['margin']:g}" if run["margin"] else "")
-            + (f" (own threshold {own['threshold']:.3g}, the vehicle's {run['threshold']:.3g})" if own else ""))
-
-
-def stealth_runs(res: dict[str, Any], spec: dict[str, Any], name: str) -> list[dict[str, Any]]:
-    """A stealth benchmark's runs, of the detectors ``methods`` names (default every one), flown
-    under the GPS policy ``policy`` (default none: GPS always fused)."""
-    runs, bounds = res.get("runs"), res.get("bounds")
-    if not runs or not bounds:
-        raise TableError(f"table {name!r}: not a stealth benchmark's results (no runs or bounds)")
-    keep = pick_methods(list(dict.fromkeys(r["detector"] for r in runs)), spec.get("methods"), name)
-    policy = spec.get("policy", "none")
-    out = [r for r in runs if r["detector"] in keep and r.get("policy", "none") == policy]
-    if not out:
-        raise TableError(f"table {name!r}: no run under the GPS policy {policy!r} in the results")
-    return out
-
-
-def table_stealth(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
-    """The stealth benchmark: per shipped detector and attacker, the deviation unseen by each
-    horizon (median / worst over flights, m), the flights still hidden at the last horizon, and
-    the worst as a ratio to the physical bound; one row per set gives the bound itself."""
-    runs, bounds = stealth_runs(res, spec, name), res["bounds"]
-    horizons = [f"{float(h):g}" for h in res["plan"]["horizons"]]
-    last = horizons[-1]
-    rows = []
-    for set_name in dict.fromkeys(r["set"] for r in runs):
-        b = bounds[set_name]
-        rows.append([f"**{set_name}: physical bound**", "-", *[f"{b[h]:.1f}" for h in horizons], "-", "1"])
-        for r in (r for r in runs if r["set"] == set_name):
-            s = r["summary"]
-            rows.append([f"`{r['detector']}`", _attacker(r),
-                         *[f"{s[f'deviation_median_{h}']:.1f} / {s[f'deviation_worst_{h}']:.1f}" for h in horizons],
-                         f"{s[f'hidden_{last}']:.0%}", f"{s[f'deviation_worst_{last}'] / b[last]:.2f}"])
-    head = ["detector", "attacker (margin)", *[f"unseen by {h} s (m)" for h in horizons],
-            f"hidden at {last} s", f"worst / bound at {last} s"]
-    return markdown(head, rows)
-
-
-def table_stealth_summary(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
-    """The stealth benchmark at one horizon (``horizon``, s): per detector, the attacker who went
-    farthest unseen (the worst flight), its median / worst deviation unseen, the flights it kept
-    hidden, and the worst as a ratio to the physical bound."""
-    runs, bounds = stealth_runs(res, spec, name), res["bounds"]
-    h = f"{float(spec['horizon']):g}"
-    if f"deviation_worst_{h}" not in runs[0]["summary"]:
-        raise TableError(f"table {name!r}: no horizon {h} s in the results")
-    rows = []
-    for det in dict.fromkeys(r["detector"] for r in runs):
-        best = max((r for r in runs if r["detector"] == det), key=lambda r: r["summary"][f"deviation_worst_{h}"])
-        s, b = best["summary"], bounds[best["set"]][h]
-        rows.append([f"`{det}`", _attacker(best),
-                     f"{s[f'deviation_median_{h}']:.1f} / {s[f'deviation_worst_{h}']:.1f}",
-                     f"{s[f'hidden_{h}']:.0%}", f"{b:.1f}", f"{s[f'deviation_worst_{h}'] / b:.2f}"])
-    head = ["detector", "farthest attacker", f"deviation unseen by {h} s, median / worst (m)", f"hidden at {h} s",
-            f"physical bound at {h} s (m)", "worst / bound"]
-    return markdown(head, rows)
-
-
-def table_stealth_resilient(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
-    """The stealth benchmark under the resilient GPS policy (the detector's alarms exclude GPS in
-    the loop): per detector and attacker, the deviation reached by each horizon, alarm or not
-    (median / worst over flights, m), the flights that alarmed, the fixes fused after the onset,
-    and the worst as a ratio to the physical bound."""
-    runs, bounds = stealth_runs(res, {**spec, "policy": "resilient"}, name), res["bounds"]
-    horizons = [f"{float(h):g}" for h in res["plan"]["horizons"]]
-    last = horizons[-1]
-    rows = []
-    for set_name in dict.fromkeys(r["set"] for r in runs):
-        b = bounds[set_name]
-        rows.append([f"**{set_name}: physical bound**", "-", *[f"{b[h]:.1f}" for h in horizons], "-", "-", "1"])
-        for r in (r for r in runs if r["set"] == set_name):
-            s = r["summary"]
-            rows.append([f"`{r['detector']}`", _attacker(r),
-                         *[f"{s[f'reached_median_{h}']:.1f} / {s[f'reached_worst_{h}']:.1f}" for h in horizons],
-                         f"{s['alarmed']} of {s['flights']}", f"{s['fused_after_onset']:.0%}",
-                         f"{s[f'reached_worst_{last}'] / b[last]:.2f}"])
-    head = ["detector", "attacker (margin)", *[f"reached by {h} s (m)" for h in horizons], "flights alarmed",
-            "GPS fused after the onset", f"worst / bound at {last} s"]
-    return markdown(head, rows)
-
-
 KINDS = {"methods": table_methods, "seeds": table_seeds, "stress": table_stress, "typing": table_typing,
          "resilience": table_resilience, "field": table_field, "floors": table_floors, "zoo": table_zoo,
-         "zoo-configs": table_zoo_configs, "stealth": table_stealth,
-         "stealth-summary": table_stealth_summary, "stealth-resilient": table_stealth_resilient}
+         "zoo-configs": table_zoo_configs}

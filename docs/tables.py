@@ -17,7 +17,8 @@ NAME is not declared is left untouched and reported as pending: a table measured
 ``results.json`` was committed. To generate it, commit the run's ``results.json`` as
 ``docs/results/<run>/results.json``, declare the table here and run this script.
 
-The kinds of table and what they read: ``docs/table_kinds.py``. Under each table, a line says how
+The kinds of table and what they read: ``docs/table_kinds.py`` (the stealth benchmark's:
+``docs/table_kinds_stealth.py``). Under each table, a line says how
 its results were produced (``provenance_line``): the command line, the commit, the seeds and
 the profile that the run recorded (``quadformer.experiments.provenance``), or what a results
 file written before runs recorded them holds.
@@ -26,7 +27,6 @@ file written before runs recorded them holds.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
 import re
@@ -97,16 +97,12 @@ MARKER = re.compile(r"<!-- table: (?P<name>[\w.-]+) -->\n(?P<body>.*?)<!-- /tabl
 OPEN = re.compile(r"<!-- (/?)table: ([\w.-]+) -->")
 
 
-def _sibling(name: str):
-    """A module of docs/ beside this script, loaded from its file (docs/ is no package)."""
-    spec = importlib.util.spec_from_file_location(f"docs_{name}", DOCS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+# docs/ is no package: the modules of table kinds beside this script are imported by their names
+sys.path.insert(0, str(DOCS))
+import table_kinds as _kinds  # noqa: E402
+import table_kinds_stealth as _stealth  # noqa: E402
 
-
-_kinds = _sibling("table_kinds")
-KINDS, TableError, get = _kinds.KINDS, _kinds.TableError, _kinds.get
+KINDS, TableError, get = {**_kinds.KINDS, **_stealth.KINDS}, _kinds.TableError, _kinds.get
 
 
 # ---------------------------------------------------------------------------------------------
