@@ -19,17 +19,44 @@ from quadformer.report.html import img, page, png, table, versions
 MANY_ALERTS = 20
 
 
-def _figures(det) -> dict[str, str]:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+#: a log report's figures by layout, kept in this process and drawn again for the next log
+_KEPT: dict[tuple, tuple] = {}
 
+
+def _canvas(n: int, figsize: tuple[float, float]):
+    """(figure, axes) of ``n`` panels stacked on one time axis (one panel: the track), cleared of
+    the previous log's lines, spans, legends and titles. A fleet's reports draw three figures per
+    log: the figure, its axes and their tick marks are made once per layout and process (making
+    them anew was half of each figure's time); each log's data sets the limits again."""
+    key = (n, figsize)
+    if key not in _KEPT:
+        from matplotlib.figure import Figure
+
+        fig = Figure(figsize=figsize)
+        _KEPT[key] = fig, fig.subplots(n, 1, sharex=n > 1, squeeze=False)[:, 0]
+    fig, axes = _KEPT[key]
+    for ax in axes:
+        for artist in [*ax.lines, *ax.patches, *ax.collections, *ax.texts]:
+            artist.remove()
+        if ax.get_legend() is not None:
+            ax.get_legend().remove()
+        ax.set_title("")
+        ax.set_xlabel("")
+        ax.set_ylabel("")
+        ax.set_yscale("linear")
+        ax.set_prop_cycle(None)         # the colours start again at C0
+        ax.relim()
+        ax.set_autoscale_on(True)
+    return fig, axes
+
+
+def _figures(det) -> dict[str, str]:
     rows, alarms = det.rows, np.asarray(det.alarms, bool)
     thr = det.detector.threshold_ if hasattr(det, "detector") else None
     figs: dict[str, str] = {}
 
     # top-down track: the fixes, the replayed estimate, the autopilot's own estimate
-    fig, ax = plt.subplots(figsize=(6.5, 6))
+    fig, (ax,) = _canvas(1, (6.5, 6))
     ax.plot(rows.gps_pos_x, rows.gps_pos_y, ".", ms=2, color="0.55", label="GPS fixes")
     if "est_pos_x" in rows:
         ax.plot(rows.est_pos_x, rows.est_pos_y, "-", lw=1, color="C0", label="estimate (replayed filter)")
@@ -44,12 +71,12 @@ def _figures(det) -> dict[str, str]:
     ax.set_aspect("equal", adjustable="datalim")
     ax.legend(fontsize=7)
     ax.set_title("track (local ENU about the log's origin)", fontsize=9)
-    figs["track"] = _save(fig, plt)
+    figs["track"] = _save(fig)
 
     # innovations, NIS, score
     t = rows.t.to_numpy()
     has_nis = "res_gps_nis" in rows
-    fig, axes = plt.subplots(3 if has_nis else 2, 1, figsize=(9, 6.5 if has_nis else 4.5), sharex=True)
+    fig, axes = _canvas(3 if has_nis else 2, (9, 6.5 if has_nis else 4.5))
     for a, c in zip("xyz", ("C0", "C1", "C2")):
         axes[0].plot(t, rows[f"res_gps_r_p{a}"], lw=0.8, color=c, label=f"position innovation {a}")
     axes[0].set_ylabel("m")
@@ -74,30 +101,28 @@ def _figures(det) -> dict[str, str]:
     _plain_ticks(axes[k])
     axes[k].legend(fontsize=7, loc="upper left")
     axes[-1].set_xlabel("t (s from the log start); red: alarms")
-    figs["innovations_and_score"] = _save(fig, plt)
+    figs["innovations_and_score"] = _save(fig)
 
     # the receiver's own indicators
     cols = [c for c in ("gps_satellites", "gps_eph", "gps_epv", "gps_fix_type", "gps_jamming", "gps_spoofing")
             if c in rows and np.isfinite(rows[c].to_numpy(float)).any()]
     if cols:
-        fig, axes = plt.subplots(len(cols), 1, figsize=(9, 1.3 * len(cols) + 0.5), sharex=True)
-        for ax, c in zip(np.atleast_1d(axes), cols):
+        fig, axes = _canvas(len(cols), (9, 1.3 * len(cols) + 0.5))
+        for ax, c in zip(axes, cols):
             ax.step(t, rows[c], where="post", lw=0.9)
             ax.set_ylabel(c.replace("gps_", ""), fontsize=8)
-        np.atleast_1d(axes)[-1].set_xlabel("t (s)")
-        figs["receiver"] = _save(fig, plt)
+        axes[-1].set_xlabel("t (s)")
+        figs["receiver"] = _save(fig)
     return figs
 
 
-def _save(fig, plt) -> str:
+def _save(fig) -> str:
     """The figure as PNG within set margins (inches: room for the tick labels and the axis labels).
     A report per log of a fleet draws three figures per log: measuring each one's tight box cost
     as much as drawing it."""
     w, h = fig.get_size_inches()
     fig.subplots_adjust(left=0.85 / w, right=1 - 0.2 / w, bottom=0.6 / h, top=1 - 0.35 / h)
-    b64 = png(fig, tight=False)
-    plt.close(fig)
-    return b64
+    return png(fig, tight=False)
 
 
 def _plain_ticks(ax) -> None:
