@@ -125,3 +125,18 @@ def test_find_logs_takes_files_and_bags_as_given_and_searches_directories_by_con
     (tmp_path / "notes.txt").write_text("not a log")
     with pytest.raises(LogError, match="no flight log in this directory"):
         find_logs([tmp_path])
+
+
+def test_a_log_report_draws_the_same_figures_whatever_report_came_before(chi2):
+    # the figures are drawn on one kept per layout in the process: what a log's report shows must
+    # not depend on the logs drawn before it (their lines, spans, legends, scales, colours)
+    from quadformer.report import logs as report_logs
+
+    small = detect_log(FIX / "sample_log_small.ulg")
+    events = detect_log(EVENTS, chi2, "autopilot")
+    report_logs._KEPT.clear()
+    alone = report_logs._figures(small)
+    assert set(alone) >= {"track", "innovations_and_score"}
+    other = report_logs._figures(events)
+    assert other["track"] != alone["track"]
+    assert report_logs._figures(small) == alone          # the same PNG, byte for byte
