@@ -40,25 +40,36 @@ def stealth_runs(res: dict[str, Any], spec: dict[str, Any], name: str) -> list[d
     return out
 
 
-def table_stealth(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
-    """The stealth benchmark: per shipped detector and attacker, the deviation unseen by each
-    horizon (median / worst over flights, m), the flights still hidden at the last horizon, and
-    the worst as a ratio to the physical bound; one row per set gives the bound itself."""
-    runs, bounds = stealth_runs(res, spec, name), res["bounds"]
+def _envelope(res: dict[str, Any], runs: list[dict[str, Any]], measure: str, label: str,
+              middle: dict[str, Any]) -> str:
+    """Per set a row of its physical bound, then per run its detector and attacker, the median /
+    worst ``measure`` (``deviation`` or ``reached``) by each horizon, the ``middle`` columns
+    ({heading: summary -> cell}) and the worst at the last horizon as a ratio to the bound."""
+    bounds = res["bounds"]
     horizons = [f"{float(h):g}" for h in res["plan"]["horizons"]]
     last = horizons[-1]
     rows = []
     for set_name in dict.fromkeys(r["set"] for r in runs):
         b = bounds[set_name]
-        rows.append([f"**{set_name}: physical bound**", "-", *[f"{b[h]:.1f}" for h in horizons], "-", "1"])
+        rows.append([f"**{set_name}: physical bound**", "-", *[f"{b[h]:.1f}" for h in horizons],
+                     *["-"] * len(middle), "1"])
         for r in (r for r in runs if r["set"] == set_name):
             s = r["summary"]
             rows.append([f"`{r['detector']}`", _attacker(r),
-                         *[f"{s[f'deviation_median_{h}']:.1f} / {s[f'deviation_worst_{h}']:.1f}" for h in horizons],
-                         f"{s[f'hidden_{last}']:.0%}", f"{s[f'deviation_worst_{last}'] / b[last]:.2f}"])
-    head = ["detector", "attacker (margin)", *[f"unseen by {h} s (m)" for h in horizons],
-            f"hidden at {last} s", f"worst / bound at {last} s"]
+                         *[f"{s[f'{measure}_median_{h}']:.1f} / {s[f'{measure}_worst_{h}']:.1f}" for h in horizons],
+                         *[cell(s) for cell in middle.values()], f"{s[f'{measure}_worst_{last}'] / b[last]:.2f}"])
+    head = ["detector", "attacker (margin)", *[f"{label} {h} s (m)" for h in horizons], *middle,
+            f"worst / bound at {last} s"]
     return markdown(head, rows)
+
+
+def table_stealth(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
+    """The stealth benchmark: per shipped detector and attacker, the deviation unseen by each
+    horizon (median / worst over flights, m), the flights still hidden at the last horizon, and
+    the worst as a ratio to the physical bound; one row per set gives the bound itself."""
+    last = f"{float(res['plan']['horizons'][-1]):g}"
+    return _envelope(res, stealth_runs(res, spec, name), "deviation", "unseen by",
+                     {f"hidden at {last} s": lambda s: f"{s[f'hidden_{last}']:.0%}"})
 
 
 def table_stealth_summary(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
@@ -86,22 +97,9 @@ def table_stealth_resilient(res: dict[str, Any], spec: dict[str, Any], name: str
     the loop): per detector and attacker, the deviation reached by each horizon, alarm or not
     (median / worst over flights, m), the flights that alarmed, the fixes fused after the onset,
     and the worst as a ratio to the physical bound."""
-    runs, bounds = stealth_runs(res, {**spec, "policy": "resilient"}, name), res["bounds"]
-    horizons = [f"{float(h):g}" for h in res["plan"]["horizons"]]
-    last = horizons[-1]
-    rows = []
-    for set_name in dict.fromkeys(r["set"] for r in runs):
-        b = bounds[set_name]
-        rows.append([f"**{set_name}: physical bound**", "-", *[f"{b[h]:.1f}" for h in horizons], "-", "-", "1"])
-        for r in (r for r in runs if r["set"] == set_name):
-            s = r["summary"]
-            rows.append([f"`{r['detector']}`", _attacker(r),
-                         *[f"{s[f'reached_median_{h}']:.1f} / {s[f'reached_worst_{h}']:.1f}" for h in horizons],
-                         f"{s['alarmed']} of {s['flights']}", f"{s['fused_after_onset']:.0%}",
-                         f"{s[f'reached_worst_{last}'] / b[last]:.2f}"])
-    head = ["detector", "attacker (margin)", *[f"reached by {h} s (m)" for h in horizons], "flights alarmed",
-            "GPS fused after the onset", f"worst / bound at {last} s"]
-    return markdown(head, rows)
+    return _envelope(res, stealth_runs(res, {**spec, "policy": "resilient"}, name), "reached", "reached by",
+                     {"flights alarmed": lambda s: f"{s['alarmed']} of {s['flights']}",
+                      "GPS fused after the onset": lambda s: f"{s['fused_after_onset']:.0%}"})
 
 
 KINDS = {"stealth": table_stealth, "stealth-summary": table_stealth_summary,

@@ -118,9 +118,7 @@ def stealth_config(detector: str, plan: StealthPlan, knowledge: str, margin: flo
         from quadformer.detectors import pretrained
 
         det = pretrained.load(detector)
-    sim = dict((getattr(det, "calibration_", None) or {}).get("sim_config") or {})
-    if not sim:
-        raise ValueError(f"stealth: {detector} records no simulation it was calibrated on")
+    sim = calibration_sim(det, detector)
     sim.update(flights=plan.flights, duration=plan.duration, batch_size=plan.flights, seed=plan.seed)
     attack = {"kind": "stealthy", "detector": detector, "knowledge": knowledge, "fraction": 1.0,
               "onset": (plan.onset, plan.onset), "rate": (plan.rate, plan.rate), "accel": (plan.accel, plan.accel)}
@@ -134,6 +132,14 @@ def stealth_config(detector: str, plan: StealthPlan, knowledge: str, margin: flo
     return SimConfig.from_dict(sim)
 
 
+def calibration_sim(det, name: str) -> dict[str, Any]:
+    """A copy of the simulation configuration ``det`` (named ``name``) was calibrated on."""
+    sim = dict((getattr(det, "calibration_", None) or {}).get("sim_config") or {})
+    if not sim:
+        raise ValueError(f"stealth: {name} records no simulation it was calibrated on")
+    return sim
+
+
 def learned(det) -> bool:
     """Whether ``det`` is a network (its surrogate would be a network the attacker trains)."""
     return type(det).__module__.startswith("quadformer.detectors.neural")
@@ -142,9 +148,7 @@ def learned(det) -> bool:
 def surrogate_config(det, plan: StealthPlan) -> SimConfig:
     """The grey-box attacker's own flights: the simulation ``det`` was calibrated on, flown with
     the other airframe and other seeds, clean."""
-    sim = dict((getattr(det, "calibration_", None) or {}).get("sim_config") or {})
-    if not sim:
-        raise ValueError(f"stealth: {det.name} records no simulation it was calibrated on")
+    sim = calibration_sim(det, det.name)
     model = sim.get("model", MODELS[0])
     sim.update(model=next(m for m in MODELS if m != model), flights=SURROGATE_FLIGHTS, duration=plan.duration,
                batch_size=SURROGATE_FLIGHTS, seed=plan.seed + SURROGATE_SEED, attack={"kind": "none"})
@@ -249,7 +253,7 @@ def summarise(rows: list[dict[str, Any]], horizons: tuple[float, ...]) -> dict[s
         out[f"deviation_median_{T:g}"] = float(np.median(dev))
         out[f"deviation_worst_{T:g}"] = float(dev.max())
         out[f"hidden_{T:g}"] = float(np.mean([r[f"hidden_{T:g}"] for r in rows]))
-        reached = np.array([r.get(f"reached_{T:g}", np.nan) for r in rows])
+        reached = np.array([r[f"reached_{T:g}"] for r in rows])
         out[f"reached_median_{T:g}"] = float(np.median(reached))
         out[f"reached_worst_{T:g}"] = float(reached.max())
     if rows and "fused_after_onset" in rows[0]:
@@ -286,14 +290,15 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
                     echo(f"stealth: {name:20s} grey   not run ({skipped[-1]['reason']})")
                     continue
                 t0 = time.perf_counter()
-                surrogate = fit_surrogate(det, plan, out / "surrogates" / f"{name}.json")
+                surrogate_path = out / "surrogates" / f"{name}.json"
+                surrogate = fit_surrogate(det, plan, surrogate_path)
                 echo(f"stealth: {name:20s} grey   surrogate fitted on the attacker's own flights (airframe "
                      f"{surrogate['model']}): threshold {surrogate['threshold']:.4g} against the vehicle's "
                      f"{float(det.threshold_):.4g} ({time.perf_counter() - t0:.0f} s)")
             for margin, policy in [(m, p) for m in (plan.margins if knowledge in ("white", "grey") else (None,))
                                    for p in plan.policies]:
                 cfg = stealth_config(name, plan, knowledge, margin, det,
-                                     None if knowledge != "grey" else out / "surrogates" / surrogate["file"])
+                                     surrogate_path if knowledge == "grey" else None)
                 key = cfg.to_dict()
                 key["attack"].pop("detector")
                 key = repr(key)

@@ -24,29 +24,47 @@ def attacker(run: dict[str, Any]) -> str:
     return run["knowledge"] + (f" {run['margin']:g}" if run["margin"] else "")
 
 
+def runs_under(results: dict[str, Any], policy: str) -> list[dict[str, Any]]:
+    """The runs flown under the GPS policy ``policy`` (results written before the policies: every
+    run under none, GPS always fused)."""
+    return [r for r in results["runs"] if r.get("policy", "none") == policy]
+
+
 def unguarded(results: dict[str, Any]) -> list[dict[str, Any]]:
-    """The runs flown with GPS always fused (every run of results written before the policies)."""
-    return [r for r in results["runs"] if r.get("policy", "none") == "none"]
+    """The runs flown with GPS always fused."""
+    return runs_under(results, "none")
+
+
+def _frame(results: dict[str, Any], runs: list[dict[str, Any]], measure: str, first: dict, middle: dict
+           ) -> pd.DataFrame:
+    """One row per run: its detector and attacker, the ``first`` columns, the median and worst
+    ``measure`` (``deviation`` or ``reached``) by each horizon, the ``middle`` columns, the bound
+    and the worst at the last horizon as a ratio to it (``first``, ``middle``: {heading: run ->
+    cell})."""
+    horizons = tuple(results["plan"]["horizons"])
+    last = f"{max(horizons):g}"
+    rows = []
+    for r in runs:
+        s, b = r["summary"], results["bounds"][r["set"]]
+        row = {"detector": r["detector"], "attacker": attacker(r), **{k: f(r) for k, f in first.items()}}
+        for T in horizons:
+            row[f"{T:g} s"] = f"{s[f'{measure}_median_{T:g}']:.1f} / {s[f'{measure}_worst_{T:g}']:.1f}"
+        row.update({k: f(r) for k, f in middle.items()})
+        row[f"bound {last} s"] = f"{b[last]:.1f}"
+        row["worst / bound"] = f"{s[f'{measure}_worst_{last}'] / b[last]:.1f}"
+        rows.append(row)
+    return pd.DataFrame(rows)
 
 
 def stealth_table(results: dict[str, Any]) -> pd.DataFrame:
     """One row per detector, knowledge and margin flown with GPS always fused: the median and worst
     deviation unseen by each horizon, the share of flights still hidden at the last, the bound and
     the ratio to it."""
-    horizons = tuple(results["plan"]["horizons"])
-    rows = []
-    for r in unguarded(results):
-        s, b = r["summary"], results["bounds"][r["set"]]
-        row = {"detector": r["detector"], "attacker": attacker(r), "threshold (attacker's)":
-               f"{r['threshold']:.4g}" + (f" ({r['surrogate']['threshold']:.4g})" if r.get("surrogate") else "")}
-        for T in horizons:
-            row[f"{T:g} s"] = f"{s[f'deviation_median_{T:g}']:.1f} / {s[f'deviation_worst_{T:g}']:.1f}"
-        last = f"{max(horizons):g}"
-        row[f"hidden at {last} s"] = f"{s[f'hidden_{last}']:.0%}"
-        row[f"bound {last} s"] = f"{b[last]:.1f}"
-        row["worst / bound"] = f"{s[f'deviation_worst_{last}'] / b[last]:.1f}"
-        rows.append(row)
-    return pd.DataFrame(rows)
+    last = f"{max(results['plan']['horizons']):g}"
+    own = {"threshold (attacker's)": lambda r: f"{r['threshold']:.4g}"
+           + (f" ({r['surrogate']['threshold']:.4g})" if r.get("surrogate") else "")}
+    return _frame(results, unguarded(results), "deviation", own,
+                  {f"hidden at {last} s": lambda r: f"{r['summary'][f'hidden_{last}']:.0%}"})
 
 
 def resilient_table(results: dict[str, Any]) -> pd.DataFrame:
@@ -54,22 +72,9 @@ def resilient_table(results: dict[str, Any]) -> pd.DataFrame:
     in the loop: the median and worst deviation reached by each horizon (alarm or not: what the
     attack achieves with the defence acting), the flights that alarmed, the share of fixes fused
     after the onset, the bound and the worst as a ratio to it."""
-    horizons = tuple(results["plan"]["horizons"])
-    rows = []
-    for r in results["runs"]:
-        if r.get("policy", "none") != "resilient":
-            continue
-        s, b = r["summary"], results["bounds"][r["set"]]
-        row = {"detector": r["detector"], "attacker": attacker(r)}
-        for T in horizons:
-            row[f"{T:g} s"] = f"{s[f'reached_median_{T:g}']:.1f} / {s[f'reached_worst_{T:g}']:.1f}"
-        last = f"{max(horizons):g}"
-        row["alarmed"] = f"{s['alarmed']} of {s['flights']}"
-        row["GPS fused after the onset"] = f"{s['fused_after_onset']:.0%}"
-        row[f"bound {last} s"] = f"{b[last]:.1f}"
-        row["worst / bound"] = f"{s[f'reached_worst_{last}'] / b[last]:.1f}"
-        rows.append(row)
-    return pd.DataFrame(rows)
+    return _frame(results, runs_under(results, "resilient"), "reached", {},
+                  {"alarmed": lambda r: f"{r['summary']['alarmed']} of {r['summary']['flights']}",
+                   "GPS fused after the onset": lambda r: f"{r['summary']['fused_after_onset']:.0%}"})
 
 
 def _curves(results: dict[str, Any]) -> str:
@@ -120,7 +125,7 @@ def write_stealth_report(results: dict[str, Any], path: Path) -> Path:
            "<p>The detector's alarms drive the resilient policy in the loop (GPS leaves the fusion on an alarm and "
            "comes back once trustworthy); the deviation reached by each horizon, alarm or not.</p>",
            table(resilient_table(results), index=False)]
-          if any(r.get("policy") == "resilient" for r in results["runs"]) else []),
+          if runs_under(results, "resilient") else []),
         "<p>Threshold: the vehicle's detector's; in brackets the grey box's own, of the surrogate it fitted on "
         "its own flights.</p>" + "".join(f"<p>Not run: {html.escape(n['detector'])}, {html.escape(n['knowledge'])} "
                                           f"box ({html.escape(n['reason'])}).</p>" for n in results.get("not_run", [])),

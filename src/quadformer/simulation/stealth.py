@@ -81,7 +81,7 @@ def _stream(cfg: SimConfig, det, n: int, field: str = "attack.detector"):
     try:
         return det.stream(n)
     except (NotImplementedError, ValueError, AttributeError) as e:
-        name = getattr(cfg.attack, field.split(".")[1])
+        name = cfg.attack.surrogate if field == "attack.surrogate" else cfg.attack.detector
         raise ValueError(f"attack.knowledge {cfg.attack.knowledge}: {field} {name} has no online stream to run "
                          f"({e}); choose knowledge black, or the detector's saved model instead of its graph") \
             from None
