@@ -97,6 +97,19 @@ def test_training_is_reproducible_and_leaves_global_rng_alone(method, bias_datas
     assert len(a.history_) >= 1 and {"train_loss", "holdout_loss"} <= set(a.history_[0])
 
 
+def test_training_is_ieee_float32_inside_and_leaves_the_settings_alone():
+    # cuDNN's TF32 default trained an LSTM and a CNN 0.08 F1 below the CPU's on a GPU (training.py)
+    from quadformer.detectors.neural.training import ieee_fp32
+    cudnn = torch.backends.cudnn
+    before = (cudnn.conv.fp32_precision, cudnn.rnn.fp32_precision)
+    assert before == ("tf32", "tf32")          # torch's default, which training must not keep
+    with pytest.raises(RuntimeError):
+        with ieee_fp32():
+            assert (cudnn.conv.fp32_precision, cudnn.rnn.fp32_precision) == ("ieee", "ieee")
+            raise RuntimeError("a failed epoch")
+    assert (cudnn.conv.fp32_precision, cudnn.rnn.fp32_precision) == before
+
+
 def test_checkpoint_is_state_dict_plus_json(bias_dataset, tmp_path):
     f = bias_dataset.flights
     train = f[f.flight_id < 4].reset_index(drop=True)
