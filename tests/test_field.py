@@ -103,6 +103,7 @@ def test_field_benchmark_counts_false_alarms_degradation_and_injected_spoofs(fie
     assert sign["covered"] and sign["delay_s"] <= 0.2 and sign["sign_s"] == pytest.approx(12.0)
     for r in res["troubles"]:
         assert r["windows"] == 1 and r["in_window_degraded"] >= 1
+        assert r["in_window_spoofing"] >= r["in_window_spoofing_air"] + r["in_window_spoofing_transition"]
     # one spoof of each kind injected into each clean log, scored by each method at both thresholds
     inj = pd.read_csv(out / "injections.csv")
     kinds = {"bias": (1.0, 10.0), "ramp": (0.05, 2.0), "drift": (0.2, 2.0), "drift-accel": (0.2, 2.0),

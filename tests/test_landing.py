@@ -211,6 +211,31 @@ def test_impacts_online_equal_the_whole_frame():
     assert offline.detail[0].startswith("impact: free fall")
 
 
+def test_upside_down_is_a_crash_and_a_flip_flown_out_of_is_not():
+    """A multirotor's rotors push along its up axis: a negative up component for 0.3 s is a
+    vehicle upside down (a loss of control that no spike dates: 112 of the field set). One 0.2 s
+    long (a flip) is no crash; free fall and hover are not either."""
+    imu = imu_frame(40.0)
+    imu.loc[(imu.t >= 30.0), "az"] = -G0                          # at rest upside down from 30 s
+    imu.loc[(imu.t >= 20.0) & (imu.t < 20.2), "az"] = -0.9 * G0   # a 0.2 s flip, flown out of
+    (hit,) = impacts(imu).itertuples()
+    assert hit.crash and hit.t == pytest.approx(30.34, abs=0.011) and hit.detail.startswith("crash: upside down 0.3")
+    detector = ImpactDetector()
+    online_hits = [m for r in imu.itertuples() if (m := detector.update(r.t, r.ax, r.ay, r.az)) is not None]
+    assert [(m.t, m.crash, m.detail) for m in online_hits] == [(hit.t, True, hit.detail)]
+    assert impacts(imu, ImpactRule(inverted_s=0.15)).t.round(2).tolist() == [20.19, 30.19]
+    # the alert raised as it flipped is the crash's (the data ends 1.7 s after), not spoofing in the air
+    rows, det, scores = flight(spikes=[29.0], t_end=32.0)
+    events = pd.DataFrame({"t": [0.5, 2.0], "event": ["armed", "takeoff"], "detail": ""})
+    alerts, _ = online(rows, scores, det, events=events, imu=imu)
+    assert labels(alerts) == [(29.0, "transition", f"landing at t={hit.t:.1f} s ({hit.detail})")]
+    assert step_alerts(rows, scores, det, "shape", events=events, impacts=impacts(imu)) == alerts
+    # flown on for 5 s and more after it: no landing, the alert stays in the air
+    rows, det, scores = flight(spikes=[29.0], t_end=40.0)
+    imu.loc[(imu.t >= 30.5), "az"] = G0                           # righted again (a test rig's flip)
+    assert [a.phase for a in online(rows, scores, det, events=events, imu=imu)[0]] == ["air"]
+
+
 def test_an_impact_relabels_an_alert_2_s_before_it_and_holds_a_transition_after():
     """Armed, taken off, no landed event (a hard landing or a crash says none): a 5 g spike at
     30 s near the ground (the height back at the ground's) relabels the alert of 28 s; the alert

@@ -14,7 +14,11 @@ over the samples of the last ``window_s``, in g (9.80665 m/s^2):
 - a spike: ``|f|`` more than ``impact_g`` above 1 g (default 2 g: ``|f| > 3 g``); a crash where
   it is more than ``crash_g`` above (4 g: ``|f| > 5 g``);
 - a free fall: ``|f|`` below ``freefall_g`` (0.3 g) for ``freefall_s`` (0.1 s), dated at the
-  sample that completes it.
+  sample that completes it;
+- an inversion, a crash: the mean's component along the body's up axis (``az``, body FLU) below
+  ``-inverted_g`` (-0.5 g) for ``inverted_s`` (0.3 s), dated likewise. A multirotor's rotors
+  push along its up axis, so in flight that component is positive whatever the manoeuvre; it
+  turns negative when the vehicle lies upside down, or tumbles, after losing control.
 
 One impact is reported per ``refractory_s`` (1 s: the bounces of one hit are one impact), but a
 crash after a smaller impact within it is reported too. Samples with a non-finite acceleration
@@ -26,7 +30,10 @@ air reach 8.1 g above 1 g, and a per-sample rule finds 26 and 22 impacts in the 
 vibrating flights; the 50 ms mean (three samples at 50 Hz) finds 3 and 6 there, each where the
 height is back within about 1 m of the ground height; eight flights' ends stay impacts (2.0 to
 3.0 g above 1 g over 50 ms, and a crash at 7.0 g), three gentler touchdowns seen in single
-samples only (2.0 to 3.0 g) do not (their landed event or height dates them). Whether an
+samples only (2.0 to 3.0 g) do not (their landed event or height dates them). The inversion
+rule was added for a loss of control that the spikes miss: an Erle-Copter that flipped in the air
+and came to rest upside down (`11-2-2015_112`: 4.6 g in single samples, below 3 g over 50 ms;
+the GPS innovations it caused raised a spoofing alert 0.5 s before the log ended). Whether an
 impact is a landing is the flight phase's to say: a crash anywhere, a smaller one only near the
 ground (``PhaseRule.near_m``): a fixed-wing's pull-outs reach 3 g hundreds of metres up.
 """
@@ -51,11 +58,14 @@ class ImpactRule:
     crash_g: float = 4.0        # g above 1 g that is a crash: an impact wherever the vehicle is (|f| > 5 g)
     freefall_g: float = 0.3     # g, |f| below this is free fall...
     freefall_s: float = 0.1     # s, ...once it has lasted this long
+    inverted_g: float = 0.5     # g, the mean's up (body z) component below minus this is upside down...
+    inverted_s: float = 0.3     # s, ...a crash once it has lasted this long
     window_s: float = 0.05      # s, the specific force is the mean over the samples of the last window_s
     refractory_s: float = 1.0   # s, one impact per this long (but a crash after a smaller impact too)
 
     def __post_init__(self):
-        for name in ("impact_g", "crash_g", "freefall_g", "freefall_s", "window_s", "refractory_s"):
+        for name in ("impact_g", "crash_g", "freefall_g", "freefall_s", "inverted_g", "inverted_s", "window_s",
+                     "refractory_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"ImpactRule.{name} must be a finite number >= 0, got {v!r}")
@@ -84,6 +94,10 @@ def _spike(rule: ImpactRule, t: float, g: float) -> Impact:
 
 def _fall(t: float, g: float, lasted: float) -> Impact:
     return Impact(t, g, False, f"impact: free fall {lasted:.2f} s")
+
+
+def _inverted(t: float, g: float, lasted: float) -> Impact:
+    return Impact(t, g, True, f"crash: upside down {lasted:.2f} s")
 
 
 class _Refractory:
@@ -126,20 +140,31 @@ def impacts(imu: pd.DataFrame, rule: ImpactRule = ImpactRule()) -> pd.DataFrame:
     csum = np.vstack([np.zeros((1, 3)), np.cumsum(a, axis=0)])
     i = np.arange(n)
     lo = np.minimum(np.searchsorted(t, t - rule.window_s, side="right"), i)   # t_j in (t_i - window_s, t_i], and i
-    g = np.linalg.norm((csum[i + 1] - csum[lo]) / (i + 1 - lo)[:, None], axis=1)
+    mean = (csum[i + 1] - csum[lo]) / (i + 1 - lo)[:, None]
+    g = np.linalg.norm(mean, axis=1)
     spike = g - 1.0 > rule.impact_g
-    low = g < rule.freefall_g
-    begins = low & ~np.concatenate([[False], low[:-1]])
-    since = np.maximum.accumulate(np.where(begins, i, 0))           # each low sample's run start
-    done = low & (t - t[since] >= rule.freefall_s)
-    fall = done & ~np.concatenate([[False], done[:-1]])             # the sample that completes a fall
+
+    def completed(run: np.ndarray, lasting: float) -> tuple[np.ndarray, np.ndarray]:
+        """The samples that complete a run of ``run`` lasting ``lasting``, and each sample's run start."""
+        begins = run & ~np.concatenate([[False], run[:-1]])
+        since = np.maximum.accumulate(np.where(begins, i, 0))
+        done = run & (t - t[since] >= lasting)
+        return done & ~np.concatenate([[False], done[:-1]]), since
+
+    fall, fell_since = completed(g < rule.freefall_g, rule.freefall_s)
+    upside, up_since = completed(mean[:, 2] < -rule.inverted_g, rule.inverted_s)
     keep = _Refractory(rule.refractory_s)
     out = []
-    for k in np.nonzero(spike | fall)[0]:
-        imp = _spike(rule, float(t[k]), float(g[k])) if spike[k] else _fall(float(t[k]), float(g[k]),
-                                                                            float(t[k] - t[since[k]]))
-        if keep.admit(imp):
-            out.append(imp)
+    for k in np.nonzero(spike | fall | upside)[0]:
+        tk, gk = float(t[k]), float(g[k])
+        if spike[k]:
+            found = [_spike(rule, tk, gk)]
+        else:
+            found = [_fall(tk, gk, float(tk - t[fell_since[k]]))] if fall[k] else []
+        if upside[k]:
+            found.append(_inverted(tk, gk, float(tk - t[up_since[k]])))
+        admitted = [imp for imp in found if keep.admit(imp)]
+        out.extend(admitted[-1:])                                   # one per sample, as ImpactDetector
     return pd.DataFrame({"t": [m.t for m in out], "event": "impact", "detail": [m.detail for m in out],
                          "g": [m.g for m in out], "crash": np.array([m.crash for m in out], dtype=bool)},
                         columns=IMPACT_COLUMNS)
@@ -159,6 +184,8 @@ class ImpactDetector:
         self._sx = self._sy = self._sz = 0.0
         self._low_since = math.nan      # s, the first sample of the current free fall
         self._fell = False              # the current free fall is reported
+        self._up_since = math.nan       # s, the first sample of the current inversion
+        self._upside = False            # the current inversion is reported
         self._last_t = -math.inf
         self._keep = _Refractory(self.rule.refractory_s)
 
@@ -182,17 +209,25 @@ class ImpactDetector:
             self._sz -= z
         n = len(w)
         g = math.sqrt(self._sx * self._sx + self._sy * self._sy + self._sz * self._sz) / n
+        found = []
         if g - 1.0 > self.rule.impact_g:
             self._low_since, self._fell = math.nan, False
-            imp = _spike(self.rule, t, g)
+            found.append(_spike(self.rule, t, g))
         elif g < self.rule.freefall_g:
             if math.isnan(self._low_since):
                 self._low_since = t
-            if self._fell or t - self._low_since < self.rule.freefall_s:
-                return None
-            self._fell = True
-            imp = _fall(t, g, t - self._low_since)
+            if not self._fell and t - self._low_since >= self.rule.freefall_s:
+                self._fell = True
+                found.append(_fall(t, g, t - self._low_since))
         else:
             self._low_since, self._fell = math.nan, False
-            return None
-        return imp if self._keep.admit(imp) else None
+        if self._sz / n < -self.rule.inverted_g:
+            if math.isnan(self._up_since):
+                self._up_since = t
+            if not self._upside and t - self._up_since >= self.rule.inverted_s:
+                self._upside = True
+                found.append(_inverted(t, g, t - self._up_since))
+        else:
+            self._up_since, self._upside = math.nan, False
+        admitted = [imp for imp in found if self._keep.admit(imp)]
+        return admitted[-1] if admitted else None

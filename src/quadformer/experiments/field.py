@@ -213,6 +213,10 @@ def trouble_counts(fl: FieldLog, alerts: list) -> dict[str, Any]:
     return {"windows": len(wins),
             "in_window_degraded": sum(inside(a) and a.kind == "degraded" for a in alerts),
             "in_window_spoofing": sum(inside(a) and a.kind == "spoofing" for a in alerts),
+            # by phase, as on the clean logs: in the air, and apart on the ground or in a transition
+            "in_window_spoofing_air": sum(inside(a) and a.kind == "spoofing" and a.phase == "air" for a in alerts),
+            "in_window_spoofing_transition": sum(inside(a) and a.kind == "spoofing" and a.phase == "transition"
+                                                 for a in alerts),
             "outside_spoofing_air": sum(not inside(a) and a.kind == "spoofing" and a.phase == "air" for a in alerts)}
 
 

@@ -45,7 +45,8 @@ def clean_summary(per_log: pd.DataFrame) -> pd.DataFrame:
 
 
 def trouble_summary(per_log: pd.DataFrame) -> pd.DataFrame:
-    """On the logs with GPS trouble: alerts inside the windows by kind, spoofing alerts outside."""
+    """On the logs with GPS trouble: alerts inside the windows by kind (the spoofing alerts also by
+    phase: in the air, in a take-off or landing transition), spoofing alerts outside."""
     bad = per_log[~per_log["clean"]]
     if not len(bad) or "windows" not in bad:
         return pd.DataFrame()
@@ -54,6 +55,8 @@ def trouble_summary(per_log: pd.DataFrame) -> pd.DataFrame:
         out.append({"method": m, "threshold": thr, "logs": len(g), "windows": int(g["windows"].sum()),
                     "in_window_degraded": int(g["in_window_degraded"].sum()),
                     "in_window_spoofing": int(g["in_window_spoofing"].sum()),
+                    **{k: int(g[k].sum()) for k in ("in_window_spoofing_air", "in_window_spoofing_transition")
+                       if k in g},
                     "outside_spoofing_air": int(g["outside_spoofing_air"].sum()),
                     "air_hours": float(g["air_hours"].sum())})
     return pd.DataFrame(out)
