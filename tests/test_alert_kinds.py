@@ -250,6 +250,56 @@ def test_the_online_step_labels_alarms_by_flight_phase_and_receiver_health():
         OnlineStep(n=1, flight_ids=["a"], health=ReceiverHealth(flight_id="b"))
 
 
+def test_an_alarm_the_autopilot_calls_a_glitch_a_moment_later_is_degraded():
+    """The autopilot's glitch test and the detector see the same fix: an alarm raised 0.2 s before
+    its glitch report is the degraded episode's, as one raised after the report is; one raised
+    1 s before it stays spoofing (a spoof the autopilot then also sees)."""
+    ev = [(0.0, "armed"), (5.0, "takeoff"), (20.2, "gps_glitch"), (23.0, "gps_glitch_cleared"),
+          (27.0, "gps_failsafe")]
+    alerts = drive(None, alarm_at=[(20.0, 21.0), (26.0, 27.5)], events=ev)
+    assert [(a.start_s, a.kind, a.reason) for a in alerts] == [
+        (20.0, "degraded", "autopilot GPS glitch 0.20 s after its raise"),
+        (20.2, "degraded", "autopilot GPS glitch"),
+        (26.0, "spoofing", None),
+        (27.0, "degraded", "autopilot GPS failsafe")]
+    assert alert_counts(alerts)["alerts"] == 1 and alert_counts(alerts)["alerts_degraded"] == 3
+    # (a capture's alarm keeps its kind: test_glr's capture tests)
+
+
+def test_the_monitor_writes_a_glitch_relabel_and_counts_the_alert_degraded(tmp_path):
+    import json
+
+    from quadformer.live.actions import Records
+    from quadformer.live.alerts import Alerting
+    from quadformer.live.config import MonitorConfig
+    from quadformer.resilience.admission import FUSING
+
+    t = times(0, 25)
+    alarm = (t >= 20.0) & (t < 21.0)
+    score = np.where(alarm, 50.0, 1.0)
+    det = make("chi2").fit(pd.DataFrame({"flight_id": 0, "t": t, "res_gps_nis": score}))
+    det.calibrate(40.0)
+    step = OnlineStep(ScoredStream(score, alarm), flight_ids=[0], phase=FlightPhase(),
+                      health=ReceiverHealth(flight_id=0))
+    lines, records = [], Records(tmp_path)
+    alerting = Alerting(det, MonitorConfig(connect="udpin:127.0.0.1:0"), lines.append, lambda e: None)
+    alerting.attach(None, records)
+    events = {0.0: "armed", 5.0: "takeoff", 20.2: "gps_glitch"}
+    for tk in t:
+        if tk in events:
+            alerting.events(step.event(tk, events[tk]), 0, math.nan, FUSING)
+        out = step.update_columns(tk, {})
+        alerting.events(out.events, 0, float(out.score[0]), FUSING)
+    alerting.events(step.finish(), 0, math.nan, FUSING)
+    records.close()
+    on_disk = [json.loads(x) for x in (tmp_path / "alerts.jsonl").read_text().splitlines()]
+    (relabel,) = [e for e in on_disk if e["event"] == "alert_relabel"]
+    assert (relabel["start_s"], relabel["kind"], relabel["was_kind"], relabel["phase"]) == (
+        20.0, "degraded", "spoofing", "air")
+    assert {k: v for k, v in alerting.counts.items() if v} == {"alerts_degraded": 2, "alerts_total": 2}
+    assert any("alert of t 20.0 s: degraded, not spoofing (autopilot GPS glitch 0.20 s" in x for x in lines)
+
+
 # -- offline: step_alerts ----------------------------------------------------------------
 
 def log_table(seed: int = 2) -> tuple[pd.DataFrame, object, np.ndarray]:

@@ -175,14 +175,16 @@ def test_bad_settings_and_input_are_named(fitted):
 
 # -- the capture signature ----------------------------------------------------------------
 
-def _capture_step(reports: list[dict], row: dict) -> list:
+def _capture_step(reports: list[dict], row: dict, events: tuple[tuple[float, str], ...] = ()) -> list:
     """An online step labelled by a receiver health fed ``reports`` (t and fields), then one alarm
-    at t = 20 s carrying the raw innovation ``row``."""
+    at t = 20 s carrying the raw innovation ``row``, then the autopilot's ``events``."""
     health = ReceiverHealth()
     step = OnlineStep(ScoredStream(np.array([5.0]), np.array([True])), flight_ids=[0], health=health)
     for rep in reports:
         step.receiver(rep.pop("t"), **rep)
     step.update_columns(20.0, row)
+    for t, kind in events:
+        step.event(t, kind)
     step.finish()
     return [a for a in step.alerts if not np.isnan(a.score)]
 
@@ -203,6 +205,14 @@ def test_satellites_and_noise_jumping_while_the_fix_runs_from_the_imu_is_a_captu
     (a,) = _capture_step(_steady(satellites=5, noise=139, eph=6.0, speed_acc=4.2), MOVING)
     assert a.kind == "spoofing" and a.reason.startswith("capture:")
     assert "satellites 5" in a.reason and "3.6 m/s against the IMU" in a.reason
+
+
+def test_the_autopilot_calling_a_captures_jump_a_glitch_leaves_it_spoofing():
+    (a,) = _capture_step(_steady(satellites=5, noise=139), MOVING, events=((20.2, "gps_glitch"),))
+    assert a.kind == "spoofing" and a.reason.startswith("capture:")
+    steady = _steady(t1=19.0)[:-1] + [{"t": 19.0, "fix_type": 3, "satellites": 11, "eph": 1.6, "noise": 100}]
+    (b,) = _capture_step(steady, MOVING, events=((20.2, "gps_glitch"),))       # no capture sign
+    assert b.kind == "degraded" and b.reason == "autopilot GPS glitch 0.20 s after its raise"
 
 
 def test_an_inflated_accuracy_hides_nothing_even_with_the_lock_lost_for_a_moment():

@@ -96,7 +96,8 @@ class AlertEvent:
     """A change in an alert's life: ``alert_start`` (raised), ``alert_end`` (closed; ``alert.end_s``
     None when the data ended under it), ``alert_type`` (its type confirmed; ``raised_as`` the
     type it was raised with) or ``alert_relabel`` (its flight phase corrected once a landing was
-    seen; ``was`` the phase it had). ``flight``: the flight's position in the tracker's batch;
+    seen, ``was`` the phase it had; or its kind, ``was_kind`` the kind it had, where that changed).
+    ``flight``: the flight's position in the tracker's batch;
     ``t``: the step's time (None for the close at the end of the data); ``step``: the step's index."""
     event: str
     flight: int
@@ -105,6 +106,7 @@ class AlertEvent:
     step: int = -1
     raised_as: str | None = None
     was: str | None = None
+    was_kind: str | None = None
 
 
 class AlertTracker:
@@ -206,19 +208,26 @@ class AlertTracker:
         return None if got is None else AlertEvent("alert_type", i, t, got[1], raised_as=None)
 
     def relabel(self, i: int, start_s: float, phase: str, reason: str | None,
-                t: float | None = None, attack_type: str | None = None) -> AlertEvent | None:
+                t: float | None = None, attack_type: str | None = None,
+                kind: str | None = None) -> AlertEvent | None:
         """Set the flight phase of flight i's alert raised at ``start_s`` (open, or among those
         kept) and add ``reason`` to its own; with ``attack_type``, its type (and its confirmed
-        type, where it has one) too; the ``alert_relabel`` event (None: no such alert)."""
+        type, where it has one) too; with ``kind``, its kind; the ``alert_relabel`` event (None:
+        no such alert)."""
         def change(a: Alert) -> Alert:
             b = relabelled(a, phase, reason)
+            if kind is not None:
+                b = dataclasses.replace(b, kind=kind)
             if attack_type is None:
                 return b
             return dataclasses.replace(b, attack_type=attack_type,
                                        confirmed_type=None if a.confirmed_type is None else attack_type)
 
         got = self._amend(i, start_s, change)
-        return None if got is None else AlertEvent("alert_relabel", i, t, got[1], was=got[0].phase)
+        if got is None:
+            return None
+        was_kind = got[0].kind if kind is not None and kind != got[0].kind else None
+        return AlertEvent("alert_relabel", i, t, got[1], was=got[0].phase, was_kind=was_kind)
 
     def _amend(self, i: int, start_s: float, change) -> tuple[Alert, Alert] | None:
         """(before, after) of flight i's alert raised at ``start_s`` changed by ``change``."""

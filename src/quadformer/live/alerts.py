@@ -142,13 +142,17 @@ class Alerting:
                           + (f" (raised as {raised})" if kind != raised else " confirmed"))
             elif ev.event == "alert_relabel":
                 event.update(start_s=a.start_s, kind=a.kind, attack_type=a.attack_type, phase=a.phase, was=ev.was,
-                             reason=a.reason)
-                self._amend(a, phase=a.phase, reason=a.reason, attack_type=a.attack_type,
+                             was_kind=ev.was_kind, reason=a.reason)
+                self._amend(a, kind=a.kind, phase=a.phase, reason=a.reason, attack_type=a.attack_type,
                             confirmed_type=a.confirmed_type)
-                self.counts.subtract(alert_counts([dataclasses.replace(a, phase=ev.was)]))
+                self.counts.subtract(alert_counts([dataclasses.replace(a, phase=ev.was, kind=ev.was_kind or a.kind)]))
                 self.counts.update(alert_counts([a]))
-                self.echo(f"[t {ev.t:.1f} s] alert of t {a.start_s:.1f} s: {phase_words(a.phase, a.reason)}, "
-                          f"not {phase_words(ev.was)} ({a.reason})")
+                if ev.was_kind is not None:
+                    self.echo(f"[t {ev.t:.1f} s] alert of t {a.start_s:.1f} s: {a.kind}, not {ev.was_kind} "
+                              f"({a.reason})")
+                else:
+                    self.echo(f"[t {ev.t:.1f} s] alert of t {a.start_s:.1f} s: {phase_words(a.phase, a.reason)}, "
+                              f"not {phase_words(ev.was)} ({a.reason})")
             else:
                 value = a.score if ev.event == "alert_end" or episode(a) else float(score)
                 event.update(score=value if math.isfinite(value) else None, onset_s=a.onset_s,

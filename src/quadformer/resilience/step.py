@@ -19,7 +19,10 @@ driver owns only its clock and its I/O. Per step, for ``n`` flights stepped toge
    while the receiver is degraded, else ``spoofing``; an alarm raised as ``degraded`` that still
    stands when the receiver shows a capture sign while the fix moves against the IMU (a capture
    that began with a lost lock) ends there, and a ``spoofing`` alert (reason ``capture: ...``)
-   takes it over from that step. The receiver's own spoofing flag raises a
+   takes it over from that step. The autopilot's own GPS glitch or failsafe report comes after
+   the fix it judged: a spoofing alert raised ``GLITCH_LEAD_S`` or less before it, with no
+   reason of its own (no capture sign), is relabelled ``degraded`` (``alert_relabel``, its
+   ``was_kind`` the kind it had), as one raised a moment later in the episode is. The receiver's own spoofing flag raises a
    spoofing alert (reason ``receiver reports spoofing``) without a detector alarm, and its
    degraded episodes are alerts of their own (``OnlineStep.alerts`` holds both, by time).
 6. a landing (the ``landed`` or ``disarmed`` event, the height's touchdown, or an impact fed to
@@ -62,6 +65,11 @@ CAPTURE_SPEED = 1.0
 #: ... or a horizontal position innovation of this many m
 CAPTURE_JUMP = 3.0
 MAX_RECENT = 200           # alerts raised in the air a landing may still relabel
+#: an alarm raised at most this long before the autopilot reports a GPS glitch or failsafe was
+#: raised on the fixes the autopilot judged (its test and the detector's see the same fix, at
+#: most a fix or two apart): it is labelled as if raised in the degraded episode the report opens
+GLITCH_LEAD_S = 0.5
+GLITCHES = ("gps_glitch", "gps_failsafe")
 TRACKER, HEALTH = 0, 1     # who holds an alert the step may relabel
 
 
@@ -252,10 +260,24 @@ class OnlineStep:
             self.phase.event(t, kind)
             events = self._landed()
         if self.health is not None:
+            events += self._glitched(t, kind)
             opened = self.health.event(t, kind, **self._health_label(t))
             self._watch(opened, HEALTH)
             events += opened
         return events
+
+    def _glitched(self, t: float, kind: str) -> list[AlertEvent]:
+        """The open spoofing alert raised within ``GLITCH_LEAD_S`` before the autopilot's GPS glitch
+        or failsafe at t relabelled ``degraded``, as an alarm raised a moment later, in the episode,
+        is (its event). Not one with a reason (a capture's, the receiver's own spoofing flag, a
+        landing's): a capture stays spoofing whatever the autopilot calls its jump."""
+        a = self.tracker.open[0]
+        if (kind not in GLITCHES or a is None or a.kind != "spoofing" or a.reason is not None
+                or not t - GLITCH_LEAD_S <= a.start_s <= t):
+            return []
+        why = f"autopilot GPS {kind.removeprefix('gps_')} {t - a.start_s:.2f} s after its raise"
+        ev = self.tracker.relabel(0, a.start_s, a.phase, why, t, kind="degraded")
+        return [] if ev is None else [ev]
 
     def receiver(self, t: float, **report) -> list[AlertEvent]:
         """One status report of the receiver at t (``ReceiverHealth.report``'s fields) fed to the
