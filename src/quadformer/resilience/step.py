@@ -24,7 +24,8 @@ driver owns only its clock and its I/O. Per step, for ``n`` flights stepped toge
    reason of its own (no capture sign), is relabelled ``degraded`` (``alert_relabel``, its
    ``was_kind`` the kind it had), as one raised a moment later in the episode is. The
    receiver's own spoofing flag raises a spoofing alert (reason ``receiver reports spoofing``)
-   without a detector alarm, and its degraded episodes are alerts of their own (``OnlineStep.alerts`` holds both, by time).
+   without a detector alarm, and its degraded episodes are alerts of their own
+   (``OnlineStep.alerts`` holds both, by time).
 6. a landing (the ``landed`` or ``disarmed`` event, the height's touchdown, or an impact fed to
    ``impact``: ``detectors.flight_phase``) comes after the alerts raised in the air in its
    ``land_s`` before: the step keeps those alerts and, when the phase declares the landing,
