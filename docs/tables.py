@@ -46,16 +46,16 @@ TABLES: dict[str, dict[str, Any]] = {
                       "kinds": ("bias", "ramp", "drift", "drift-accel", "capture"),
                       "command": "quadformer benchmark --profile field --shipped magbaro --logs "
                                  "../shared/data/real-flights --manifest ../shared/data/real-flights/MANIFEST.csv "
-                                 "--out runs/field-warm2"},
+                                 "--out runs/field-crash"},
     "field-glr": {"source": "results/field-shipped/results.json", "kind": "field", "methods": ["glr"],
                   "kinds": ("bias", "ramp", "drift", "drift-accel", "capture"),
                   "command": "quadformer benchmark --profile field --shipped magbaro --logs "
                              "../shared/data/real-flights --manifest ../shared/data/real-flights/MANIFEST.csv "
-                             "--out runs/field-warm2"},
+                             "--out runs/field-crash"},
     "field-floors": {"source": "results/field-shipped/results.json", "kind": "floors",
                      "command": "quadformer benchmark --profile field --shipped magbaro --logs "
                                 "../shared/data/real-flights --manifest ../shared/data/real-flights/MANIFEST.csv "
-                                "--out runs/field-warm2"},
+                                "--out runs/field-crash"},
     "zoo": {"source": "../src/quadformer/detectors/pretrained/models/index.json", "kind": "zoo",
             "command": "quadformer zoo build"},
     "zoo-vio": {"source": "../src/quadformer/detectors/pretrained/models/index.json", "kind": "zoo-configs",
