@@ -42,6 +42,13 @@ ROOT = DOCS.parent
 #:     "paper-f1": {"source": "results/paper/results.json", "kind": "methods", "metric": "f1",
 #:                  "command": "quadformer benchmark --profile paper --out runs/paper-now"},
 TABLES: dict[str, dict[str, Any]] = {
+    "quick-f1": {"source": "results/quick-stress/results.json", "kind": "methods", "metric": "f1",
+                 "command": "quadformer benchmark --profile quick --stress --out runs/quick-stress"},
+    "quick-stress": {"source": "results/quick-stress/results.json", "kind": "stress",
+                     "methods": ["cusum", "bht", "chi2-vref", "cusum-vref", "cusum-ref", "cnn", "lstm", "quadformer"],
+                     "command": "quadformer benchmark --profile quick --stress --out runs/quick-stress"},
+    "res-quick": {"source": "results/res-quick/results.json", "kind": "resilience",
+                  "command": "quadformer resilience --profile quick --detector quadformer --out runs/res-quick"},
     "field-shipped": {"source": "results/field-shipped/results.json", "kind": "field",
                       "kinds": ("bias", "ramp", "drift", "drift-accel", "capture"),
                       "command": "quadformer benchmark --profile field --shipped magbaro --logs "
