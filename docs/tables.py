@@ -41,32 +41,24 @@ ROOT = DOCS.parent
 #: For example, once the paper profile's results.json is committed:
 #:     "paper-f1": {"source": "results/paper/results.json", "kind": "methods", "metric": "f1",
 #:                  "command": "quadformer benchmark --profile paper --out runs/paper-now"},
+QUICK = {"source": "results/quick-stress/results.json",
+         "command": "quadformer benchmark --profile quick --stress --out runs/quick-stress"}
+FIELD_SHIPPED = {"source": "results/field-shipped/results.json",
+                 "command": "quadformer benchmark --profile field --shipped magbaro --logs ../shared/data/real-flights "
+                            "--manifest ../shared/data/real-flights/MANIFEST.csv --out runs/field-crash"}
+FIELD_INJECTED = ("bias", "ramp", "drift", "drift-accel", "capture")
+MIXED = {"source": "results/mixed/results.json", "command": "quadformer benchmark --profile mixed --out runs/mixed"}
 TABLES: dict[str, dict[str, Any]] = {
-    "quick-f1": {"source": "results/quick-stress/results.json", "kind": "methods", "metric": "f1",
-                 "command": "quadformer benchmark --profile quick --stress --out runs/quick-stress"},
-    "quick-stress": {"source": "results/quick-stress/results.json", "kind": "stress",
-                     "methods": ["cusum", "bht", "chi2-vref", "cusum-vref", "cusum-ref", "cnn", "lstm", "quadformer"],
-                     "command": "quadformer benchmark --profile quick --stress --out runs/quick-stress"},
-    "mixed-f1": {"source": "results/mixed/results.json", "kind": "methods", "metric": "f1", "paren": "vus_pr",
-                 "command": "quadformer benchmark --profile mixed --out runs/mixed"},
-    "mixed-typing": {"source": "results/mixed/results.json", "kind": "typing",
-                     "command": "quadformer benchmark --profile mixed --out runs/mixed"},
+    "quick-f1": {**QUICK, "kind": "methods", "metric": "f1"},
+    "quick-stress": {**QUICK, "kind": "stress",
+                     "methods": ["cusum", "bht", "chi2-vref", "cusum-vref", "cusum-ref", "cnn", "lstm", "quadformer"]},
+    "mixed-f1": {**MIXED, "kind": "methods", "metric": "f1", "paren": "vus_pr"},
+    "mixed-typing": {**MIXED, "kind": "typing"},
     "res-quick": {"source": "results/res-quick/results.json", "kind": "resilience",
                   "command": "quadformer resilience --profile quick --detector quadformer --out runs/res-quick"},
-    "field-shipped": {"source": "results/field-shipped/results.json", "kind": "field",
-                      "kinds": ("bias", "ramp", "drift", "drift-accel", "capture"),
-                      "command": "quadformer benchmark --profile field --shipped magbaro --logs "
-                                 "../shared/data/real-flights --manifest ../shared/data/real-flights/MANIFEST.csv "
-                                 "--out runs/field-crash"},
-    "field-glr": {"source": "results/field-shipped/results.json", "kind": "field", "methods": ["glr"],
-                  "kinds": ("bias", "ramp", "drift", "drift-accel", "capture"),
-                  "command": "quadformer benchmark --profile field --shipped magbaro --logs "
-                             "../shared/data/real-flights --manifest ../shared/data/real-flights/MANIFEST.csv "
-                             "--out runs/field-crash"},
-    "field-floors": {"source": "results/field-shipped/results.json", "kind": "floors",
-                     "command": "quadformer benchmark --profile field --shipped magbaro --logs "
-                                "../shared/data/real-flights --manifest ../shared/data/real-flights/MANIFEST.csv "
-                                "--out runs/field-crash"},
+    "field-shipped": {**FIELD_SHIPPED, "kind": "field", "kinds": FIELD_INJECTED},
+    "field-glr": {**FIELD_SHIPPED, "kind": "field", "methods": ["glr"], "kinds": FIELD_INJECTED},
+    "field-floors": {**FIELD_SHIPPED, "kind": "floors"},
     "zoo": {"source": "../src/quadformer/detectors/pretrained/models/index.json", "kind": "zoo",
             "command": "quadformer zoo build"},
     "zoo-vio": {"source": "../src/quadformer/detectors/pretrained/models/index.json", "kind": "zoo-configs",

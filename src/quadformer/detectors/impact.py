@@ -102,6 +102,27 @@ def _inverted(t: float, g: float, lasted: float) -> Impact:
     return Impact(t, g, True, f"crash: upside down {lasted:.2f} s")
 
 
+class _Run:
+    """A condition held for ``lasting`` s, one sample at a time: ``update`` gives how long it had
+    held at the sample that completes the run (once per run), None otherwise."""
+
+    def __init__(self, lasting: float):
+        self.lasting = lasting
+        self.since = math.nan      # s, the first sample of the current run
+        self.told = False          # the current run is reported
+
+    def update(self, holds: bool, t: float) -> float | None:
+        if not holds:
+            self.since, self.told = math.nan, False
+            return None
+        if math.isnan(self.since):
+            self.since = t
+        if self.told or t - self.since < self.lasting:
+            return None
+        self.told = True
+        return t - self.since
+
+
 class _Refractory:
     """The reporting rule shared by both routes: one impact per ``refractory_s``, and a crash
     after a smaller impact within it."""
@@ -184,10 +205,8 @@ class ImpactDetector:
     def reset(self) -> None:
         self._window: deque[tuple[float, float, float, float]] = deque()
         self._sx = self._sy = self._sz = 0.0
-        self._low_since = math.nan      # s, the first sample of the current free fall
-        self._fell = False              # the current free fall is reported
-        self._up_since = math.nan       # s, the first sample of the current inversion
-        self._upside = False            # the current inversion is reported
+        self._fall = _Run(self.rule.freefall_s)
+        self._upside = _Run(self.rule.inverted_s)
         self._last_t = -math.inf
         self._keep = _Refractory(self.rule.refractory_s)
 
@@ -211,25 +230,12 @@ class ImpactDetector:
             self._sz -= z
         n = len(w)
         g = math.sqrt(self._sx * self._sx + self._sy * self._sy + self._sz * self._sz) / n
-        found = []
-        if g - 1.0 > self.rule.impact_g:
-            self._low_since, self._fell = math.nan, False
-            found.append(_spike(self.rule, t, g))
-        elif g < self.rule.freefall_g:
-            if math.isnan(self._low_since):
-                self._low_since = t
-            if not self._fell and t - self._low_since >= self.rule.freefall_s:
-                self._fell = True
-                found.append(_fall(t, g, t - self._low_since))
-        else:
-            self._low_since, self._fell = math.nan, False
-        if self._sz / n < -self.rule.inverted_g:
-            if math.isnan(self._up_since):
-                self._up_since = t
-            if not self._upside and t - self._up_since >= self.rule.inverted_s:
-                self._upside = True
-                found.append(_inverted(t, g, t - self._up_since))
-        else:
-            self._up_since, self._upside = math.nan, False
+        found = [_spike(self.rule, t, g)] if g - 1.0 > self.rule.impact_g else []
+        fell = self._fall.update(g < self.rule.freefall_g, t)
+        if fell is not None:
+            found.append(_fall(t, g, fell))
+        upside = self._upside.update(self._sz / n < -self.rule.inverted_g, t)
+        if upside is not None:
+            found.append(_inverted(t, g, upside))
         admitted = [imp for imp in found if self._keep.admit(imp)]
         return admitted[-1] if admitted else None

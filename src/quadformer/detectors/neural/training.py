@@ -53,19 +53,17 @@ def ieee_fp32():
     previous settings restored after; no effect on a CPU)."""
     cudnn = torch.backends.cudnn
     if hasattr(cudnn, "conv") and hasattr(cudnn.conv, "fp32_precision"):
-        old = (cudnn.conv.fp32_precision, cudnn.rnn.fp32_precision)
-        cudnn.conv.fp32_precision = cudnn.rnn.fp32_precision = "ieee"
-        try:
-            yield
-        finally:
-            cudnn.conv.fp32_precision, cudnn.rnn.fp32_precision = old
+        settings = [(cudnn.conv, "fp32_precision", "ieee"), (cudnn.rnn, "fp32_precision", "ieee")]
     else:                               # torch before the fp32_precision settings
-        old_flag = cudnn.allow_tf32
-        cudnn.allow_tf32 = False
-        try:
-            yield
-        finally:
-            cudnn.allow_tf32 = old_flag
+        settings = [(cudnn, "allow_tf32", False)]
+    old = [getattr(where, name) for where, name, _ in settings]
+    for where, name, value in settings:
+        setattr(where, name, value)
+    try:
+        yield
+    finally:
+        for (where, name, _), value in zip(settings, old):
+            setattr(where, name, value)
 
 
 @dataclass(frozen=True)
