@@ -45,14 +45,15 @@ def play(streams, port: int, config, queue) -> None:
 
 def spans(events) -> tuple[tuple[float, float] | None, tuple[float, float] | None]:
     """(armed, in air) spans on the log's clock from its events: the first arming to the last
-    disarming, the first take-off to the last landing (None where the log says nothing)."""
+    disarming, the first take-off to the last landing (in the air to the end where a take-off
+    follows the last landing; None where the log says nothing)."""
     if events is None:
         return None, None
     t = {e: events.loc[events.event == e, "t"].to_numpy() for e in ("armed", "disarmed", "takeoff", "landed")}
     armed = (float(t["armed"][0]), float(t["disarmed"][-1]) if len(t["disarmed"]) else math.inf) \
         if len(t["armed"]) else None
-    air = (float(t["takeoff"][0]), float(t["landed"][-1]) if len(t["landed"]) else math.inf) \
-        if len(t["takeoff"]) else None
+    landed = float(t["landed"][-1]) if len(t["landed"]) and t["landed"][-1] > t["takeoff"][-1] else math.inf
+    air = (float(t["takeoff"][0]), landed) if len(t["takeoff"]) else None
     return armed, air
 
 
@@ -93,10 +94,12 @@ def main() -> None:
     ap.add_argument("--sensors", default=None, help="sensors the monitor fuses (default: those the log sends)")
     ap.add_argument("--timeout", type=float, default=900.0, help="wall-clock bound (s)")
     ap.add_argument("--gps-delay", dest="gps_delay", type=float, default=None,
-                    help="s, each fix fused this long before its stamp (default: the --vehicle profile's, else 0, "
-                         "as quadformer monitor)")
+                    help="s, each fix fused this long before its stamp (default: the --vehicle profile's, else "
+                         "estimated from the link in the air, as quadformer monitor)")
     ap.add_argument("--vehicle", type=Path, default=None,
                     help="a vehicle profile (quadformer calibrate --profile): its detector and receiver latency")
+    ap.add_argument("--fixes", type=Path, default=None,
+                    help="also write the monitor's fixes.csv (every scored fix) here")
     args = ap.parse_args()
 
     import numpy as np
@@ -135,7 +138,7 @@ def main() -> None:
         sensors = args.sensors or pretrained.fused_sensors(entry, have)
         label = f"shipped:{entry.name}"
     filt = FilterConfig.matching(det.calibration_["sim_config"], sensors=sensors, min_segment_s=3.0,
-                                 receiver_accuracy=True, gps_delay_s=float(delay or 0.0))
+                                 receiver_accuracy=True, gps_delay_s=delay)
     armed, air = spans(log.events)
     start = streams.start
     sender = SenderConfig(window=256, timeout_s=args.timeout, autopilot="ardupilot",
@@ -172,9 +175,11 @@ def main() -> None:
 
     fixes = pd.read_csv(scored / "fixes.csv")
     fixes["t"] += start
+    if args.fixes is not None:
+        fixes.to_csv(args.fixes, index=False)
     shutil.rmtree(scored, ignore_errors=True)
     out = {"log": Path(args.log).name, "detector": label, "method": det.name, "sensors": sensors,
-           "gps_delay_s": float(delay or 0.0),
+           "gps_delay_s": summary["gps_delay"]["s"], "gps_delay_source": summary["gps_delay"]["source"],
            "largest_score_in_air": float(fixes.loc[fixes.phase == "air", "score"].max()),
            "threshold": float(det.threshold_), "in_air_s": air, "attack": None, "alerts": raised,
            "spoofing_alerts_in_air": len(in_air), "fixes_scored": summary["fixes_scored"],

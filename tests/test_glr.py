@@ -72,6 +72,23 @@ def test_a_position_jump_shows_in_the_receivers_own_consistency(fitted):
     det.set_params(groups=("position", "velocity", "consistency"))
 
 
+def test_a_moving_receivers_jittered_stamps_and_a_skipped_epoch_are_consistent():
+    """A receiver flying at 3.4 m/s, its 5 Hz fixes stamped when read (10 to 90 ms late) and one
+    epoch skipped: the stamps 0.34 s apart span two periods (a 0.06 s jitter difference), which
+    the consistency snaps to 0.4 s; without the snap the fix reads as a 0.2 m jump."""
+    rng = np.random.default_rng(5)
+    epochs = np.arange(1, 301) * 0.2
+    epochs = np.delete(epochs, 150)                            # the receiver skipped one epoch
+    t = epochs + rng.uniform(0.01, 0.09, len(epochs))
+    t[149], t[150] = epochs[149] + 0.09, epochs[150] + 0.03     # 0.34 s between two stamps
+    fix = np.stack([3.4 * epochs, np.zeros_like(epochs), np.full_like(epochs, 3.4), np.zeros_like(epochs)], axis=1)
+    from quadformer.detectors.glr import consistency
+    c = np.abs(consistency(t, fix)[:, 0])
+    # the period is the median of the stamps' intervals, within a few ms of 0.2 s: 3.4 m/s x those ms
+    assert c[150] < 0.05 and c[50:].max() < 0.05                   # (after 50 intervals, whose median it is)
+    assert np.abs(consistency(epochs, fix)[1:]).max() < 1e-9
+
+
 def test_a_noisier_vehicle_normalises_itself_after_calib_min_s_in_the_air(fitted):
     noisy = flight(30, noise=0.5)                                  # 5 times the training velocity noise
     s = fitted.decision_function(noisy)

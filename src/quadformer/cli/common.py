@@ -23,7 +23,10 @@ GPS_DELAY_HELP = ("Seconds before its stamp that a fix was measured (the receive
                   "behind the newest IMU sample.")
 LOG_GPS_DELAY_HELP = GPS_DELAY_HELP + " Default: the autopilot's own setting where the log records it, else 0."
 LIVE_GPS_DELAY_HELP = GPS_DELAY_HELP + (" Default: the receiver latency of the --vehicle profile (estimated from its "
-                                        "clean logs), else 0 (a link does not carry the autopilot's setting).")
+                                        "clean logs), else estimated from the link's own IMU, attitude and fixes "
+                                        "in the air (a link does not carry the autopilot's setting): fixes are "
+                                        "fused at their stamps until it is found, then a new segment fuses them "
+                                        "that long before; --gps-delay 0 keeps the stamps.")
 RECEIVER_HELP = ("Weight each fix by the receiver's stated accuracy (eph, epv, speed accuracy) where it is worse "
                  "than the tuning's GPS noise, as the autopilot does. --no-receiver-accuracy: the tuning's noise "
                  "alone (more sensitive where the receiver overstates its error; a receiver's own meters of error "

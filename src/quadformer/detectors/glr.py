@@ -85,7 +85,7 @@ GROUP_NAMES = ("position", "velocity", "vertical", "consistency")
 AIR = "in_air"
 PERIOD_FIXES = 50         # intervals before a fix whose median is the receiver's period
 PERIOD_MIN = 5            # intervals needed before the period is used
-SNAP = 0.25               # periods an interval may differ from a whole number of them to be snapped
+SNAP = 0.5               # periods an interval may differ from a whole number of them to be snapped
 
 
 def _check_settings(det: "StepGLR") -> None:

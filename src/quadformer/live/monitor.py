@@ -18,6 +18,14 @@ fitted at its first fix, confirmed ``confirm_s`` (5 s) later in an ``alert_type`
 does not grow with time. ``Monitor`` owns the clock and the I/O; its settings are ``live.config``,
 the vehicle it follows and the local frame ``live.vehicle``.
 
+The receiver's latency (each fix is measured before the autopilot reads it, and a filter that
+fuses it at its stamp reads every change of acceleration x that latency as an innovation): the
+filter configuration's (``--gps-delay``, a vehicle profile's), else estimated from the link's own
+IMU, attitude and fixes in the air (``estimator.latency.LatencyEstimator``, as ``detect`` does
+on a log); once found (150 GPS intervals in the air at the least, checked every
+``pipeline.LATENCY_EVERY``), the segment ends and the next fuses each fix that long before its
+stamp, its detector calibrating itself afresh (the summary's ``gps_delay``).
+
 The monitor's own filter always fuses GPS (it is the filter of ``detect``, so that its scores
 equal offline scoring of the same data); the admission decision is what the monitor asks of
 the vehicle: exclude GPS at the alarm, re-admit it after the detector has been clear and the
@@ -56,6 +64,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from quadformer.detectors.attack_types import ShapeTyper
+from quadformer.estimator.latency import LatencyEstimator
 from quadformer.io import write_json
 from quadformer.live import status
 from quadformer.live.actions import Records, VehicleLink
@@ -91,6 +100,10 @@ class Monitor(Pipeline):
             raise ValueError(f"{detector.name}: no alarm threshold; use a model written by `quadformer fit`")
         self.detector, self.config, self.model = detector, config, model
         self.filter_config = config.filter
+        # the receiver's latency: the filter configuration's, else estimated from the link in the air
+        unknown = config.filter.gps_delay_s is None
+        self.receiver_latency = LatencyEstimator() if unknown else None
+        self.latency_source = "not yet estimated (fixes fused at their stamps)" if unknown else "the filter's setting"
         self.sensors = monitor_sensors(detector, config.filter)
         self.on_fix = on_fix
         self.echo = echo or (lambda line: None)

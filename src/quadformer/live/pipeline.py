@@ -11,6 +11,7 @@ summary)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections import Counter, deque
@@ -19,8 +20,9 @@ from typing import Any, Callable
 import numpy as np
 
 from quadformer.detectors.attack_types import ShapeTyper
-from quadformer.estimator.online import FilterConfig
 from quadformer.estimator.feed import GapError
+from quadformer.estimator.latency import LatencyEstimator
+from quadformer.estimator.online import FilterConfig
 from quadformer.live.actions import Records, VehicleLink, autopilot_name
 from quadformer.live.alerts import Alerting
 from quadformer.live.config import FixRecord, MonitorConfig
@@ -36,6 +38,7 @@ from quadformer.sensors.mavlink import GPS_MESSAGES, RATIO_MESSAGES, Estimate, O
 __all__ = ["EVENT_MESSAGES", "Pipeline"]
 
 EVENT_MESSAGES = ("EXTENDED_SYS_STATE", "STATUSTEXT")    # the vehicle's messages read for events only
+LATENCY_EVERY = 25        # GPS intervals in the air between two tries at the receiver's latency
 
 
 class Pipeline:
@@ -67,6 +70,8 @@ class Pipeline:
     _rates_requested: bool
     vehicle: int | None
     autopilot: str | None
+    receiver_latency: LatencyEstimator | None
+    latency_source: str
 
     def _note(self, line: str) -> None:
         raise NotImplementedError
@@ -207,6 +212,11 @@ class Pipeline:
         if stream in ("baro", "gps"):
             self.flight.height(t, s.alt, stream)
             self._advance()
+        if self.receiver_latency is not None:
+            if stream == "attitude":
+                self.receiver_latency.attitude(t, s.q)
+            elif stream == "imu":
+                self.receiver_latency.imu(t, s.x[:3])
         if stream == "imu":
             self.flight.imu(t, s.x)          # an impact is queued, fed in time order with the rows
             self._imu(seg, t, s.x, t_in)
@@ -256,6 +266,29 @@ class Pipeline:
                                   latency * 1e3))
             if self.on_fix is not None:
                 self.on_fix(rec)
+            if self.receiver_latency is not None:
+                self.receiver_latency.fix(t, row["gps_vel"][0], phase == "air")
+        self._latency_check()
+
+    def _latency_check(self) -> None:
+        """Once the link's IMU and fixes in the air show the receiver's latency
+        (``estimator.latency.LatencyEstimator``, every ``LATENCY_EVERY`` intervals from its
+        ``min_intervals``), the filter fuses each fix that long before its stamp from a new segment
+        on (its detector calibrates itself afresh on the sharper residues); once per monitor."""
+        est = self.receiver_latency
+        n = est.intervals if est is not None else 0
+        if n < (est.min_intervals if est is not None else 1) or n % LATENCY_EVERY:
+            return
+        found = est.estimate()
+        if found is None:
+            return
+        self.receiver_latency = None
+        self.filter_config = dataclasses.replace(self.filter_config, gps_delay_s=found)
+        self.latency_source = (f"estimated from the link's IMU and GPS over {n} intervals in the air "
+                               "(estimator.latency)")
+        self._note(f"gps: receiver latency {found * 1e3:.0f} ms {self.latency_source}; each fix fused that "
+                   "long before its stamp from the next segment on")
+        self._new_segment(f"receiver latency {found * 1e3:.0f} ms")
 
     def _admission(self, t: float, before: int, after: int, readmit: int = 0, exclude: int = 0) -> None:
         """The admission messages and actions of one fix (``Alerting.admission``)."""

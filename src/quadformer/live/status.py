@@ -101,6 +101,7 @@ def summary(m: Any, wall_s: float) -> dict[str, Any]:
     return {
         "stop_reason": m.stop_reason, "wall_s": wall_s,
         "config": m.config.to_dict(), "filter": dataclasses.asdict(m.filter_config),
+        "gps_delay": {"s": m.filter_config.gps_delay_s, "source": m.latency_source},
         "sensors": m.sensors,
         "detector": {"name": m.detector.name, "model": m.model, "threshold": float(m.detector.threshold_),
                      "features": list(m.detector.features_)},

@@ -18,13 +18,11 @@
   ArduPilot's ``GPS_DELAY_MS``, ``EK2_GPS_DELAY``, ``EKF_POS_DELAY``); a filter that fuses it at
   its stamp compares a lagged velocity with the IMU's, and every change of acceleration shows in
   the innovation as that change x the latency. Where neither the filter's configuration nor the
-  log gives it, ``latency`` estimates it from the log itself, without a filter: over each GPS
-  interval in the air, the receiver's velocity change minus the IMU's specific force rotated to
-  the world by the autopilot's attitude and integrated over the same interval taken D earlier
-  (``velocity_steps``); the estimate is the D that makes those residuals the least spread (their
-  robust std over ``LATENCY_GRID``, smoothed over three neighbours, the least refined by a
-  parabola), kept where it narrows the spread at D = 0 by ``MIN_GAIN`` (a flight without
-  manoeuvres tells nothing). On two 90 s simulated flights written with a 150 ms latency and a
+  log gives it, ``latency`` estimates it from the log itself, without a filter
+  (``estimator.latency``: the D that makes the velocity steps the IMU did not feel, over each GPS
+  interval in the air, the least spread; ``velocity_steps`` gives them for a log). A live link's
+  latency is estimated the same way from its samples (``estimator.latency.LatencyEstimator``).
+  On two 90 s simulated flights written with a 150 ms latency and a
   40 ms read jitter it finds 150 and 170 ms; on the shared Erle-Copter flights, whose EKF states
   220 ms, 110 to 350 ms (median 215 ms over 10 flights, none on 6 others).
 """
@@ -32,6 +30,8 @@
 from __future__ import annotations
 
 import numpy as np
+
+from quadformer.estimator.latency import LATENCY_GRID, pick_latency, robust_std
 
 __all__ = ["fix_epochs", "latency", "robust_std", "velocity_steps", "week_seconds"]
 
@@ -42,8 +42,6 @@ LOW_QUANTILE = 0.02        # the lag behind the fitted line taken as the epochs'
 MAX_SHIFT_S = 0.5          # s, the most a fix may move from its stamp
 NO_JITTER_S = 1e-3         # s, stamps closer than this to their epochs are kept as they are
 MAX_SLOPE_ERR = 0.15       # the two clocks' rates may differ by this fraction at most
-LATENCY_GRID = np.round(np.arange(0.0, 0.401, 0.02), 2)   # s
-MIN_GAIN = 0.05            # the least fractional narrowing of the spread a latency must bring
 
 
 def week_seconds(week: np.ndarray, ms_of_week: np.ndarray) -> np.ndarray:
@@ -136,14 +134,9 @@ def velocity_steps(log, air: np.ndarray | None = None, delay: float = 0.0, _pre=
     return (np.diff(v, axis=0) - np.diff(at, axis=0))[ok]
 
 
-def robust_std(e: np.ndarray) -> float:
-    """1.4826 x the median absolute deviation of all of ``e``'s values about their column medians."""
-    return float(1.4826 * np.median(np.abs(e - np.median(e, axis=0))))
-
-
 def latency(log, air: np.ndarray | None = None) -> tuple[float | None, float | None]:
     """(latency s or None, the velocity residual's robust std at it, m/s; None without the data):
-    the receiver latency that the log's own IMU and GPS show (see the module text); the latency
+    the receiver latency that the log's own IMU and GPS show (``estimator.latency``); the latency
     None where it does not narrow the spread by ``MIN_GAIN``, the spread then that at 0."""
     pre = _integrated(log)
     spread = []
@@ -152,19 +145,7 @@ def latency(log, air: np.ndarray | None = None) -> tuple[float | None, float | N
         if e is None:
             return None, None
         spread.append(robust_std(e))
-    s = np.array(spread)
-    # the spread against D is noisy (a few percent from one D to the next): smoothed over three
-    # neighbours, its least value refined by a parabola through it and its two neighbours
-    padded = np.concatenate([[s[0]], s, [s[-1]]])
-    sm = 0.25 * padded[:-2] + 0.5 * padded[1:-1] + 0.25 * padded[2:]
-    k = int(np.argmin(sm))
-    if k == 0 or sm[k] > (1.0 - MIN_GAIN) * sm[0]:
-        return None, float(s[0])
-    best = float(LATENCY_GRID[k])
-    if k < len(sm) - 1:
-        a, b, c = sm[k - 1], sm[k], sm[k + 1]
-        curve = a - 2.0 * b + c
-        if curve > 0:
-            best += 0.5 * (a - c) / curve * float(LATENCY_GRID[1] - LATENCY_GRID[0])
-    best = round(float(best), 2)
+    best = pick_latency(spread)
+    if best is None:
+        return None, float(spread[0])
     return best, robust_std(velocity_steps(log, air, best, pre))
