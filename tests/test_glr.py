@@ -144,6 +144,30 @@ def test_a_step_early_in_the_air_scores_a_few_times_less_not_a_hundred(fitted):
     assert fitted.decision_function(calm).max() < 16.0
 
 
+def test_a_resumed_stream_keeps_the_flights_calibration(fitted):
+    """The live monitor restarting its filter in the air: the new stream takes the scales the
+    flight had calibrated as its prior, from its first step (not the trained ones times adapt),
+    and a flight not yet calibrated starts afresh."""
+    rows = flight(41, noise=0.3).to_dict("records")
+    before, early = fitted.stream(1), fitted.stream(1)
+    for k, row in enumerate(rows[:200]):                          # 40 s in the air
+        before.update(row)
+        if k < 50:                                                # 10 s: still warming up
+            early.update(row)
+    assert before.cal[0].calibrated is not None and early.cal[0].calibrated is None
+    own = before.cal[0].scale.copy()
+    assert not np.allclose(own, fitted.scale_)                    # three times the trained noise
+    after, fresh = fitted.stream(1), fitted.stream(1)
+    after.resume(before)
+    fresh.resume(early)
+    after.update(rows[200])
+    fresh.update(rows[200])
+    np.testing.assert_array_equal(after.cal[0].scales(rows[200]["t"]), own)
+    np.testing.assert_array_equal(fresh.cal[0].scale, fitted.scale_ * fitted.adapt)
+    with pytest.raises(ValueError, match="same flights"):
+        fitted.stream(2).resume(before)
+
+
 def test_a_transient_in_the_calibration_window_does_not_teach_the_scale(fitted):
     quiet = flight(40)
     spoofed = flight(40, vel_step=(30.0, 3.0))                     # a 3 m/s onset inside the first 60 s

@@ -80,3 +80,40 @@ def test_a_link_that_sends_its_attitude_once_tells_nothing():
     once = dataclasses.replace(log, attitude=log.attitude.iloc[:1].reset_index(drop=True))
     est = fed(once)
     assert est.intervals == 0 and est.estimate() is None
+
+
+def test_the_monitor_finds_its_links_latency_and_goes_on_with_it():
+    """A vehicle manoeuvring for 60 s, its 5 Hz fixes measured 0.2 s before they are sent, streamed
+    over MAVLink on 127.0.0.1 to the monitor without a GPS delay setting: the monitor finds the
+    latency in the air and a new segment fuses the fixes that long before their stamps; with the
+    delay set to 0 it keeps the stamps."""
+    import math
+
+    from test_live import run_monitor
+
+    from quadformer.detectors import pretrained
+    from quadformer.estimator.filter_config import FilterConfig
+    from quadformer.sender import SenderConfig, VehicleStreams
+
+    log = manoeuvring_log(0.2, seconds=60.0)
+    vel = log.gps[["vx", "vy", "vz"]].to_numpy()
+    pos = np.concatenate([[np.zeros(3)], np.cumsum(0.5 * (vel[1:] + vel[:-1]) * 0.2, axis=0)])
+    imu = log.imu[["ax", "ay", "az", "gx", "gy", "gz"]].to_numpy()
+    streams = VehicleStreams(imu_t=log.imu.t.to_numpy(), imu=imu, gps_t=log.gps.t.to_numpy(), gps_enu=pos,
+                             gps_vel=vel, att_t=log.attitude.t.to_numpy(),
+                             att=log.attitude[["qx", "qy", "qz", "qw"]].to_numpy())
+    det = pretrained.load("magbaro-glr")
+    sender = SenderConfig(armed=(0.0, math.inf), in_air=(0.5, math.inf))
+    for delay in (None, 0.0):
+        filt = FilterConfig.matching(det.calibration_["sim_config"], sensors="gps+imu", gps_delay_s=delay)
+        fixes, summary, report, lines = run_monitor(det, streams, sender, filter=filt)
+        assert report.lost == 0 and summary["errors"] == 0
+        starts = [s["started"] for s in summary["segment_list"]]
+        if delay is None:
+            assert summary["gps_delay"]["s"] == pytest.approx(0.2, abs=0.05)
+            assert summary["gps_delay"]["source"].startswith("estimated from the link")
+            assert len(starts) == 2 and starts[1].startswith("receiver latency")
+            assert any("gps: receiver latency" in line for line in lines)
+            assert summary["filter"]["gps_delay_s"] == summary["gps_delay"]["s"]
+        else:
+            assert summary["gps_delay"] == {"s": 0.0, "source": "the filter's setting"} and starts == ["start"]

@@ -75,15 +75,17 @@ class FlightCalibration:
     """One flight's self-normalisation (``detectors.glr``'s module text), fed step by step:
     ``scales(t)`` before the step's score, ``add(t, d, in_air, score)`` after it. ``det``: the
     detector whose settings and trained scales (``scale_``, one per component of each of its
-    ``windows``, window by window) it follows."""
+    ``windows``, window by window) it follows; ``prior``: scales of the same flight calibrated
+    before (``calibrated``), trusted as a vehicle profile's are, instead of the trained ones."""
 
-    def __init__(self, det):
+    def __init__(self, det, prior: np.ndarray | None = None):
         self.det = det
         self.width = len(det.scale_) // len(det.windows)     # components per window
-        self.prior = np.maximum(np.asarray(det.scale_, dtype=float), TINY)
-        # the prior is the vehicle's own (a vehicle profile: ``logs.calibration.vehicle_profile``):
-        # trusted from take-off; else the noisiest vehicle allowed until the warm-up begins
-        self.vehicle = bool(getattr(det, "vehicle_", None))
+        self.prior = np.maximum(np.asarray(det.scale_ if prior is None else prior, dtype=float), TINY)
+        # the prior is the vehicle's own (a vehicle profile: ``logs.calibration.vehicle_profile``, or
+        # ``prior``: the scales this flight had calibrated before, carried over): trusted from
+        # take-off; else the noisiest vehicle allowed until the warm-up begins
+        self.vehicle = prior is not None or bool(getattr(det, "vehicle_", None))
         self.scale = self.prior.copy() if self.vehicle else self.prior * det.adapt
         self.rows: deque[tuple[float, np.ndarray]] = deque()   # (t, d) of steps in the air
         self.air_s = 0.0               # s of steps in the air taken so far
@@ -126,6 +128,11 @@ class FlightCalibration:
                 self.frozen = True
                 self.rows = deque()
         return self.scale
+
+    @property
+    def calibrated(self) -> np.ndarray | None:
+        """The flight's own scales, once it has had ``calib_min_s`` seconds in the air (else None)."""
+        return self.scale.copy() if self.air_s >= self.det.calib_min_s - EDGE else None
 
     def add(self, t: float, d: np.ndarray, in_air: bool, score: float) -> None:
         if in_air and self.last_air and math.isfinite(self.last_t):

@@ -311,6 +311,19 @@ class GLRStream(DetectorStream):
         alarm = score > thr if thr is not None else np.zeros(self.n, dtype=bool)
         return StreamStep(score, alarm, None, None)
 
+    def resume(self, before: "GLRStream") -> None:
+        """Go on from ``before``, the same flights' stream until now (the live monitor restarting
+        its filter in the air, e.g. with the receiver's latency found): each flight whose
+        calibration there was done keeps its scales as its prior, trusted from the start (a vehicle
+        profile's rule), and calibrates itself afresh on the new residues from ``calib_min_s``
+        seconds in the air on; its window and reference start empty."""
+        if before.n != self.n or before.detector.windows != self.detector.windows:
+            raise ValueError("glr: a stream resumes one of the same flights and windows")
+        for i in range(self.n):
+            carried = before.cal[i].calibrated
+            if carried is not None:
+                self.cal[i] = FlightCalibration(self.detector, prior=carried)
+
     def _features(self, i: int, ti: float) -> np.ndarray:
         det = self.detector
         buf = self.buf[i]

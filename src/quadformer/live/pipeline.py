@@ -274,7 +274,8 @@ class Pipeline:
         """Once the link's IMU and fixes in the air show the receiver's latency
         (``estimator.latency.LatencyEstimator``, every ``LATENCY_EVERY`` intervals from its
         ``min_intervals``), the filter fuses each fix that long before its stamp from a new segment
-        on (its detector calibrates itself afresh on the sharper residues); once per monitor."""
+        on (its detector goes on from the scales it had calibrated and calibrates itself afresh on
+        the sharper residues); once per monitor."""
         est = self.receiver_latency
         n = est.intervals if est is not None else 0
         if n < (est.min_intervals if est is not None else 1) or n % LATENCY_EVERY:
@@ -288,7 +289,7 @@ class Pipeline:
                                "(estimator.latency)")
         self._note(f"gps: receiver latency {found * 1e3:.0f} ms {self.latency_source}; each fix fused that "
                    "long before its stamp from the next segment on")
-        self._new_segment(f"receiver latency {found * 1e3:.0f} ms")
+        self._new_segment(f"receiver latency {found * 1e3:.0f} ms", resume=True)
 
     def _admission(self, t: float, before: int, after: int, readmit: int = 0, exclude: int = 0) -> None:
         """The admission messages and actions of one fix (``Alerting.admission``)."""
@@ -303,13 +304,17 @@ class Pipeline:
         self.alerting.events(seg.step.finish(), seg.index, seg.last_score, seg.state)
         self.segments.append(seg.describe(why))
 
-    def _new_segment(self, reason: str) -> Segment:
+    def _new_segment(self, reason: str, resume: bool = False) -> Segment:
+        """End the segment (if any) and start the next, for ``reason``; ``resume``: the same
+        flight goes on (the filter restarts, not the vehicle): the detector's calibration too."""
         excluded = False
+        before = self.segment
         if self.segment is not None:
             self._end_segment(reason)
             excluded = self.segment.state != FUSING
             self._note(f"segment {self.n_segments}: {reason}")
         self.segment = Segment(self.n_segments, reason, self.detector, self.filter_config, self.sensors,
-                               self.config.admission, self.typer, excluded, phase=self.flight.phase)
+                               self.config.admission, self.typer, excluded, phase=self.flight.phase,
+                               resume=before if resume else None)
         self.n_segments += 1
         return self.segment

@@ -31,7 +31,7 @@ class Segment:
 
     def __init__(self, index: int, reason: str, detector, filter_config: FilterConfig, sensors: str,
                  admission: AdmissionConfig, typer: ShapeTyper | None = None, excluded: bool = False,
-                 phase: FlightPhase | None = None):
+                 phase: FlightPhase | None = None, resume: "Segment | None" = None):
         self.index, self.reason = index, reason
         self.max_gap_s = filter_config.max_gap_s
         self.stream = ResidueStream(filter_config, sensors, n=1)
@@ -42,6 +42,8 @@ class Segment:
         health = None if phase is None else ReceiverHealth(flight_id=index, keep=MAX_ALERTS)
         self.step = OnlineStep(detector.stream(1), rule, flight_ids=[index], typer=typer, keep=MAX_ALERTS,
                                phase=phase, health=health)
+        if resume is not None and hasattr(self.step.stream, "resume"):
+            self.step.stream.resume(resume.step.stream)      # the detector's calibration goes on
         self.first_imu: float | None = None
         self.last_imu: float | None = None
         self.fixes = 0
