@@ -40,6 +40,15 @@ the receiver's inflated accuracy cannot normalise away), whatever else the recei
 autopilot says then (a capture may lose the lock for a moment, and the autopilot calls the jump
 a glitch); without a capture sign an alarm while the receiver is degraded stays ``degraded``.
 
+An erratic fix (``ErraticFix``) is a receiver's fault, not a capture: the fix's horizontal
+velocity against the IMU (the raw velocity innovation) above +``ERRATIC_SPEED`` and below
+-``ERRATIC_SPEED`` m/s on one axis within ``ERRATIC_S`` seconds. No multirotor reverses 10 m/s
+that fast unseen by its IMU, and a spoofer moves the fix one way (a pull-off, then a drift: a
+capture's innovation swings one way and the filter absorbs it); a receiver whose solution
+jumps back and forth does (a fault with a 3D fix and the satellites in view moving, as a capture's
+do). The online step calls an alarm raised then ``degraded`` (reason ``erratic fix: ...``), the
+capture sign notwithstanding; the alarm itself, and what the admission does with it, stand.
+
 A degraded episode runs from its first sign to ``hold_s`` after its last, and is one ``Alert``
 of kind ``degraded`` (attack type ``none``, score NaN, reason the first sign's), given as an
 ``alert_start`` event by the call that sees the sign, and an ``alert_end`` (its ``end_s`` the
@@ -66,6 +75,8 @@ SPOOFED = "receiver reports spoofing"       # the reason of an alert the receive
 _STANDING = {"gps_glitch": ("glitch", "autopilot GPS glitch"),
              "gps_failsafe": ("failsafe", "autopilot GPS failsafe")}
 _CLEARS = {"gps_glitch_cleared": "glitch", "gps_failsafe_cleared": "failsafe"}
+ERRATIC_S = 2.0            # s within which an erratic fix's velocity against the IMU swings both ways
+ERRATIC_SPEED = 5.0        # m/s each way
 
 
 @dataclass(frozen=True)
@@ -317,3 +328,30 @@ def _median(values: list[float]) -> float:
     if n == 0 or any(map(math.isnan, s)):
         return math.nan
     return s[n // 2] if n % 2 else (s[n // 2 - 1] + s[n // 2]) / 2
+
+
+class ErraticFix:
+    """The erratic-fix sign of a receiver fault (see the module text), fed each fix's raw
+    horizontal velocity innovation in time order (``push``); ``reason(t)``: the sign within
+    ``window_s`` before t, or None."""
+
+    def __init__(self, window_s: float = ERRATIC_S, speed: float = ERRATIC_SPEED):
+        if not (window_s > 0 and speed > 0):
+            raise ValueError(f"erratic fix: window_s and speed must be positive, got {window_s!r}, {speed!r}")
+        self.window_s, self.speed = float(window_s), float(speed)
+        self.recent: deque[tuple[float, float, float]] = deque()
+
+    def push(self, t: float, vx: float, vy: float) -> None:
+        if math.isfinite(t) and math.isfinite(vx) and math.isfinite(vy):
+            self.recent.append((float(t), float(vx), float(vy)))
+        while self.recent and self.recent[0][0] < float(t) - self.window_s:
+            self.recent.popleft()
+
+    def reason(self, t: float) -> str | None:
+        rows = [r for r in self.recent if float(t) - self.window_s <= r[0] <= float(t)]
+        for k, axis in ((1, "east"), (2, "north")):
+            v = [r[k] for r in rows]
+            if v and max(v) >= self.speed and min(v) <= -self.speed:
+                return (f"erratic fix: its velocity against the IMU swung {max(v):+.1f} and {min(v):+.1f} m/s "
+                        f"{axis} within {self.window_s:g} s (a receiver fault)")
+        return None

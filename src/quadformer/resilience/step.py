@@ -52,7 +52,7 @@ import numpy as np
 from quadformer.detectors.alarms import AlertEvent, AlertTracker, with_reason
 from quadformer.detectors.attack_types import UNEXPLAINED, OnlineTyper
 from quadformer.detectors.flight_phase import FlightPhase
-from quadformer.detectors.receiver_health import SPOOFED, ReceiverHealth
+from quadformer.detectors.receiver_health import SPOOFED, ErraticFix, ReceiverHealth
 from quadformer.estimator.schema import GROUPS, NIS, as_columns
 
 if TYPE_CHECKING:
@@ -136,6 +136,7 @@ class OnlineStep:
                                  f"the flight's {list(flight_ids)[0]!r}")
         self.stream, self.admission, self.typer = stream, admission, typer
         self.phase, self.health = phase, health
+        self.erratic = ErraticFix()        # a receiver fault's sign in the raw innovation
         self.tracker = AlertTracker(self.n, flight_ids, keep=keep)
         self.pending: deque[tuple[float, str]] = deque(maxlen=MAX_PENDING)
         self.recent: deque[tuple[float, int]] = deque(maxlen=MAX_RECENT)   # (start_s, holder) raised in the air
@@ -221,8 +222,10 @@ class OnlineStep:
         A capture sign of the receiver (its satellites, noise, jamming or accuracy jumping:
         ``ReceiverHealth.capture_sign``) while the fix moves against the IMU (``moving``) makes an
         alarm ``spoofing``, reason ``capture: ...``, whatever else the receiver says (a capture may
-        lose the lock for a moment); otherwise a degraded receiver (a lost or missed fix, an
-        accuracy jump, the autopilot's glitch or failsafe) makes it ``degraded``."""
+        lose the lock for a moment), unless the fix is erratic (``receiver_health.ErraticFix``: its
+        velocity against the IMU swinging both ways, a receiver fault), which makes it
+        ``degraded``; otherwise a degraded receiver (a lost or missed fix, an accuracy jump, the
+        autopilot's glitch or failsafe) makes it ``degraded``."""
         label: dict[str, Any] = {"phase": self._phase_at(t)}
         landing = None if self.phase is None else self.phase.reason(t)
         if landing is not None:
@@ -233,9 +236,14 @@ class OnlineStep:
             why = self.health.degraded(t)
             sign = self.health.capture_sign(t)
             move = moving(cols) if sign is not None else None
+            self.erratic.push(t, *(float(np.asarray(cols.get(c, np.nan), dtype=float).reshape(-1)[0])
+                                   for c in ("res_gps_r_vx", "res_gps_r_vy")))
+            fault = self.erratic.reason(t)
             if self.health.spoof_flag(t):
                 alarm = np.ones(1, dtype=bool)
                 label.update(kind="spoofing", reason=with_reason(SPOOFED, landing))
+            elif fault is not None:
+                label.update(kind="degraded", reason=with_reason(fault, landing))
             elif move is not None:
                 label.update(kind="spoofing", reason=with_reason(f"capture: {sign}; {move}", landing))
             elif why is not None:
