@@ -14,7 +14,7 @@ import pytest
 from quadformer.detectors import make
 from quadformer.detectors.flight_scales import warmup_widening
 from quadformer.detectors.glr import INPUTS, StepGLR
-from quadformer.detectors.receiver_health import ReceiverHealth
+from quadformer.detectors.receiver_health import ErraticFix, ReceiverHealth
 from quadformer.detectors.streams import ScoredStream
 from quadformer.resilience.step import OnlineStep
 
@@ -254,6 +254,38 @@ def test_the_autopilot_calling_a_captures_jump_a_glitch_leaves_it_spoofing():
     steady = _steady(t1=19.0)[:-1] + [{"t": 19.0, "fix_type": 3, "satellites": 11, "eph": 1.6, "noise": 100}]
     (b,) = _capture_step(steady, MOVING, events=((20.2, "gps_glitch"),))       # no capture sign
     assert b.kind == "degraded" and b.reason == "autopilot GPS glitch 0.20 s after its raise"
+
+
+def test_a_fix_swinging_both_ways_against_the_imu_is_a_receiver_fault_not_a_capture():
+    """A receiver with a 3D fix whose solution runs 12 m/s one way and 8 m/s back within a second
+    (the satellites dropping as a capture's do): the alarm is degraded, reason the erratic fix;
+    the same capture with the fix moving one way stays spoofing."""
+    health = ReceiverHealth()
+    step = OnlineStep(ScoredStream(np.array([0.0, 0.0, 0.0, 5.0]), np.array([False, False, False, True])),
+                      flight_ids=[0], health=health)
+    for rep in _steady(satellites=5, noise=139):
+        step.receiver(rep.pop("t"), **rep)
+    for t, v in ((19.4, 12.0), (19.6, -8.0), (19.8, 2.0), (20.0, 3.5)):
+        step.update_columns(t, {**MOVING, "res_gps_r_vx": v})
+    step.finish()
+    (a,) = [x for x in step.alerts if not np.isnan(x.score)]
+    assert a.kind == "degraded" and a.reason.startswith("erratic fix: its velocity against the IMU swung +12.0 "
+                                                         "and -8.0 m/s east within 2 s")
+    (b,) = _capture_step(_steady(satellites=5, noise=139), MOVING)      # one way: the capture's
+    assert b.kind == "spoofing"
+
+
+def test_the_erratic_sign_needs_both_ways_within_its_window():
+    e = ErraticFix()
+    for t, v in ((0.0, 6.0), (1.0, 2.0), (2.5, -6.0)):                  # 2.5 s apart: not within 2 s
+        e.push(t, 0.0, v)
+    assert e.reason(2.5) is None
+    e.push(2.9, 0.0, 5.5)
+    assert "north" in e.reason(2.9)
+    e.push(3.0, np.nan, np.nan)                                         # a row without a raw innovation
+    assert e.reason(3.0) is not None and e.reason(5.0) is None          # the swing has left the window
+    with pytest.raises(ValueError, match="positive"):
+        ErraticFix(speed=0.0)
 
 
 def test_an_inflated_accuracy_hides_nothing_even_with_the_lock_lost_for_a_moment():
