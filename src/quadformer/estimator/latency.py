@@ -87,6 +87,7 @@ class LatencyEstimator:
         self._dts: deque[float] = deque(maxlen=50)
         self._pending: deque[tuple[float, np.ndarray, bool]] = deque()   # fixes the IMU has not reached
         self.steps: deque[np.ndarray] = deque(maxlen=max_intervals)   # per interval, (grid, 2)
+        self.taken = 0                                                # intervals taken in all
 
     def attitude(self, t: float, q) -> None:
         q = np.asarray(q, dtype=float)
@@ -143,6 +144,7 @@ class LatencyEstimator:
             self._dts.append(dt)
             if air and prev[3] and dt <= 1.5 * step:
                 self.steps.append((v - prev[1])[None, :] - (at - prev[2]))
+                self.taken += 1
         while len(self._pending) > self.MAX_PENDING:       # an IMU that stopped: the oldest fixes go
             self._pending.popleft()
             self._prev = None

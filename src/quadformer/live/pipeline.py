@@ -72,6 +72,7 @@ class Pipeline:
     autopilot: str | None
     receiver_latency: LatencyEstimator | None
     latency_source: str
+    _latency_tried: int = -1
 
     def _note(self, line: str) -> None:
         raise NotImplementedError
@@ -277,9 +278,10 @@ class Pipeline:
         on (its detector goes on from the scales it had calibrated and calibrates itself afresh on
         the sharper residues); once per monitor."""
         est = self.receiver_latency
-        n = est.intervals if est is not None else 0
-        if n < (est.min_intervals if est is not None else 1) or n % LATENCY_EVERY:
+        if (est is None or est.intervals < est.min_intervals or est.taken % LATENCY_EVERY
+                or est.taken == self._latency_tried):
             return
+        self._latency_tried, n = est.taken, est.intervals
         found = est.estimate()
         if found is None:
             return
