@@ -57,10 +57,44 @@ def test_hysteresis_restarts_the_hold_on_a_renewed_alarm_and_realarms_during_ble
     alarm[10:30] = True
     alarm[40] = True           # one more alarm during the hold: the hold starts again
     alarm[75] = True           # an alarm while blending: excluded again at once
-    r = _drive("resilient", alarm)
+    r = _drive("resilient", alarm, cfg=AdmissionConfig(backoff=1.0))
     assert not r["fused"][10:60].any() and r["fused"][60]   # clear from 41: 20 steps -> 60
     assert r["fused"][60:75].all() and not r["fused"][75]
     assert not r["fused"][75:95].any() and r["fused"][95]
+    # with the default backoff, that exclusion 1.5 s after the re-admission is a strike: the hold
+    # doubles (4 s: clear from 76, 40 steps -> 115)
+    r = _drive("resilient", alarm)
+    assert not r["fused"][10:60].any() and r["fused"][60:75].all()
+    assert not r["fused"][75:115].any() and r["fused"][115:].all()
+
+
+def _pushes(cfg=None, n=1200):
+    """An attacker quieting the detector and pushing again 0.5 s after each re-admission (a 1 s
+    alarm each time), five times, then leaving GPS alone for 40 s and pushing once more: the
+    seconds each exclusion was held clear before its re-admission."""
+    from quadformer.resilience.admission import EXCLUDE_ALARM
+
+    adm = Admission(["resilient"], 10.0, cfg)
+    holds, start, pending = [], None, 10
+    for k in range(n):
+        d = adm.decide(np.array([3.0]), np.zeros((1, 6)), np.array([pending <= k < pending + 10]), np.array([False]))
+        adm.record(np.zeros((1, 3)))
+        if d.exclude[0] == EXCLUDE_ALARM:
+            start = k
+        if d.readmit[0]:
+            holds.append(round((k - start - 9) / 10.0, 1))
+            pending = k + 5 if len(holds) < 5 else k + 400
+    return holds
+
+
+def test_an_attacker_who_pauses_and_pushes_again_is_held_out_longer_each_time():
+    """Each exclusion within probation_s (30 s) of a re-admission is a strike that doubles the hold,
+    up to max_hold_s; a re-admission that lasts probation_s clears the strikes; backoff 1: as before."""
+    assert _pushes()[:6] == [2.0, 4.0, 8.0, 16.0, 32.0, 2.0]
+    assert _pushes(AdmissionConfig(max_hold_s=5.0))[:6] == [2.0, 4.0, 5.0, 5.0, 5.0, 2.0]
+    assert _pushes(AdmissionConfig(backoff=1.0))[:6] == [2.0] * 6
+    with pytest.raises(ValueError, match="backoff"):
+        AdmissionConfig(backoff=0.5)
 
 
 def test_exclusion_rolls_back_the_recent_gps_corrections():
@@ -161,7 +195,8 @@ def test_stale_alarm_readmits_after_stale_hold_and_only_a_new_alarm_excludes_aga
     alarm = np.ones(n, bool)               # the detector alarms from the start: its memory never fades
     nis = np.full(n, 3.0)
     nis[:30] = 80.0                        # the fixes disagree with the estimate until step 30
-    fused, readmit, exclude = _drive_rules(alarm, nis)
+    old = AdmissionConfig(backoff=1.0)    # the rules without the strikes (tested apart)
+    fused, readmit, exclude = _drive_rules(alarm, nis, old)
     # agreeing from step 30: the 50th agreeing fix (stale_hold_s = 5 s at 10 Hz), step 79, re-admits
     k = 30 + 50 - 1
     assert not fused[:k].any() and fused[k:].all()
@@ -177,7 +212,7 @@ def test_stale_alarm_readmits_after_stale_hold_and_only_a_new_alarm_excludes_aga
     alarm2 = alarm.copy()
     alarm2[120:125] = False
     alarm2[150:] = False
-    fused, readmit, exclude = _drive_rules(alarm2, nis)
+    fused, readmit, exclude = _drive_rules(alarm2, nis, old)
     assert fused[k:125].all() and not fused[125:169].any() and fused[169:].all()
     assert exclude[125] == EXCLUDE_ALARM and readmit[169] == READMIT_CLEAR
     assert np.count_nonzero(exclude) == 2 and np.count_nonzero(readmit) == 2
@@ -186,7 +221,7 @@ def test_stale_alarm_readmits_after_stale_hold_and_only_a_new_alarm_excludes_aga
     # a fix outside the gate while the stale alarm stands: excluded again; 5 s more of agreement
     nis3 = nis.copy()
     nis3[100] = 80.0
-    fused, readmit, exclude = _drive_rules(alarm, nis3)
+    fused, readmit, exclude = _drive_rules(alarm, nis3, old)
     assert fused[k:100].all() and not fused[100:150].any() and fused[150:].all()
     assert exclude[100] == EXCLUDE_NIS and readmit[150] == READMIT_STALE
 

@@ -97,9 +97,11 @@ class Alerting:
     def attach(self, link: VehicleLink | None, records: Records | None) -> None:
         self.link, self.records = link, records
 
-    def admission(self, t: float, before: int, after: int, readmit: int = 0, exclude: int = 0) -> None:
+    def admission(self, t: float, before: int, after: int, readmit: int = 0, exclude: int = 0,
+                  held: float | None = None) -> None:
         """The admission messages and actions of one fix; ``readmit`` / ``exclude``: the rule
-        that acted at this fix (``Decision.readmit`` / ``Decision.exclude``)."""
+        that acted at this fix (``Decision.readmit`` / ``Decision.exclude``), ``held``: the hold a
+        re-admission waited for (``Decision.held``; longer than the setting after repeated alarms)."""
         c = self.config
         if after == EXCLUDED and before != EXCLUDED:
             if exclude == EXCLUDE_NIS:
@@ -113,12 +115,12 @@ class Alerting:
                 self.echo(f"[t {t:.1f} s] act: EKF source set {c.act_source_set} (non-GPS) requested")
         elif after == BLENDING and before == EXCLUDED:
             if readmit == READMIT_STALE:
-                self.echo(f"[t {t:.1f} s] GPS re-admitted (agreeing for {c.admission.stale_hold_s:g} s "
+                self.echo(f"[t {t:.1f} s] GPS re-admitted (agreeing for {held or c.admission.stale_hold_s:g} s "
                           "despite a standing alarm)")
                 if self.link is not None:
                     self.link.statustext("GPS re-admitted: fixes agree, alert stale", mavlink2.MAV_SEVERITY_NOTICE)
             else:
-                self.echo(f"[t {t:.1f} s] GPS re-admitted (clear and agreeing for {c.admission.hold_s:g} s)")
+                self.echo(f"[t {t:.1f} s] GPS re-admitted (clear and agreeing for {held or c.admission.hold_s:g} s)")
                 if self.link is not None:
                     self.link.statustext("GPS re-admitted: spoof alert cleared", mavlink2.MAV_SEVERITY_NOTICE)
             if c.act and self.link is not None:

@@ -255,7 +255,7 @@ class Pipeline:
             self.fixes += 1
             self.alerting.events(out.events, seg.index, score, after,
                                  exclusion=after == EXCLUDED and before != EXCLUDED)
-            self._admission(t, before, after, int(dec.readmit[0]), int(dec.exclude[0]))
+            self._admission(t, before, after, int(dec.readmit[0]), int(dec.exclude[0]), float(dec.held[0]))
             cols = {c: float(v[0]) for c, v in out.columns.items()}
             phase = self.flight.phase.update(t)
             rec = FixRecord(seg.index, t, score, alarm, kind, STATES[after], phase, float(dec.std_scale[0]),
@@ -293,9 +293,10 @@ class Pipeline:
                    "long before its stamp from the next segment on")
         self._new_segment(f"receiver latency {found * 1e3:.0f} ms", resume=True)
 
-    def _admission(self, t: float, before: int, after: int, readmit: int = 0, exclude: int = 0) -> None:
+    def _admission(self, t: float, before: int, after: int, readmit: int = 0, exclude: int = 0,
+                   held: float | None = None) -> None:
         """The admission messages and actions of one fix (``Alerting.admission``)."""
-        self.alerting.admission(t, before, after, readmit, exclude)
+        self.alerting.admission(t, before, after, readmit, exclude, held)
 
     # -- segments ---------------------------------------------------------------------------
     def _end_segment(self, why: str) -> None:

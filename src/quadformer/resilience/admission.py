@@ -39,6 +39,14 @@ decides, per flight, whether the fix is fused and with which noise:
   that keeps the fixes away from the VIO-propagated estimate never passes the gate.
   ``Decision.readmit`` says which rule re-admitted (``READMIT_CLEAR`` or ``READMIT_STALE``)
   and ``Decision.exclude`` why GPS was excluded (``EXCLUDE_ALARM`` or ``EXCLUDE_NIS``).
+
+  Repeated alarms. An attacker who knows the detector holds back until the detector is clear,
+  is re-admitted, and pushes again; each cycle gains what one push gains before the alarm. An
+  exclusion within ``probation_s`` of the last re-admission is a strike, and each strike
+  multiplies both holds by ``backoff`` (at most ``max_hold_s``); ``probation_s`` of fusing
+  without an exclusion clears the strikes. A single false alarm is held as before; a detector
+  that alarms again and again keeps GPS out longer each time (the estimate carries on without
+  it). ``backoff = 1`` switches this off.
 - ``oracle``: excludes exactly the fixes that are spoofed (it knows the attack window) and
   re-admits with the same blend: the limit any detector-driven policy can reach.
 """
@@ -71,9 +79,12 @@ class AdmissionConfig:
     rollback_s: float = 1.0        # GPS position corrections undone at exclusion
     gate_sigma: float = 5.0        # px4: innovation gate per component
     reset_after_s: float = 7.0     # px4: reset to GPS after this long rejecting
+    probation_s: float = 30.0      # resilient: an exclusion this soon after a re-admission is a strike
+    backoff: float = 2.0           # resilient: each strike multiplies the holds by this (1: off)
+    max_hold_s: float = 60.0       # resilient: the longest hold strikes make
 
     def __post_init__(self) -> None:
-        for name in ("hold_s", "blend_s", "rollback_s", "reset_after_s"):
+        for name in ("hold_s", "blend_s", "rollback_s", "reset_after_s", "probation_s", "max_hold_s"):
             if not np.isfinite(getattr(self, name)) or getattr(self, name) < 0:
                 raise ValueError(f"admission.{name} must be a finite number >= 0, got {getattr(self, name)!r}")
         if np.isnan(self.stale_hold_s) or self.stale_hold_s < 0:
@@ -81,6 +92,8 @@ class AdmissionConfig:
         for name in ("readmit_nis", "gate_sigma"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"admission.{name} must be > 0, got {getattr(self, name)!r}")
+        if not (np.isfinite(self.backoff) and self.backoff >= 1):
+            raise ValueError(f"admission.backoff must be a finite number >= 1 (1: off), got {self.backoff!r}")
         if not self.blend_inflation >= 1:
             raise ValueError(f"admission.blend_inflation must be >= 1, got {self.blend_inflation!r}")
 
@@ -93,6 +106,7 @@ class Decision:
     rollback: np.ndarray        # (B,3) position correction to add (undo of recent GPS corrections)
     readmit: np.ndarray | None = None   # (B,) int64: READMIT_CLEAR / READMIT_STALE at this step, else 0
     exclude: np.ndarray | None = None   # (B,) int64: EXCLUDE_ALARM / EXCLUDE_NIS at this step, else 0
+    held: np.ndarray | None = None      # (B,) s the re-admission at this step waited for (its rule's hold), else 0
 
 
 class Admission:
@@ -119,6 +133,8 @@ class Admission:
         self.prev_alarm = np.zeros(B, dtype=bool)
         self.blend_time = np.zeros(B)
         self.reject_time = np.zeros(B)             # px4: consecutive rejections
+        self.strikes = np.zeros(B, dtype=np.int64)  # resilient: exclusions soon after a re-admission
+        self.since_readmit = np.full(B, np.inf)     # resilient: s since the last re-admission
         n_roll = int(round(self.cfg.rollback_s * gps_rate_hz))     # 0: no rollback
         self.recent = np.zeros((B, n_roll, 3))     # last applied position corrections
 
@@ -160,6 +176,12 @@ class Admission:
         # the stale alarm excludes again only together with a fix outside the agreement gate
         trigger = detector_bad & ~(self.stale & agree_nis)
         enter = managed & (st != EXCLUDED) & trigger
+        # a strike: excluded again within probation_s of a re-admission; probation passed: none
+        self.since_readmit = self.since_readmit + self.dt
+        self.strikes = np.where(enter & res & (self.since_readmit <= c.probation_s + 1e-9), self.strikes + 1,
+                                np.where((st != EXCLUDED) & (self.since_readmit > c.probation_s + 1e-9), 0,
+                                         self.strikes))
+        factor = np.minimum(c.backoff ** self.strikes.astype(np.float64), np.inf)
         rollback = np.where((enter & res)[:, None], -self.recent.sum(1), rollback)
         self.recent = np.where(enter[:, None, None], 0.0, self.recent)
         exclude = np.where(enter & self.stale, EXCLUDE_NIS, np.where(enter, EXCLUDE_ALARM, 0)).astype(np.int64)
@@ -172,17 +194,21 @@ class Admission:
         ok = ~detector_bad & agree
         excl = managed & (st == EXCLUDED) & ~enter
         self.clear_time = np.where(excl & ok, self.clear_time + self.dt, np.where(excl, 0.0, self.clear_time))
-        hold = np.where(orc, 0.0, c.hold_s)
+        hold = np.where(orc, 0.0, np.where(res, np.minimum(c.hold_s * factor, max(c.hold_s, c.max_hold_s)), c.hold_s))
+        stale_hold = np.where(res & (self.strikes > 0),
+                              np.minimum(c.stale_hold_s * factor, max(c.stale_hold_s, c.max_hold_s)), c.stale_hold_s)
         readmit = excl & ok & (self.clear_time >= hold - 1e-9)
         # resilient, excluded: time the fixes have agreed since the last alarm onset, whatever
         # the alarm; under a standing alarm it re-admits after stale_hold_s
         counting = excl & res & agree_nis & ~onset
         self.agree_time = np.where(counting, self.agree_time + self.dt, np.where(excl & res, 0.0, self.agree_time))
         stale_readmit = (excl & res & alarm & counting & ~readmit
-                         & (self.agree_time >= c.stale_hold_s - 1e-9))
+                         & (self.agree_time >= stale_hold - 1e-9))
         self.stale = self.stale | stale_readmit
         readmit_rule = np.where(readmit, READMIT_CLEAR, np.where(stale_readmit, READMIT_STALE, 0)).astype(np.int64)
+        held = np.where(readmit, hold, np.where(stale_readmit, stale_hold, 0.0))
         readmit = readmit | stale_readmit
+        self.since_readmit = np.where(readmit, 0.0, self.since_readmit)
         st = np.where(readmit, BLENDING, st)
         self.blend_time = np.where(readmit, 0.0, self.blend_time)
         blending = managed & (st == BLENDING)
@@ -194,7 +220,7 @@ class Admission:
         st = np.where(done, FUSING, st).astype(np.int64)
         self.state = st
         fuse = np.where(managed, st != EXCLUDED, fuse)
-        return Decision(fuse, scale, reset, rollback, readmit_rule, exclude)
+        return Decision(fuse, scale, reset, rollback, readmit_rule, exclude, np.asarray(held, dtype=np.float64))
 
     def record(self, applied_dpos) -> None:
         """The position correction this GPS step applied per flight (zero where not fused)."""
@@ -228,7 +254,7 @@ class AdmissionGroup:
         nis, w_component, alarm, attacked = (np.asarray(v) for v in (nis, w_component, alarm, attacked))
         decs = [p.decide(nis[a:b], w_component[a:b], alarm[a:b], attacked[a:b]) for p, a, b in self._slices()]
         return Decision(*(np.concatenate([getattr(d, f) for d in decs]) for f in
-                          ("fuse", "std_scale", "reset", "rollback", "readmit", "exclude")))
+                          ("fuse", "std_scale", "reset", "rollback", "readmit", "exclude", "held")))
 
     def record(self, applied_dpos) -> None:
         for p, a, b in self._slices():
