@@ -104,6 +104,7 @@ class Monitor(Pipeline):
         unknown = config.filter.gps_delay_s is None
         self.receiver_latency = LatencyEstimator() if unknown else None
         self.latency_source = "not yet estimated (fixes fused at their stamps)" if unknown else "the filter's setting"
+        self._latency_tried = -1                     # the estimator's interval count at the last try
         self.sensors = monitor_sensors(detector, config.filter)
         self.on_fix = on_fix
         self.echo = echo or (lambda line: None)

@@ -72,7 +72,7 @@ class Pipeline:
     autopilot: str | None
     receiver_latency: LatencyEstimator | None
     latency_source: str
-    _latency_tried: int = -1
+    _latency_tried: int
 
     def _note(self, line: str) -> None:
         raise NotImplementedError
@@ -278,8 +278,7 @@ class Pipeline:
         on (its detector goes on from the scales it had calibrated and calibrates itself afresh on
         the sharper residues); once per monitor."""
         est = self.receiver_latency
-        if (est is None or est.intervals < est.min_intervals or est.taken % LATENCY_EVERY
-                or est.taken == self._latency_tried):
+        if est is None or est.taken % LATENCY_EVERY or est.taken == self._latency_tried:
             return
         self._latency_tried, n = est.taken, est.intervals
         found = est.estimate()

@@ -177,7 +177,8 @@ def detection_floor(log: FlightLog, in_air: np.ndarray | None = None, per_hour: 
     where one interval's velocity residual is correlated with the next's; on the shared real logs
     it is not (lag-one autocorrelation -0.11 to 0.27), so for a velocity step the one-interval
     test is as sharp as the log allows. None without GPS, IMU and the autopilot's attitude."""
-    from quadformer.logs.receiver_clock import latency, robust_std
+    from quadformer.estimator.latency import robust_std
+    from quadformer.logs.receiver_clock import latency
 
     g = log.gps
     if g is None or len(g) < 10:

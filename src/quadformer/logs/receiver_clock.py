@@ -33,7 +33,7 @@ import numpy as np
 
 from quadformer.estimator.latency import LATENCY_GRID, pick_latency, robust_std
 
-__all__ = ["fix_epochs", "latency", "robust_std", "velocity_steps", "week_seconds"]
+__all__ = ["fix_epochs", "latency", "velocity_steps", "week_seconds"]
 
 WEEK_S = 604800.0
 MIN_FIXES = 20             # fixes with a time of week needed to fit the epochs

@@ -67,6 +67,7 @@ EXCLUDE_ALARM, EXCLUDE_NIS = 1, 2
 #: the 99.9% quantile of the chi-square distribution with 6 degrees of freedom, scipy's
 #: ``chi2.ppf(0.999, 6)`` (tests/test_resilience.py checks it; scipy.stats is not loaded for it)
 CHI2_6_999 = 22.457744484825323
+MAX_STRIKES = 64           # strikes counted into the backoff factor (any more: the hold is max_hold_s anyway)
 
 
 @dataclass(frozen=True)
@@ -181,7 +182,10 @@ class Admission:
         self.strikes = np.where(enter & res & (self.since_readmit <= c.probation_s + 1e-9), self.strikes + 1,
                                 np.where((st != EXCLUDED) & (self.since_readmit > c.probation_s + 1e-9), 0,
                                          self.strikes))
-        factor = np.minimum(c.backoff ** self.strikes.astype(np.float64), np.inf)
+        factor = c.backoff ** np.minimum(self.strikes, MAX_STRIKES).astype(np.float64)
+
+        def struck(base: float) -> np.ndarray:      # a hold after the strikes, at most max_hold_s
+            return np.where(res, np.minimum(base * factor, max(base, c.max_hold_s)), base)
         rollback = np.where((enter & res)[:, None], -self.recent.sum(1), rollback)
         self.recent = np.where(enter[:, None, None], 0.0, self.recent)
         exclude = np.where(enter & self.stale, EXCLUDE_NIS, np.where(enter, EXCLUDE_ALARM, 0)).astype(np.int64)
@@ -194,9 +198,8 @@ class Admission:
         ok = ~detector_bad & agree
         excl = managed & (st == EXCLUDED) & ~enter
         self.clear_time = np.where(excl & ok, self.clear_time + self.dt, np.where(excl, 0.0, self.clear_time))
-        hold = np.where(orc, 0.0, np.where(res, np.minimum(c.hold_s * factor, max(c.hold_s, c.max_hold_s)), c.hold_s))
-        stale_hold = np.where(res & (self.strikes > 0),
-                              np.minimum(c.stale_hold_s * factor, max(c.stale_hold_s, c.max_hold_s)), c.stale_hold_s)
+        hold = np.where(orc, 0.0, struck(c.hold_s))
+        stale_hold = struck(c.stale_hold_s)
         readmit = excl & ok & (self.clear_time >= hold - 1e-9)
         # resilient, excluded: time the fixes have agreed since the last alarm onset, whatever
         # the alarm; under a standing alarm it re-admits after stale_hold_s

@@ -87,16 +87,17 @@ class StepResult:
     events: list[AlertEvent] = field(default_factory=list)
 
 
+def _first(cols: Mapping[str, Any], name: str) -> float:
+    """The first flight's value of column ``name`` of a row (NaN where the row has none)."""
+    return float(np.asarray(cols[name], dtype=float).reshape(-1)[0]) if name in cols else float("nan")
+
+
 def moving(cols: Mapping[str, Any]) -> str | None:
     """How the fix moves against the IMU in a row's raw GPS innovation (horizontal velocity of at
     least ``CAPTURE_SPEED`` m/s or position of at least ``CAPTURE_JUMP`` m), None when it does
     not or the row has no raw innovation."""
-    def norm(a: str, b: str) -> float:
-        if a not in cols or b not in cols:
-            return float("nan")
-        return float(np.hypot(np.asarray(cols[a], dtype=float).reshape(-1)[0],
-                              np.asarray(cols[b], dtype=float).reshape(-1)[0]))
-    v, p = norm("res_gps_r_vx", "res_gps_r_vy"), norm("res_gps_r_px", "res_gps_r_py")
+    v = float(np.hypot(_first(cols, "res_gps_r_vx"), _first(cols, "res_gps_r_vy")))
+    p = float(np.hypot(_first(cols, "res_gps_r_px"), _first(cols, "res_gps_r_py")))
     if v >= CAPTURE_SPEED:
         return f"the fix moves {v:.1f} m/s against the IMU"
     if p >= CAPTURE_JUMP:
@@ -236,8 +237,7 @@ class OnlineStep:
             why = self.health.degraded(t)
             sign = self.health.capture_sign(t)
             move = moving(cols) if sign is not None else None
-            self.erratic.push(t, *(float(np.asarray(cols.get(c, np.nan), dtype=float).reshape(-1)[0])
-                                   for c in ("res_gps_r_vx", "res_gps_r_vy")))
+            self.erratic.push(t, _first(cols, "res_gps_r_vx"), _first(cols, "res_gps_r_vy"))
             fault = self.erratic.reason(t)
             if self.health.spoof_flag(t):
                 alarm = np.ones(1, dtype=bool)
