@@ -113,12 +113,14 @@ def _integrated(log):
     return g["t"].to_numpy(dtype=float), g[["vx", "vy"]].to_numpy(dtype=float), ti, cum
 
 
-def velocity_steps(log, air: np.ndarray | None = None, delay: float = 0.0, _pre=None) -> np.ndarray | None:
+def velocity_steps(log, air: np.ndarray | None = None, delay: float = 0.0, _pre=None,
+                   every: bool = False) -> np.ndarray | None:
     """Per GPS interval of ``log`` in the air (``air``: a flag per fix; default every fix) whose
     fixes are one interval apart and inside the IMU's span, the horizontal velocity change of the
     receiver minus the IMU's over the interval ``delay`` seconds earlier (the specific force through
     the autopilot's attitude, integrated; gravity is vertical), (n, 2); None without GPS, IMU and
-    the autopilot's attitude, or with fewer than 30 such intervals."""
+    the autopilot's attitude, or with fewer than 30 such intervals. ``every``: a row per interval
+    of the log (fixes - 1), NaN where the interval is not one of those."""
     pre = _integrated(log) if _pre is None else _pre
     if pre is None:
         return None
@@ -131,7 +133,10 @@ def velocity_steps(log, air: np.ndarray | None = None, delay: float = 0.0, _pre=
     if ok.sum() < 30:
         return None
     at = np.stack([np.interp(t - delay, ti, cum[:, k]) for k in range(2)], axis=1)
-    return (np.diff(v, axis=0) - np.diff(at, axis=0))[ok]
+    e = np.diff(v, axis=0) - np.diff(at, axis=0)
+    if every:
+        return np.where(ok[:, None], e, np.nan)
+    return e[ok]
 
 
 def latency(log, air: np.ndarray | None = None) -> tuple[float | None, float | None]:
