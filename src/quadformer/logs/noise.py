@@ -12,10 +12,11 @@ matched to that simulation has the filter tuning the data call for):
   (std of first differences / sqrt 2), which carries the estimate's jitter too.
 - IMU and GPS velocity, as the filter meets them (``interval_noise``): over each GPS interval in
   the air, the receiver's velocity change minus the IMU's (its specific force through the
-  autopilot's attitude, integrated over the interval the receiver's latency earlier). A filter
-  fuses the IMU averaged over a GPS interval, not its single samples: a vibrating airframe's
-  samples spread metres per second squared, and most of it averages out over 0.2 s (the shared
-  real logs: raw samples 0.37 to 0.74 m/s^2/sqrt(Hz) pooled, their interval averages 0.1 to 0.7).
+  autopilot's attitude, integrated over the interval the receiver's latency earlier): what a
+  consistent drift's velocity step is judged against. On the shared real logs that spread is 0.04
+  to 0.3 m/s per 0.2 s interval, nearly all of it the IMU's (0.14 to 0.86 m/s^2/sqrt(Hz); the
+  raw samples' spread pooled, 0.37), where the fixes against the autopilot's estimate read the
+  receiver's velocity noise as 0.35 m/s: that estimate's own jitter.
   White velocity noise of the receiver enters two neighbouring intervals' residuals with opposite
   signs, so it is the negative of their covariance (robust: a quarter of the difference of the
   squared robust stds of their sum and difference); the rest of one interval's spread is the
@@ -102,21 +103,28 @@ class IntervalNoise:
 
 def interval_noise(log: FlightLog, air: np.ndarray | None = None) -> IntervalNoise | None:
     """The IMU and GPS velocity noise of ``log`` from its GPS intervals in the air (``air``: a flag
-    per fix; default the log's flight phase): the residual e_k of each interval (the receiver's
+    per fix; default the log's flight phase). The residual e_k of each interval (the receiver's
     horizontal velocity change minus the IMU's, ``receiver_clock.velocity_steps`` at the latency
     the log shows) is IMU noise integrated over the interval plus the difference of two fixes'
     velocity noise, which makes neighbouring residuals' covariance the negative of the receiver's
-    velocity variance: gps_vel^2 = max(0, -cov(e_k, e_k+1)), accel_density^2 = (var(e) - 2
-    gps_vel^2) / interval, robustly (1.4826 MAD for the spreads; the covariance from the spreads
-    of e_k + e_k+1 and e_k - e_k+1). The receiver's white position noise likewise, from its own
-    consistency c_k (position change minus the mean velocity times the interval):
-    gps_pos_h^2 = max(0, -cov(c_k, c_k+1)). None without GPS, IMU and attitude, or with fewer
-    than 30 intervals. Slow errors (an IMU tilt or bias drifting over seconds, a receiver's
-    smoothing) make the covariances positive and hide white noise below them: the receiver's
-    shares are lower bounds, the IMU's an upper one, and one interval's spread is kept either way.
-    On the shared real logs the receivers' consistency residuals are 0.6 to 0.9 correlated from
-    one interval to the next, and no white part shows (0 m, where the fixes against the
-    autopilot's estimate read 0.16 m: that estimate's own jitter)."""
+    velocity variance:
+
+        gps_vel^2 = max(0, -cov(e_k, e_k+1))
+        accel_density^2 = 2 (var(e) - 2 gps_vel^2) / interval
+
+    (the simulator's density: a sample's std is the density x sqrt(rate / 2), so white noise
+    integrated over T seconds spreads density x sqrt(T / 2)), robustly: 1.4826 MAD for the
+    spreads, the covariance from the spreads of e_k + e_k+1 and e_k - e_k+1. The receiver's white
+    position noise likewise, from its own consistency c_k (position change minus the mean velocity
+    times the interval): gps_pos_h^2 = max(0, -cov(c_k, c_k+1)). None without GPS, IMU and
+    attitude, or with fewer than 30 intervals.
+
+    Slow errors (an IMU tilt or bias drifting over seconds, a receiver's smoothing) make the
+    covariances positive and hide white noise below them: the receiver's shares are lower bounds,
+    the IMU's an upper one, and one interval's spread is kept either way. On the shared real logs
+    the receivers' consistency residuals are 0.6 to 0.9 correlated from one interval to the next,
+    and no white part shows (0 m, where the fixes against the autopilot's estimate read 0.16 m:
+    that estimate's own jitter)."""
     from quadformer.estimator.latency import robust_std
     from quadformer.logs.receiver_clock import latency, velocity_steps
     from quadformer.logs.replay import in_air
@@ -134,7 +142,7 @@ def interval_noise(log: FlightLog, air: np.ndarray | None = None) -> IntervalNoi
     steps = e[ok]
     var = robust_std(steps) ** 2
     gv2 = max(0.0, -_neighbour_cov(e, ok))
-    q2 = max(0.0, var - 2.0 * gv2) / step
+    q2 = 2.0 * max(0.0, var - 2.0 * gv2) / step
     g = log.gps
     p, v = g[["x", "y"]].to_numpy(dtype=float), g[["vx", "vy"]].to_numpy(dtype=float)
     c = np.diff(p, axis=0) - 0.5 * (v[1:] + v[:-1]) * np.diff(t)[:, None]
