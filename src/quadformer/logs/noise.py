@@ -226,15 +226,17 @@ def estimate_noise(logs: list[FlightLog]) -> NoiseEstimate:
         raw_acc, raw_vel = raw["accel_density"], raw["gps_vel"]
         raw_pos = raw["gps_pos_h"]
         acc2 = sum(f.intervals * f.accel_density ** 2 for f in got) / n
-        vel2 = sum(f.intervals * f.gps_vel ** 2 for f in got) / n
-        pos2 = sum(f.intervals * f.gps_pos_h ** 2 for f in got) / n
+        # the receivers' white noise is each log's lower bound (slow errors hide it), and a filter
+        # tuned below a receiver's own noise doubles it in its innovations (a fix's velocity
+        # zig-zagging by 0.4 m/s reads as steps of 0.8): the largest of the logs', not their pool
+        vel2 = max(f.gps_vel for f in got) ** 2
+        pos2 = max(f.gps_pos_h for f in got) ** 2
         rest = [lg for lg, f in found if f is None and lg.gps is not None]
-        m = sum(len(lg.gps) for lg in rest)      # the others' raw figures, weighted as one interval per fix
+        m = sum(len(lg.gps) for lg in rest)      # the others' raw figures (the IMU's weighted a fix an interval)
         if m and np.isfinite(raw_acc):
-            finite = lambda x: x if np.isfinite(x) else 0.0   # noqa: E731
             acc2 = (n * acc2 + m * raw_acc ** 2) / (n + m)
-            vel2 = (n * vel2 + m * finite(raw_vel) ** 2) / (n + m)
-            pos2 = (n * pos2 + m * finite(raw_pos) ** 2) / (n + m)
+            vel2 = max(vel2, raw_vel ** 2) if np.isfinite(raw_vel) else vel2
+            pos2 = max(pos2, raw_pos ** 2) if np.isfinite(raw_pos) else pos2
         source = "mixed" if m else "gps intervals"
         raw.update(accel_density=float(np.sqrt(acc2)), gps_vel=float(np.sqrt(vel2)), gps_pos_h=float(np.sqrt(pos2)))
     out = {k: max(FLOORS[k], v) if np.isfinite(v) else FLOORS[k] for k, v in raw.items()}
