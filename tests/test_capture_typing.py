@@ -73,17 +73,26 @@ def test_a_fix_swinging_both_ways_against_the_imu_is_a_receiver_fault_not_a_capt
     assert b.kind == "spoofing"
 
 
-def test_the_erratic_sign_needs_both_ways_within_its_window():
-    e = ErraticFix()
-    for t, v in ((0.0, 6.0), (1.0, 2.0), (2.5, -6.0)):                  # 2.5 s apart: not within 2 s
-        e.push(t, 0.0, v)
-    assert e.reason(2.5) is None
-    e.push(2.9, 0.0, 5.5)
-    assert "north" in e.reason(2.9)
-    e.push(3.0, np.nan, np.nan)                                         # a row without a raw innovation
-    assert e.reason(3.0) is not None and e.reason(5.0) is None          # the swing has left the window
+def test_the_erratic_sign_needs_both_ways_within_its_window_and_stands_its_hold():
+    for hold in (0.0, 20.0):
+        e = ErraticFix(hold_s=hold)
+        for t, v in ((0.0, 6.0), (1.0, 2.0), (2.5, -6.0)):              # 2.5 s apart: not within 2 s
+            e.push(t, 0.0, v)
+        assert e.reason(2.5) is None
+        e.push(2.9, 0.0, 5.5)
+        assert "north" in e.reason(2.9)
+        e.push(3.0, np.nan, np.nan)                                     # a row without a raw innovation
+        assert e.reason(3.0).startswith("erratic fix")                  # the swing still in the window
+        e.push(5.0, 0.0, 0.5)                                           # the swing has left the window
+        if hold == 0.0:
+            assert e.reason(5.0) is None
+        else:                                                           # the fault stands 20 s after
+            assert e.reason(5.0).endswith("2.0 s ago") and e.reason(23.0) is not None
+            assert e.reason(23.1) is None
     with pytest.raises(ValueError, match="positive"):
         ErraticFix(speed=0.0)
+    with pytest.raises(ValueError, match="hold_s"):
+        ErraticFix(hold_s=-1.0)
 
 
 def test_an_inflated_accuracy_hides_nothing_even_with_the_lock_lost_for_a_moment():

@@ -46,8 +46,12 @@ velocity against the IMU (the raw velocity innovation) above +``ERRATIC_SPEED`` 
 that fast unseen by its IMU, and a spoofer moves the fix one way (a pull-off, then a drift: a
 capture's innovation swings one way and the filter absorbs it); a receiver whose solution
 jumps back and forth does (a fault with a 3D fix and the satellites in view moving, as a capture's
-do). The online step calls an alarm raised then ``degraded`` (reason ``erratic fix: ...``), the
-capture sign notwithstanding; the alarm itself, and what the admission does with it, stand.
+do). The sign stands ``ERRATIC_HOLD_S`` seconds after it was last seen: a receiver that faulted
+that way is not trusted to have been captured the moment its swings pause (on a shared real log
+the swings recur for 28 s, and an alarm 14 s after the last read the fault's satellites, still
+down, as a capture's). The online step calls an alarm raised then ``degraded`` (reason ``erratic
+fix: ...``), the capture sign notwithstanding; the alarm itself, and what the admission does with
+it, stand.
 
 A degraded episode runs from its first sign to ``hold_s`` after its last, and is one ``Alert``
 of kind ``degraded`` (attack type ``none``, score NaN, reason the first sign's), given as an
@@ -77,6 +81,7 @@ _STANDING = {"gps_glitch": ("glitch", "autopilot GPS glitch"),
 _CLEARS = {"gps_glitch_cleared": "glitch", "gps_failsafe_cleared": "failsafe"}
 ERRATIC_S = 2.0            # s within which an erratic fix's velocity against the IMU swings both ways
 ERRATIC_SPEED = 5.0        # m/s each way
+ERRATIC_HOLD_S = 20.0      # s the sign stands after it was last seen: the fault is the receiver's
 
 
 @dataclass(frozen=True)
@@ -333,25 +338,33 @@ def _median(values: list[float]) -> float:
 class ErraticFix:
     """The erratic-fix sign of a receiver fault (see the module text), fed each fix's raw
     horizontal velocity innovation in time order (``push``); ``reason(t)``: the sign within
-    ``window_s`` before t, or None."""
+    ``window_s`` before t, or the last one seen within ``hold_s`` before t, or None."""
 
-    def __init__(self, window_s: float = ERRATIC_S, speed: float = ERRATIC_SPEED):
-        if not (window_s > 0 and speed > 0):
-            raise ValueError(f"erratic fix: window_s and speed must be positive, got {window_s!r}, {speed!r}")
-        self.window_s, self.speed = float(window_s), float(speed)
+    def __init__(self, window_s: float = ERRATIC_S, speed: float = ERRATIC_SPEED, hold_s: float = ERRATIC_HOLD_S):
+        if not (window_s > 0 and speed > 0 and hold_s >= 0):
+            raise ValueError(f"erratic fix: window_s and speed must be positive and hold_s at least 0, got "
+                             f"{window_s!r}, {speed!r}, {hold_s!r}")
+        self.window_s, self.speed, self.hold_s = float(window_s), float(speed), float(hold_s)
         self.recent: deque[tuple[float, float, float]] = deque()
+        self.last: tuple[float, str] | None = None       # (time, reason) of the sign last seen
 
     def push(self, t: float, vx: float, vy: float) -> None:
+        t = float(t)
         if math.isfinite(t) and math.isfinite(vx) and math.isfinite(vy):
-            self.recent.append((float(t), float(vx), float(vy)))
-        while self.recent and self.recent[0][0] < float(t) - self.window_s:
+            self.recent.append((t, float(vx), float(vy)))
+        while self.recent and self.recent[0][0] < t - self.window_s:
             self.recent.popleft()
+        for k, axis in ((1, "east"), (2, "north")):
+            v = [r[k] for r in self.recent]
+            if v and max(v) >= self.speed and min(v) <= -self.speed:
+                self.last = (t, f"erratic fix: its velocity against the IMU swung {max(v):+.1f} and {min(v):+.1f} "
+                                f"m/s {axis} within {self.window_s:g} s (a receiver fault)")
+                break
 
     def reason(self, t: float) -> str | None:
-        rows = [r for r in self.recent if float(t) - self.window_s <= r[0] <= float(t)]
-        for k, axis in ((1, "east"), (2, "north")):
-            v = [r[k] for r in rows]
-            if v and max(v) >= self.speed and min(v) <= -self.speed:
-                return (f"erratic fix: its velocity against the IMU swung {max(v):+.1f} and {min(v):+.1f} m/s "
-                        f"{axis} within {self.window_s:g} s (a receiver fault)")
-        return None
+        if self.last is None:
+            return None
+        age = float(t) - self.last[0]
+        if age <= 1e-9:
+            return self.last[1]
+        return f"{self.last[1]}, {age:.1f} s ago" if age <= self.hold_s else None
