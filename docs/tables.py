@@ -71,7 +71,7 @@ TABLES: dict[str, dict[str, Any]] = {
                                        "vio-quadformer,vio-cusum,vio-chi2,vio-cusum-ref --out runs/stealth-vio"},
     "stealth-magbaro-glr": {"source": "results/stealth-magbaro-glr/results.json", "kind": "stealth",
                             "command": "quadformer benchmark --profile stealth --methods magbaro-glr "
-                                       "--out runs/stealth-magbaro-glr"},
+                                       "--knowledge white,black --policies none --out runs/stealth-magbaro-glr"},
     # glr's runs of this file predate its warm-up: the table above holds its current ones
     "stealth-magbaro": {"source": "results/stealth-magbaro/results.json", "kind": "stealth",
                         "methods": ["magbaro-cusum", "magbaro-cusum-ref"],
