@@ -337,8 +337,9 @@ def _median(values: list[float]) -> float:
 
 class ErraticFix:
     """The erratic-fix sign of a receiver fault (see the module text), fed each fix's raw
-    horizontal velocity innovation in time order (``push``); ``reason(t)``: the sign within
-    ``window_s`` before t, or the last one seen within ``hold_s`` before t, or None."""
+    horizontal velocity innovation in time order (``push``: the sign is seen where the fixes of
+    the last ``window_s`` swing both ways); ``reason(t)``: the sign seen at t, or the last one
+    seen within ``hold_s`` before t (with its age), or None."""
 
     def __init__(self, window_s: float = ERRATIC_S, speed: float = ERRATIC_SPEED, hold_s: float = ERRATIC_HOLD_S):
         if not (window_s > 0 and speed > 0 and hold_s >= 0):

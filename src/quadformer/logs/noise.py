@@ -16,14 +16,15 @@ matched to that simulation has the filter tuning the data call for):
   consistent drift's velocity step is judged against. On the shared real logs that spread is 0.04
   to 0.3 m/s per 0.2 s interval, nearly all of it the IMU's (0.14 to 0.86 m/s^2/sqrt(Hz); the
   raw samples' spread pooled, 0.37), where the fixes against the autopilot's estimate read the
-  receiver's velocity noise as 0.35 m/s: that estimate's own jitter.
-  White velocity noise of the receiver enters two neighbouring intervals' residuals with opposite
-  signs, so it is the negative of their covariance (robust: a quarter of the difference of the
-  squared robust stds of their sum and difference); the rest of one interval's spread is the
-  IMU's, as a density over the interval; the receiver's white position noise from its own
-  consistency the same way. Where a log lacks the attitude or enough intervals in the air: the
-  IMU's sample-to-sample spread (vibration counted as noise) and the GPS against the autopilot's
-  estimate; ``accel_from`` says which.
+  receiver's velocity noise as 0.35 m/s: that estimate's own jitter. White velocity noise of the
+  receiver enters two neighbouring intervals' residuals with opposite signs, so it is the negative
+  of their covariance; the rest of one interval's spread is the IMU's, as a density over the
+  interval; the receiver's white position noise comes from its own consistency the same way. The
+  IMU's is pooled over the logs' intervals; the receiver's is the largest of the logs' (each a
+  lower bound, and a filter tuned below a receiver's noise doubles it in its innovations). Where
+  a log lacks the attitude or enough intervals in the air: the IMU's sample-to-sample spread
+  (vibration counted as noise) and the GPS against the autopilot's estimate; ``accel_from`` says
+  which.
 - Barometer: its altitude against the autopilot's height, white and slow parts as for GPS.
 - Magnetometer: the step-to-step part of the field.
 
@@ -215,8 +216,9 @@ def estimate_noise(logs: list[FlightLog]) -> NoiseEstimate:
     density = np.sqrt(rate / 2.0)              # per-sample std = density * sqrt(rate / 2)
     raw = {"gps_pos_h": h_w, "gps_pos_v": v_w, "gps_vel": vel_w, "gps_gm": h_s, "accel_density": acc_w / density,
            "gyro_density": gyro_w / density, "baro_noise": baro_w, "baro_gm": baro_s, "mag_noise": mag_w}
-    # the IMU and the receiver's velocity as the filter meets them, where the logs allow: variances
-    # pooled over intervals; a log without them counts with its raw estimates (its samples' spread)
+    # the IMU and the receiver as the filter meets them, where the logs allow (the IMU's variance
+    # pooled over the intervals, the receiver's the largest); a log without them counts with its raw
+    # estimates (its samples' spread, its fixes against the autopilot's estimate)
     found = [(lg, interval_noise(lg)) for lg in logs]
     got = [f for _, f in found if f is not None]
     source = "imu samples"
