@@ -75,8 +75,9 @@ def no_camera(tmp_path_factory):
     # compass, barometer): a bias of 4-8 m, and a consistent drift of 3 m/s switched on at once (position
     # and velocity agree), which GPS agrees with, so the reference goes on being reset to the main filter
     # while it lasts. Seed 2 is one of the 3 of 8 seeds tried (0 to 7, the fleet's noise as measured over GPS
-    # intervals) that draw a bias and a drift and type the drift ramp on all three paths: the test guards the
-    # demo's case; no-camera drifts in general still type sinusoid part of the time, as the reference
+    # intervals) that draw a bias and a drift and type the drift ramp on all three paths: the test guards that
+    # the log paths type as the dataset does; no-camera drifts in general still type sinusoid part of the
+    # time (the demo's, since that noise), as the reference
     # follows the main filter's attitude (docs/known-behaviour.md; on seed 1 one drift types sinusoid on the
     # dataset and ramp on both logs)
     tmp = tmp_path_factory.mktemp("log-typing-nocam")
