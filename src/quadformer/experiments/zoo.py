@@ -41,7 +41,7 @@ from quadformer.experiments.zoo_recipes import FLEET_NOISE, PAPER_PROFILE_F1, RE
 from quadformer.io import atomic_dir, package_versions, write_json
 
 __all__ = ["ZOO_SEED", "DEMO_SEED", "THREADS", "BUDGET_PER_HOUR", "FLEET_NOISE", "PAPER_PROFILE_F1", "Recipe",
-           "RECIPES", "build", "attach_field", "field_figures", "shipped_tuned"]
+           "RECIPES", "build", "attach_field", "field_figures", "pooled_splits", "shipped_tuned"]
 
 ZOO_SEED = 1000
 DEMO_SEED = 2000
@@ -62,7 +62,8 @@ def shipped_tuned(name: str, threshold: str = "f1") -> Tuned:
     return Tuned(det, dict(tr["params"]), float(tr["validation_f1"]), cached=True)
 
 
-def _pooled(paths: dict[str, Path]) -> tuple[dict[str, pd.DataFrame], np.ndarray, dict[str, int], dict[str, Any]]:
+def pooled_splits(paths: dict[str, Path]) -> tuple[dict[str, pd.DataFrame], np.ndarray, dict[str, int],
+                                                  dict[str, Any]]:
     """The train / validation / test flights of every configuration (split by flight, each
     configuration on its own), pooled with distinct flight ids; the training labels; the split's
     counts; and the first configuration's simulation (the filter tuning the residues came from)."""
@@ -251,7 +252,7 @@ def _build_set(r: Recipe, tmp: Path, cache_dir: Path, flights: int | None, seed:
     configs = r.configs(flights or r.flights, seed, duration)
     echo(f"{r.set}: simulating {sum(c.flights for _, c in configs)} flights ({len(configs)} configuration(s))")
     paths = ensure_configs(configs, cache_dir, progress=progress, workers=workers)
-    parts, y_train, counts, sim = _pooled(paths)
+    parts, y_train, counts, sim = pooled_splits(paths)
     rate = float(configs[0][1].gps.rate_hz)
     built, picks = {}, {}
     for m in r.methods:
