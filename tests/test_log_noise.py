@@ -26,16 +26,12 @@ def test_a_receivers_white_noise_is_recovered_from_its_neighbouring_intervals():
 
 def _written(tmp_path, noise: dict) -> object:
     from quadformer.config import SimConfig, merge
-    from quadformer.experiments.flight_logs import UTC0, flight_log
-    from quadformer.logs.dataflash_writer import write_dataflash
-    from quadformer.logs.writing import LogHeader
-    from quadformer.simulation import simulate_batch
+    from quadformer.experiments.flight_logs import simulate_with_logs
 
     cfg = SimConfig.from_dict(merge(noise, {"flights": 1, "duration": 60.0, "seed": 8,
                                             "sensors": "gps+imu+mag+baro"}))
-    r = simulate_batch(cfg, np.arange(1), np.zeros(1, bool), record_sensors=True)
-    path = tmp_path / "quiet_receiver.bin"
-    return read_log(write_dataflash(flight_log(cfg, r, 0, path=path), path, LogHeader(utc0=UTC0)))
+    _, logs, _ = simulate_with_logs(cfg, tmp_path / "quiet", ("dataflash",), name="quiet")
+    return read_log(logs / "quiet_0000.bin")
 
 
 def test_a_noisy_imu_under_a_quiet_receiver_is_measured_over_the_interval(tmp_path):

@@ -144,12 +144,18 @@ def interval_noise(log: FlightLog, air: np.ndarray | None = None) -> IntervalNoi
     var = robust_std(steps) ** 2
     gv2 = max(0.0, -_neighbour_cov(e, ok))
     q2 = 2.0 * max(0.0, var - 2.0 * gv2) / step
-    g = log.gps
-    p, v = g[["x", "y"]].to_numpy(dtype=float), g[["vx", "vy"]].to_numpy(dtype=float)
-    c = np.diff(p, axis=0) - 0.5 * (v[1:] + v[:-1]) * np.diff(t)[:, None]
+    c = _consistency(log.gps)
     gp2 = max(0.0, -_neighbour_cov(c, ok & np.isfinite(c).all(axis=1)))
     return IntervalNoise(float(np.sqrt(q2)), float(np.sqrt(gv2)), float(np.sqrt(gp2)), float(np.sqrt(var)), step,
                          len(steps), float(delay or 0.0))
+
+
+def _consistency(g) -> np.ndarray:
+    """The receiver's horizontal consistency over each interval of its fixes ``g`` (fixes - 1, 2):
+    its position change minus the mean of the two velocities times the interval."""
+    t = g["t"].to_numpy(dtype=float)
+    p, v = g[["x", "y"]].to_numpy(dtype=float), g[["vx", "vy"]].to_numpy(dtype=float)
+    return np.diff(p, axis=0) - 0.5 * (v[1:] + v[:-1]) * np.diff(t)[:, None]
 
 
 def _neighbour_cov(e: np.ndarray, ok: np.ndarray) -> float:
@@ -313,7 +319,7 @@ def detection_floor(log: FlightLog, in_air: np.ndarray | None = None, per_hour: 
     step = float(np.median(dt))
     ok = (air[1:] & air[:-1] & (dt > 0) & (dt <= 1.5 * step) & np.isfinite(p).all(axis=1)[1:]
           & np.isfinite(p).all(axis=1)[:-1] & np.isfinite(v).all(axis=1)[1:] & np.isfinite(v).all(axis=1)[:-1])
-    sp = robust_std((np.diff(p, axis=0) - 0.5 * (v[1:] + v[:-1]) * dt[:, None])[ok])
+    sp = robust_std(_consistency(g)[ok])
     rate = 1.0 / step
     return DetectionFloor(_step_floor(sp, per_hour, rate), _step_floor(sv, per_hour, rate), sp, sv, rate,
                           int(ok.sum()), per_hour)
