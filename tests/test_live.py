@@ -538,3 +538,21 @@ def test_cli_monitor_refuses_bad_input(tmp_path):
     assert r.exit_code == 2 and "no such model file" in r.output
     with pytest.raises(ValueError, match="monitor.typing: unknown 'labels'"):
         MonitorConfig(connect=f"udpin:{LOCAL}:0", typing="labels")
+
+
+def test_fixes_read_with_jitter_are_fused_at_the_receivers_epochs(detector, sim_streams):
+    """The autopilot's stamps jitter by 0 to 30 ms after each 10 Hz epoch (a link carries no time of
+    week): the monitor finds the epochs from the stamps (``sensors.receiver_epochs``) and scores the
+    fixes on the receiver's grid again, holding its IMU back for the late reads."""
+    rng = np.random.default_rng(5)
+    t = sim_streams.gps_t + rng.uniform(0.0, 0.03, len(sim_streams.gps_t))
+    fixes, summary, report, _ = run_monitor(detector, dataclasses.replace(sim_streams, gps_t=t), filter=FILTER)
+    assert report.lost == 0
+    ep = summary["gps_epochs"]
+    assert ep["restamped"] >= len(t) - 80 and ep["restarts"] == 0
+    assert ep["jitter_ms"] == pytest.approx(30 / np.sqrt(12), rel=0.4)      # uniform 0..30 ms
+    assert 20.0 < ep["hold_ms"] < 31.0 and "epochs" in ep["note"]
+    ft = np.array([f.t for f in fixes])
+    steps = np.diff(ft[ft > ft[0] + 10.0])                                  # after the window's first 50 fixes
+    assert len(steps) > 100 and np.abs(steps - 0.1).max() < 5e-3, np.abs(steps - 0.1).max()
+    assert np.abs(np.diff(t) - 0.1).max() > 0.02                            # where the stamps' steps jitter

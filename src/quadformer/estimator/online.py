@@ -106,7 +106,9 @@ class ResidueStream:
     A receiver's latency (``FilterConfig.gps_delay_s`` = D > 0) is compensated as PX4 EKF2 does,
     on a delayed horizon: each fix is fused at its measurement time (its stamp minus D), so the
     filter runs D behind the newest IMU sample (IMU samples are held back D) and a fix's row
-    is returned up to D later; rows keep the fix's stamp as ``t``."""
+    is returned up to D later; rows keep the fix's stamp as ``t``. ``hold_s`` (0 unless set) holds
+    the IMU back that much more: fixes stamped at their receiver's epochs, earlier than they
+    arrive (``sensors.receiver_epochs``), are still fused at their time."""
 
     INIT_WINDOW = 1.0     # s before the first fix from which the start's attitude, tilt and field come
     FIELD_S = 3.0         # s after the start over which the field is averaged (the autopilot's attitude)
@@ -132,7 +134,8 @@ class ResidueStream:
         self._baro_diffs: list[np.ndarray] = []
         self._dt: float | None = None
         self.delay = float(config.gps_delay_s or 0.0)
-        self._held: deque = deque()                             # IMU samples within D of the newest
+        self._held: deque = deque()                             # IMU samples within D + hold_s of the newest
+        self.hold_s = 0.0                                       # s the IMU is held back beyond D
         self._first_imu: float | None = None
         self._unready = 0                                       # fixes before the start could be made
         self._att: np.ndarray | None = None                     # the autopilot's latest attitude
@@ -150,11 +153,12 @@ class ResidueStream:
     def imu(self, t: float, x: np.ndarray) -> list[dict[str, Any]]:
         """Specific force and body rate (n, 6) or (6,), FLU."""
         x = per_flight(x, self.n, 6)
-        if self.delay <= 0.0:
+        lag = self.delay + self.hold_s
+        if lag <= 0.0 and not self._held:
             return self._imu(t, x)
         self._held.append((t, x))
         rows: list[dict[str, Any]] = []
-        while self._held and self._held[0][0] <= t - self.delay + EPS:
+        while self._held and self._held[0][0] <= t - lag + EPS:
             rows += self._imu(*self._held.popleft())
         return rows
 

@@ -73,6 +73,7 @@ from quadformer.live.config import FixRecord, MonitorConfig, monitor_sensors
 from quadformer.live.flight_state import FlightState
 from quadformer.live.intake import Intake
 from quadformer.sensors.mavlink_link import local_address, open_link
+from quadformer.sensors.receiver_epochs import ReceiverEpochs
 from quadformer.live.pipeline import EVENT_MESSAGES, Pipeline  # noqa: F401 - EVENT_MESSAGES: importable here as before
 from quadformer.live.segment import Segment
 from quadformer.live.status import STALE, STATES, Latency
@@ -103,8 +104,10 @@ class Monitor(Pipeline):
         # the receiver's latency: the filter configuration's, else estimated from the link in the air
         unknown = config.filter.gps_delay_s is None
         self.receiver_latency = LatencyEstimator() if unknown else None
-        self.latency_source = "not yet estimated (fixes fused at their stamps)" if unknown else "the filter's setting"
+        self.latency_source = ("not yet estimated (no latency: fixes fused at their epochs)" if unknown
+                               else "the filter's setting")
         self._latency_tried = -1                     # the estimator's interval count at the last try
+        self.receiver_epochs = ReceiverEpochs()      # the fixes' epochs from their stamps
         self.sensors = monitor_sensors(detector, config.filter)
         self.on_fix = on_fix
         self.echo = echo or (lambda line: None)

@@ -33,6 +33,7 @@ from quadformer.live.segment import Segment
 from quadformer.live.status import STATES, Latency
 from quadformer.live.vehicle import Vehicle
 from quadformer.resilience.admission import EXCLUDED, FUSING
+from quadformer.sensors.receiver_epochs import ReceiverEpochs
 from quadformer.sensors.mavlink import GPS_MESSAGES, RATIO_MESSAGES, Estimate, Origin, decode, estimator_ratios, gps_status
 
 __all__ = ["EVENT_MESSAGES", "Pipeline"]
@@ -71,6 +72,7 @@ class Pipeline:
     vehicle: int | None
     autopilot: str | None
     receiver_latency: LatencyEstimator | None
+    receiver_epochs: ReceiverEpochs
     latency_source: str
     _latency_tried: int
 
@@ -223,8 +225,13 @@ class Pipeline:
             self._imu(seg, t, s.x, t_in)
         elif stream != "attitude" and not seg.fusable(stream, t):
             self.dropped[f"{stream}_without_imu"] += 1       # could never be fused; would only queue
+        elif stream == "gps":
+            # fused at the receiver's epoch found from the stamps, the IMU held back for the late reads
+            t_fix = self.receiver_epochs.epoch(t)
+            seg.stream.hold_s = self.receiver_epochs.allowance
+            seg.feed(stream, t_fix, s, self.followed.enu(s))
         else:
-            seg.feed(stream, t, s, self.followed.enu(s) if stream == "gps" else None)
+            seg.feed(stream, t, s, None)
 
     def _imu(self, seg: Segment, t: float, x: np.ndarray, t_in: float) -> None:
         try:
