@@ -125,3 +125,17 @@ def test_a_replayed_log_stamped_at_epochs_and_without_a_latency_setting(tmp_path
     g = ekf_rows(log, 0, FilterConfig(sensors="gps+imu+mag+baro", gps_delay_s=0.0))
     assert not any("latency" in n for n in f.notes)
     pd.testing.assert_frame_equal(f.rows, g.rows)
+
+
+def test_a_start_up_burst_of_stale_fixes_is_dropped_and_the_rest_restamped():
+    """A receiver that buffered its first fixes hands them over at once, read within 40 ms of
+    the first current one, seconds after their epochs (three Erle-Copter logs of the shared set
+    begin so): those stamps fall after the next fix's epoch. They are dropped as stale; the log
+    is not refused for them."""
+    t, tow = jittered()
+    tow[:4] = tow[4] - np.array([2.0, 1.8, 1.6, 1.4])
+    t[:4] = t[4] - np.array([0.04, 0.03, 0.02, 0.01])
+    new, keep, note = fix_epochs(t, tow)
+    assert not keep[:4].any() and keep[4:].all()
+    assert "4 read more than" in note and "stale" in note
+    assert np.allclose(np.diff(new[keep]), 0.2, atol=1e-5)

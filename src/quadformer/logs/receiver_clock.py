@@ -12,8 +12,10 @@
   two clocks' rates may differ: some boards' clocks run several percent slow against GPS time,
   and the fit follows them), its offset the ``LOW_QUANTILE`` of the stamps' lag behind the line
   (the fixes read the soonest), so the fixes keep the autopilot's time base and lose only the
-  jitter. Without a usable time of week (fewer than ``MIN_FIXES``, not increasing, or a
-  restamped fix further than ``MAX_SHIFT_S`` from its stamp) the stamps stay as logged.
+  jitter. A fix read more than ``MAX_SHIFT_S`` after its epoch keeps its stamp, or, where that
+  stamp falls out of order with its neighbours' epochs (a start-up burst of buffered fixes read
+  at once), is dropped as stale. Without a usable time of week (fewer than ``MIN_FIXES``, not
+  increasing) the stamps stay as logged.
 - **Latency.** A fix is measured before the autopilot reads it (PX4's ``EKF2_GPS_DELAY``,
   ArduPilot's ``GPS_DELAY_MS``, ``EK2_GPS_DELAY``, ``EKF_POS_DELAY``); a filter that fuses it at
   its stamp compares a lagged velocity with the IMU's, and every change of acceleration shows in
@@ -80,19 +82,32 @@ def fix_epochs(t: np.ndarray, tow: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     near = ok.copy()
     near[ok] = np.abs(offset + slope * ww - tt) <= MAX_SHIFT_S     # a fix read long after its epoch keeps its stamp
     new[near] = offset + slope * tow[near]
+    # a fix read long after its epoch keeps its stamp; one whose stamp then falls out of order with
+    # its neighbours' epochs (a start-up burst of buffered fixes read at once) is stale: dropped
+    stale = 0
+    at = np.nonzero(near)[0]                           # the restamped fixes, in order
+    for k in np.nonzero(ok & ~near)[0]:
+        j = np.searchsorted(at, k)
+        before = new[at[j - 1]] if j > 0 else -np.inf
+        after = new[at[j]] if j < len(at) else np.inf
+        if not before < new[k] < after:
+            keep[k] = False
+            stale += 1
     if near.sum() < MIN_FIXES or np.any(np.diff(new[keep]) <= 0):
         return t, every, None
     dev = lag[near[ok]] - offset
     jitter = float(np.std(dev - np.median(dev)))
     rate = f"; the autopilot's clock runs {abs(slope - 1) * 100:.1f}% {'slow' if slope < 1 else 'fast'} " \
            "against GPS time" if abs(slope - 1.0) > 2e-3 else ""
-    late = int(ok.sum() - near.sum())
+    late = int(ok.sum() - near.sum()) - stale
     again = int((~keep).sum())
     if jitter < NO_JITTER_S and abs(slope - 1.0) <= 2e-3 and not late:     # stamped at the epochs already
         return t, keep, (f"gps: {again} fixes read twice (the same time of week) dropped" if again else None)
     return new, keep, (f"gps: {int(near.sum())} fixes stamped at the receiver's epochs (GPS time of week), "
                  f"the logged stamps' jitter {jitter * 1e3:.0f} ms std removed{rate}"
                  + (f"; {late} read more than {MAX_SHIFT_S:g} s after their epoch keep their stamps" if late else "")
+                 + (f"; {stale} read more than {MAX_SHIFT_S:g} s after their epoch and out of order with the "
+                    "others' epochs dropped (stale)" if stale else "")
                  + (f"; {again} fixes read twice (the same time of week) dropped" if again else ""))
 
 
