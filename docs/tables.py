@@ -78,6 +78,10 @@ TABLES: dict[str, dict[str, Any]] = {
                         "command": "quadformer benchmark --profile stealth --methods "
                                    "magbaro-cusum,magbaro-cusum-ref --knowledge white,black --policies none "
                                    "--out runs/stealth-magbaro"},
+    "stealth-autopilot": {"source": "results/stealth-autopilot/results.json", "kind": "stealth",
+                          "command": "quadformer benchmark --profile stealth --methods "
+                                     "px4-cusum,px4-chi2,ardupilot-glr,ardupilot-cusum,ardupilot-chi2 "
+                                     "--knowledge white,black --policies none --out runs/stealth-autopilot"},
     "stealth-grey-vio": {"source": "results/stealth-grey-vio/results.json", "kind": "stealth",
                          "command": "quadformer benchmark --profile stealth --methods "
                                     "vio-cusum,vio-chi2,vio-cusum-ref,vio-quadformer --knowledge grey "
