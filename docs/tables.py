@@ -45,7 +45,7 @@ QUICK = {"source": "results/quick-stress/results.json",
          "command": "quadformer benchmark --profile quick --stress --out runs/quick-stress"}
 FIELD_SHIPPED = {"source": "results/field-shipped/results.json",
                  "command": "quadformer benchmark --profile field --shipped magbaro --logs ../shared/data/real-flights "
-                            "--manifest ../shared/data/real-flights/MANIFEST.csv --out runs/field-noise3"}
+                            "--manifest ../shared/data/real-flights/MANIFEST.csv --out runs/field-epochs"}
 FIELD_INJECTED = ("bias", "ramp", "drift", "drift-accel", "capture")
 MIXED = {"source": "results/mixed/results.json", "command": "quadformer benchmark --profile mixed --out runs/mixed"}
 TABLES: dict[str, dict[str, Any]] = {
