@@ -78,6 +78,10 @@ TABLES: dict[str, dict[str, Any]] = {
                         "command": "quadformer benchmark --profile stealth --methods "
                                    "magbaro-cusum,magbaro-cusum-ref --knowledge white,black --policies none "
                                    "--out runs/stealth-magbaro"},
+    "stealth-magbaro-more": {"source": "results/stealth-magbaro-more/results.json", "kind": "stealth",
+                             "command": "quadformer benchmark --profile stealth --methods "
+                                        "magbaro-chi2,magbaro-quadformer --knowledge white,black --policies none "
+                                        "--out runs/stealth-magbaro-more"},
     "stealth-autopilot": {"source": "results/stealth-autopilot/results.json", "kind": "stealth",
                           "command": "quadformer benchmark --profile stealth --methods "
                                      "px4-cusum,px4-chi2,ardupilot-glr,ardupilot-cusum,ardupilot-chi2 "
