@@ -180,6 +180,7 @@ def main() -> None:
     shutil.rmtree(scored, ignore_errors=True)
     out = {"log": Path(args.log).name, "detector": label, "method": det.name, "sensors": sensors,
            "gps_delay_s": summary["gps_delay"]["s"], "gps_delay_source": summary["gps_delay"]["source"],
+           "gps_epochs": summary["gps_epochs"],
            "largest_score_in_air": float(fixes.loc[fixes.phase == "air", "score"].max()),
            "threshold": float(det.threshold_), "in_air_s": air, "attack": None, "alerts": raised,
            "spoofing_alerts_in_air": len(in_air), "fixes_scored": summary["fixes_scored"],

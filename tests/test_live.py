@@ -551,7 +551,7 @@ def test_fixes_read_with_jitter_are_fused_at_the_receivers_epochs(detector, sim_
     ep = summary["gps_epochs"]
     assert ep["restamped"] >= len(t) - 80 and ep["restarts"] == 0
     assert ep["jitter_ms"] == pytest.approx(30 / np.sqrt(12), rel=0.4)      # uniform 0..30 ms
-    assert 20.0 < ep["hold_ms"] < 31.0 and "epochs" in ep["note"]
+    assert 20.0 < ep["hold_ms"] <= ep["largest_hold_ms"] < 35.0 and "epochs" in ep["note"]
     ft = np.array([f.t for f in fixes])
     steps = np.diff(ft[ft > ft[0] + 10.0])                                  # after the window's first 50 fixes
     assert len(steps) > 100 and np.abs(steps - 0.1).max() < 5e-3, np.abs(steps - 0.1).max()
