@@ -139,3 +139,23 @@ def test_a_start_up_burst_of_stale_fixes_is_dropped_and_the_rest_restamped():
     assert not keep[:4].any() and keep[4:].all()
     assert "4 read more than" in note and "stale" in note
     assert np.allclose(np.diff(new[keep]), 0.2, atol=1e-5)
+
+
+def test_fixes_without_a_time_of_week_are_stamped_at_the_epochs_their_stamps_show():
+    """A log whose receiver gives no time of week (a telemetry log, a PX4 log before the receiver
+    knew the time): its fixes are put on the receiver's grid from the stamps alone, as the live
+    monitor does; ``epochs=False`` keeps the stamps."""
+    from quadformer.logs.flightlog import gps_stream
+
+    t, tow = jittered(n=300)
+    n = len(t)
+    raw = {"t": t, "lat": np.full(n, 47.0), "lon": np.full(n, 8.0), "alt": np.full(n, 400.0),
+           "vel": np.zeros((n, 3))}
+    notes: list[str] = []
+    g = gps_stream(raw, (47.0, 8.0, 400.0), notes)
+    steps = np.diff(g["t"].to_numpy()[60:])
+    assert np.abs(steps - 0.2).max() < 0.01 < np.abs(np.diff(t[60:]) - 0.2).max()
+    assert any("no usable GPS time of week" in x for x in notes)
+    kept: list[str] = []
+    assert np.array_equal(gps_stream(raw, (47.0, 8.0, 400.0), kept, epochs=False)["t"].to_numpy(), t)
+    assert not any("epochs" in x for x in kept)

@@ -83,8 +83,7 @@ class _DataflashReader(DataflashEstimator):
         cores = self.cores()
         streams = {
             "imu": self.imu(),
-            "gps": gps_stream(gps_raw if epochs or gps_raw is None else {k: v for k, v in gps_raw.items()
-                                                                          if k != "tow"}, origin, self.notes),
+            "gps": gps_stream(gps_raw, origin, self.notes, epochs),
             "baro": self.simple("BARO", "baro", ("Alt",), lambda v: {"alt": v[:, 0]}),
             "mag": self.simple("MAG", "mag", ("MagX", "MagY", "MagZ"), self._mag),
             "innovations": self.innovations(cores),

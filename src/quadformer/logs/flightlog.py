@@ -224,23 +224,33 @@ def make_stream(name: str, t: np.ndarray, values: Mapping[str, np.ndarray | floa
 
 
 def gps_stream(raw: Mapping[str, np.ndarray] | None, origin: tuple[float, float, float],
-               notes: list[str]) -> pd.DataFrame | None:
+               notes: list[str], epochs: bool = True) -> pd.DataFrame | None:
     """The ``gps`` stream of raw fixes (``t``, ``lat``, ``lon``, ``alt``, ``vel`` (n, 3) ENU and
-    any receiver indicators), positions in ENU metres about ``origin``; with ``tow`` (the
-    receiver's GPS time of each fix, s) the fixes are stamped at their epochs
-    (``logs.receiver_clock.fix_epochs``)."""
+    any receiver indicators), positions in ENU metres about ``origin``. The fixes are stamped at
+    their epochs: with ``tow`` (the receiver's GPS time of each fix, s) from it
+    (``logs.receiver_clock.fix_epochs``); without a usable one, from the stamps alone as the live
+    monitor finds them (``sensors.receiver_epochs``: stamps without jitter stay as they are).
+    ``epochs`` False keeps the stamps as logged."""
     if raw is None:
         return None
     t = raw["t"]
-    if "tow" in raw:                      # the receiver's own time of each fix: stamped at its epoch
+    found = None
+    if epochs and "tow" in raw:           # the receiver's own time of each fix: stamped at its epoch
         from quadformer.logs.receiver_clock import fix_epochs
 
-        t, keep, note = fix_epochs(raw["t"], raw["tow"])
-        if note:
-            notes.append(note)
+        t, keep, found = fix_epochs(raw["t"], raw["tow"])
+        if found:
+            notes.append(found)
         if not keep.all():
             raw = {k: v[keep] for k, v in raw.items()}
             t = t[keep]
+    if epochs and found is None and len(t) and np.all(np.diff(t) > 0):
+        from quadformer.sensors.receiver_epochs import ReceiverEpochs
+
+        clock = ReceiverEpochs()
+        t = np.array([clock.epoch(x) for x in t])
+        if clock.note():
+            notes.append(clock.note() + " (the log gives no usable GPS time of week)")
     enu = frames.geodetic_to_enu(raw["lat"], raw["lon"], raw["alt"], origin)
     values = {"x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2], "vx": raw["vel"][:, 0],
               "vy": raw["vel"][:, 1], "vz": raw["vel"][:, 2]}
