@@ -73,3 +73,11 @@ def test_stamps_too_jittery_for_the_count_are_kept():
     out, clock = restamp(t)
     moved = np.abs(out - t) > 1e-9
     assert moved.mean() < 0.1, moved.mean()
+
+
+def test_a_1_hz_receiver_is_restamped_once_its_window_holds_enough_fixes():
+    epochs, t = stamps(n=120, period=1.0, jitter=0.06)
+    out, clock = restamp(t)
+    assert np.array_equal(out[:MIN_FIXES - 1], t[:MIN_FIXES - 1])
+    late = out[MIN_FIXES:] - epochs[MIN_FIXES:]
+    assert clock.restarts == 0 and np.ptp(late) < 0.02 < np.ptp(t[MIN_FIXES:] - epochs[MIN_FIXES:])

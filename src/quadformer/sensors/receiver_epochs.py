@@ -15,11 +15,11 @@ autopilot's stamp). The stamps alone still show the grid:
   since the previous fix over the median of the last ``PERIOD_FIXES``), within ``SNAP`` of a
   whole number, else the count is lost and the clock starts again from this fix (after a gap
   longer than the window, it starts again without a count lost);
-- over the last ``WINDOW_S`` seconds of fixes the stamps lie on a line in that count, plus the
-  read delay, which is never negative: the line is fitted by least squares through the
-  ``ENVELOPE`` share of the fixes read the soonest (about the median slope between fixes half the
-  window apart: the two clocks' rates may differ by a few percent), its offset the
-  ``LOW_QUANTILE`` of the stamps' lag behind it, as ``fix_epochs`` fits a log's.
+- over the last ``WINDOW_S`` seconds of fixes (at least the last ``MIN_FIXES``: a receiver at
+  1 Hz needs 50 s) the stamps lie on a line in that count, plus the read delay, which is never
+  negative: the line is the one under every stamp that they lie the least above in sum
+  (``lower_line``, an edge of their lower convex hull; its slope follows two clocks whose rates
+  differ by a few percent), moved up by the ``LOW_QUANTILE`` of the stamps' lag above it.
 
 ``epoch(t)`` restamps a fix at its epoch on the autopilot's clock once ``MIN_FIXES`` fixes are in
 the window (before that, where the lags spread over more than ``MAX_SPREAD`` periods, which a
@@ -44,12 +44,33 @@ PERIOD_MIN = 5            # intervals needed before the period is used
 SNAP = 0.45               # periods a fix may be off a whole count (on the line, or after the previous fix)
 WINDOW_S = 30.0           # s of fixes the line is fitted over
 MIN_FIXES = 50            # fixes in the window before a fix is restamped
-ENVELOPE = 0.3            # the share of the fixes read the soonest the line is fitted through
 LOW_QUANTILE = 0.02       # the lag taken as the epochs' offset (the fixes read the soonest)
 HIGH_QUANTILE = 0.98      # the lag up to which a late read is still fused at its epoch
 MAX_SPREAD = 0.5          # periods the lags may spread over (HIGH - LOW quantile) for a restamp
 MIN_STEP = 1e-3           # s, the least step between two times out
 NO_JITTER_S = 1e-3        # s, lags spread less than this: the stamps are the epochs, kept as they are
+
+
+def lower_line(n: np.ndarray, s: np.ndarray) -> tuple[float, float]:
+    """(slope, offset) of the line under every point (n increasing) that the points lie the least
+    above in sum: a read delay is never negative, so the epochs' line supports the stamps from
+    below. The best such line runs along an edge of the points' lower convex hull."""
+    hull: list[int] = []
+    for i in range(len(n)):
+        while len(hull) >= 2:
+            a, b = hull[-2], hull[-1]
+            if (n[b] - n[a]) * (s[i] - s[a]) - (s[b] - s[a]) * (n[i] - n[a]) > 0:
+                break
+            hull.pop()
+        hull.append(i)
+    h = np.asarray(hull)
+    if len(h) < 2:
+        return 0.0, float(s[0])
+    slopes = np.diff(s[h]) / np.diff(n[h])
+    offsets = s[h[:-1]] - slopes * n[h[:-1]]
+    cost = s.sum() - len(s) * offsets - slopes * n.sum()        # the sum of the points' lags above each
+    k = int(np.argmin(cost))
+    return float(slopes[k]), float(offsets[k])
 
 
 class ReceiverEpochs:
@@ -106,7 +127,7 @@ class ReceiverEpochs:
     def _add(self, t: float, n: int) -> None:
         self.stamps.append(t)
         self.counts.append(n)
-        while self.stamps[0] < t - WINDOW_S:
+        while len(self.stamps) > MIN_FIXES and self.stamps[0] < t - WINDOW_S:
             self.stamps.popleft()
             self.counts.popleft()
 
@@ -125,27 +146,19 @@ class ReceiverEpochs:
             return t
         s = np.fromiter(self.stamps, float)
         n = np.fromiter(self.counts, float)
-        m = len(s) // 2
-        slope = float(np.median((s[m:] - s[:len(s) - m]) / (n[m:] - n[:len(s) - m])))
-        if not slope > 0:
-            return t
-        # the line through the fixes read the soonest (the lower envelope), by least squares
-        lag = s - slope * n
-        low = lag <= np.quantile(lag, ENVELOPE)
-        if np.ptp(n[low]) > 0:
-            slope, _ = np.polyfit(n[low], s[low], 1)
-            lag = s - slope * n
+        slope, offset = lower_line(n, s)
+        lag = s - (offset + slope * n)                      # the read delays, never negative
         lo, hi = np.quantile(lag, [LOW_QUANTILE, HIGH_QUANTILE])
         if not (slope > 0 and hi - lo <= MAX_SPREAD * slope):
             return t
-        self.line = (float(lo), float(slope))
+        self.line = (float(offset + lo), float(slope))
         if hi - lo < NO_JITTER_S:           # stamped at the epochs already (a simulation's, a replayed log's)
             return t
         self.allowance = float(hi - lo)
         self.largest_allowance = max(self.largest_allowance, self.allowance)
         self.jitter = float(np.std(lag))
         self.restamped += 1
-        return float(lo + slope * n[-1])
+        return float(offset + lo + slope * n[-1])
 
     def note(self) -> str | None:
         """A line on what was done, for the monitor's summary; None before any restamp."""
