@@ -82,8 +82,9 @@ def fix_epochs(t: np.ndarray, tow: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     near = ok.copy()
     near[ok] = np.abs(offset + slope * ww - tt) <= MAX_SHIFT_S     # a fix read long after its epoch keeps its stamp
     new[near] = offset + slope * tow[near]
-    # a fix read long after its epoch keeps its stamp; one whose stamp then falls out of order with
-    # its neighbours' epochs (a start-up burst of buffered fixes read at once) is stale: dropped
+    # a kept stamp out of order with its neighbours' epochs (a start-up burst of buffered fixes
+    # read at once) is stale: dropped
+    again = int((~keep).sum())                         # fixes read twice
     stale = 0
     at = np.nonzero(near)[0]                           # the restamped fixes, in order
     for k in np.nonzero(ok & ~near)[0]:
@@ -100,7 +101,6 @@ def fix_epochs(t: np.ndarray, tow: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     rate = f"; the autopilot's clock runs {abs(slope - 1) * 100:.1f}% {'slow' if slope < 1 else 'fast'} " \
            "against GPS time" if abs(slope - 1.0) > 2e-3 else ""
     late = int(ok.sum() - near.sum()) - stale
-    again = int((~keep).sum())
     if jitter < NO_JITTER_S and abs(slope - 1.0) <= 2e-3 and not late:     # stamped at the epochs already
         return t, keep, (f"gps: {again} fixes read twice (the same time of week) dropped" if again else None)
     return new, keep, (f"gps: {int(near.sum())} fixes stamped at the receiver's epochs (GPS time of week), "
