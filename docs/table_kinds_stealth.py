@@ -23,6 +23,7 @@ def _attacker(run: dict[str, Any]) -> str:
     of the grey box's own surrogate."""
     own = run.get("surrogate")
     return (run["knowledge"] + (f" {run['margin']:g}" if run["margin"] else "")
+            + (f", {run['headings']} headings" if run.get("headings", 1) > 1 else "")
             + (f" (own threshold {own['threshold']:.3g}, the vehicle's {run['threshold']:.3g})" if own else ""))
 
 

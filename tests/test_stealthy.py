@@ -235,6 +235,7 @@ def test_under_the_resilient_policy_an_alarm_takes_gps_out_of_the_loop_and_stops
     (["--methods", "vio-cusum", "--policies", "sometimes"], "--policies: stealth: policies must name some of none"),
     (["--data", "somewhere"], "--profile stealth flies each shipped detector's own simulation"),
     (["--profile", "stealth-slow"], "the stealth profiles are stealth, stealth-quick"),
+    (["--methods", "vio-cusum", "--headings", "9"], "--headings: stealth: headings must be a whole number from 1 to 8"),
 ])
 def test_stealth_benchmark_refuses_what_it_cannot_fly(tmp_path, args, message):
     full = ["benchmark", "--out", str(tmp_path / "run"), *(["--profile", "stealth"] if "--profile" not in args else []),
@@ -256,3 +257,21 @@ def test_simulate_writes_a_stealthy_dataset_from_the_command_line(tmp_path):
     flights = pd.read_parquet(out / "flights.parquet")
     assert (flights.attack_type[flights.t >= 2.0] == "stealthy").all()
     assert (np.hypot(flights.atk_d_x, flights.atk_d_y)[flights.t < 2.0] == 0).all()
+
+
+def test_a_white_box_searching_across_the_track_keeps_a_cusum_under_its_threshold():
+    """Four axes each GPS step (``headings``): the fix goes wherever it can go farthest unseen;
+    the defender's CUSUM still never alarms, and the fix moves no faster than the top speed."""
+    det, flights = stealthy("vio-cusum", margin=0.7, headings=4)
+    assert det.decision_function(flights).max() <= det.threshold_
+    moved = offset(flights, 18.0)
+    assert (moved > 1.5).all() and (moved < 12 * 3.0 + 1e-6).all()
+
+
+@pytest.mark.parametrize("attack, message", [
+    ({"headings": 0}, "attack.headings"), ({"headings": 9}, "attack.headings"),
+    ({"headings": 2, "knowledge": "black"}, "only a white or grey box"),
+])
+def test_impossible_headings_are_refused(attack, message):
+    with pytest.raises(ConfigError, match=message):
+        AttackConfig(kind="stealthy", detector="vio-cusum", fraction=1.0, **attack)

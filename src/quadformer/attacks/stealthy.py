@@ -23,6 +23,12 @@ estimate, is steered by -s u.
 - ``black`` box: no score; the offset accelerates in at ``accel`` up to ``rate`` m/s, the
   slow drift an attacker without access to the detector would choose.
 
+With ``headings`` H > 1 the white and grey boxes search across the track too: at each GPS step the
+speed grid on each of H axes (the direction turned by pi h / H about the vertical, both ways), the
+push that leaves the fix farthest from the truth with the score at or under the bound (ties to
+the direction at its top speed), then bisection outward on that axis; where none passes, the
+lowest score found. The offset is then a horizontal vector; H times the probes of one axis.
+
 What the attacker achieves is measured on the vehicle: its true position's deviation from the
 mission until the detector's first alarm (``experiments.stealth``).
 """
@@ -51,7 +57,7 @@ class StealthyAttacker:
     detector's alarm threshold."""
 
     def __init__(self, attack: AttackBatch, knowledge: str, margin: float, rate_hz: float, stream=None,
-                 threshold: float | None = None):
+                 threshold: float | None = None, headings: int = 1):
         if knowledge not in KNOWLEDGE:
             raise ValueError(f"knowledge: {knowledge!r}; choose from {', '.join(KNOWLEDGE)}")
         if not 0.0 < margin <= 1.0:
@@ -63,8 +69,13 @@ class StealthyAttacker:
         self.stream, self.threshold = stream, threshold
         self.mine = np.asarray(attack.attacked, bool) & (np.asarray(attack.kind) == STEALTH)
         B = len(self.mine)
+        if not (isinstance(headings, int) and headings >= 1):
+            raise ValueError(f"headings: a whole number of at least 1, got {headings!r}")
+        self.headings = 1 if knowledge == "black" else headings
         self.offset = np.zeros(B)          # m along u
         self.speed = np.zeros(B)           # m/s along u, at the last fix
+        self.offset_h = np.zeros((B, 3))   # with several headings: the offset (m) and its velocity (m/s), ENU
+        self.velocity_h = np.zeros((B, 3))
         # what a trial copy of the stream shares with it: the detector and its model (deepcopy's memo)
         det = getattr(stream, "detector", None)
         self._shared = {} if det is None else {id(det): det, **{id(v): v for v in vars(det).values()}}
@@ -86,6 +97,16 @@ class StealthyAttacker:
         if not active.any():
             return pos, vel, active, np.zeros((B, 3))
         cap = np.where(active, self.attack.rate, 0.0)
+        if self.headings > 1:
+            if rows is None:
+                raise ValueError(f"a {self.knowledge}-box attacker scores its candidate fixes: pass rows")
+            v = np.where(active[:, None], self._headings(pos, vel, cap, rows), 0.0)
+            self.offset_h = np.where(active[:, None], self.offset_h + v * self.dt, self.offset_h)
+            self.velocity_h = v
+            self.offset = np.linalg.norm(self.offset_h[:, :2], axis=1)
+            self.speed = np.linalg.norm(v[:, :2], axis=1)
+            d_pos = np.where(active[:, None], self.offset_h, 0.0)
+            return pos + torch.from_numpy(d_pos), vel + torch.from_numpy(v), active, d_pos
         if self.knowledge == "black":
             speed = np.minimum(self.speed + np.where(active, self.attack.accel, 0.0) * self.dt, cap)
         else:
@@ -112,6 +133,56 @@ class StealthyAttacker:
         cols = rows(pos + torch.from_numpy(off), vel + torch.from_numpy(speed[:, None] * u))
         s = np.asarray(self._trial().update(cols).score, dtype=float)
         return np.where(np.isfinite(s), s, np.inf)
+
+    # -- several headings ------------------------------------------------------------------------
+    def _axes(self) -> np.ndarray:
+        """The searched axes (H, B, 3): the attack's direction turned by pi h / H about the vertical."""
+        u = np.asarray(self.attack.direction, dtype=float)
+        out = []
+        for h in range(self.headings):
+            a = np.pi * h / self.headings
+            c, s = np.cos(a), np.sin(a)
+            out.append(np.stack([c * u[:, 0] - s * u[:, 1], s * u[:, 0] + c * u[:, 1], np.zeros(len(u))], axis=1))
+        return np.stack(out)
+
+    def _score_v(self, pos, vel, v: np.ndarray, rows) -> np.ndarray:
+        off = self.offset_h + v * self.dt
+        cols = rows(pos + torch.from_numpy(off), vel + torch.from_numpy(v))
+        s = np.asarray(self._trial().update(cols).score, dtype=float)
+        return np.where(np.isfinite(s), s, np.inf)
+
+    def _headings(self, pos, vel, cap, rows) -> np.ndarray:
+        """The push (B, 3) that moves the fix farthest from the truth with the score at or under the
+        bound: the speed grid on each axis (both ways), then bisection outward on the best one's
+        axis; where none passes, the lowest score found (pulling back or holding to hide)."""
+        bound, axes = self.bound, self._axes()
+        B = len(cap)
+        best_v, best_far = np.zeros((B, 3)), np.full(B, -np.inf)
+        low_v, low_s = np.zeros((B, 3)), np.full(B, np.inf)
+        best_h, best_f = np.zeros(B, dtype=int), np.zeros(B)
+        for h in range(self.headings):
+            for f in GRID[::-1]:           # ties go to the attack's own direction, at its top speed
+                v = f * cap[:, None] * axes[h]
+                sc = self._score_v(pos, vel, v, rows)
+                far = np.linalg.norm((self.offset_h + v * self.dt)[:, :2], axis=1)
+                better = (sc <= bound) & (far > best_far + 1e-12)
+                best_v, best_far = np.where(better[:, None], v, best_v), np.where(better, far, best_far)
+                best_h, best_f = np.where(better, h, best_h), np.where(better, f, best_f)
+                lower = sc < low_s
+                low_v, low_s = np.where(lower[:, None], v, low_v), np.where(lower, sc, low_s)
+        found = np.isfinite(best_far)
+        # bisection outward on the chosen axis: between the best grid speed and the next one beyond it
+        step = GRID[1] - GRID[0]
+        lo = best_f
+        hi = np.clip(best_f + np.sign(best_f) * step, -1.0, 1.0)
+        refine = found & (np.abs(hi) > np.abs(lo))
+        ax = axes[best_h, np.arange(B)]
+        for _ in range(REFINE if refine.any() else 0):
+            mid = 0.5 * (lo + hi)
+            good = self._score_v(pos, vel, np.where(refine, mid, lo)[:, None] * cap[:, None] * ax, rows) <= bound
+            lo, hi = np.where(refine & good, mid, lo), np.where(refine & ~good, mid, hi)
+        chosen = lo[:, None] * cap[:, None] * ax
+        return np.where(found[:, None], chosen, low_v)
 
     def _trial(self):
         """A copy of the stream to try a fix on, sharing the detector (its model) with the original

@@ -56,6 +56,9 @@ def benchmark(
     policies: Optional[str] = typer.Option(None, help="Stealth profiles: the GPS policies flown, comma-separated, "
                                            "of none (GPS always fused: the deviation unseen) and resilient (the "
                                            "detector's alarms exclude GPS in the loop: the deviation reached)."),
+    headings: Optional[int] = typer.Option(None, help="Stealth profiles: the axes the white and grey boxes search "
+                                           "each GPS step (default 1: along the attack's direction; more: across "
+                                           "the track too, that many times the probes)."),
     quiet: bool = typer.Option(False, help="No progress bars."),
 ) -> None:
     """Simulate (or reuse) the profile's configurations, tune and evaluate methods, write tables and a
@@ -63,9 +66,10 @@ def benchmark(
     if profile == "field" or logs or manifest is not None:
         return _field(profile, logs, manifest, methods, data, configs, out, seed, flights, injections, shipped)
     if profile.startswith("stealth"):
-        return _stealth(profile, methods, data, configs, out, seed, knowledge, policies)
-    if knowledge is not None or policies is not None:
-        fail("--knowledge and --policies belong to the stealth profiles (--profile stealth or stealth-quick)")
+        return _stealth(profile, methods, data, configs, out, seed, knowledge, policies, headings)
+    if knowledge is not None or policies is not None or headings is not None:
+        fail("--knowledge, --policies and --headings belong to the stealth profiles (--profile stealth or "
+             "stealth-quick)")
     if shipped is not None:
         fail("--shipped belongs to --profile field (the demo scores the shipped detectors on simulated flights)")
     from quadformer.dataset import DatasetError
@@ -111,7 +115,7 @@ def benchmark(
     typer.echo(f"report:  {(out / 'report.html').resolve()}")
 
 
-def _stealth(profile, methods, data, configs, out, seed, knowledge=None, policies=None) -> None:
+def _stealth(profile, methods, data, configs, out, seed, knowledge=None, policies=None, headings=None) -> None:
     import dataclasses
 
     from quadformer.detectors import pretrained
@@ -138,7 +142,10 @@ def _stealth(profile, methods, data, configs, out, seed, knowledge=None, policie
                 plan = dataclasses.replace(plan, **{field: tuple(k.strip() for k in value.split(",") if k.strip())})
             except ValueError as e:
                 fail(f"{option}: {e}")
-    plan = dataclasses.replace(plan, seed=seed)
+    try:
+        plan = dataclasses.replace(plan, seed=seed, **({} if headings is None else {"headings": headings}))
+    except ValueError as e:
+        fail(f"--headings: {e}")
     set_threads(1)      # the closed loop's small batched operations and a detector's stream per probe: one
                         # thread each is fastest (two threads of each of two runs on two cores ran 5-50x slower)
     try:

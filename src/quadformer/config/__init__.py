@@ -71,7 +71,9 @@ _KIND_GENERIC = {"accel": (0.05, 0.5), "capture_s": (2.0, 2.0), "lock_loss_s": (
 HORIZONTAL_KINDS = ("ramp", "drift", "capture", STEALTH)
 #: the fields only a stealthy attack takes (None in every other configuration, and then left out of
 #: its dict: ``unset_kind_fields``)
-STEALTH_FIELDS = ("detector", "knowledge", "margin", "surrogate")
+STEALTH_FIELDS = ("detector", "knowledge", "margin", "surrogate", "headings")
+#: the most headings a white or grey box searches at each GPS step
+MAX_HEADINGS = 8
 
 
 @dataclass(frozen=True)
@@ -104,6 +106,9 @@ class AttackConfig:
     margin: float | None = None        # stealthy, white or grey box: the score kept under margin x threshold (0, 1]
     surrogate: str | None = None       # stealthy, grey box: the detector the attacker runs instead (the same
                                        # method fitted on its own flights: a model file or a shipped name)
+    headings: int | None = None        # stealthy, white or grey box: the axes it searches each GPS step, evenly
+                                       # spread from its direction (None: 1, along it only); with more, the
+                                       # push that moves the fix farthest from the truth, in any of them
 
     def __post_init__(self) -> None:
         _require(self.kind in ATTACK_CHOICES, "attack.kind",
@@ -186,6 +191,12 @@ class AttackConfig:
         else:
             _require(self.surrogate is None, "attack.surrogate",
                      f"only a grey-box attacker runs a surrogate (attack.knowledge {knowledge!r})")
+        if self.headings is not None:
+            _require(isinstance(self.headings, int) and not isinstance(self.headings, bool)
+                     and 1 <= self.headings <= MAX_HEADINGS, "attack.headings",
+                     f"must be a whole number from 1 to {MAX_HEADINGS} (the axes searched), got {self.headings!r}")
+            _require(knowledge != "black", "attack.headings",
+                     "only a white or grey box searches headings (a black box has no score to search on)")
         object.__setattr__(self, "knowledge", knowledge)
         object.__setattr__(self, "margin", float(margin))
 

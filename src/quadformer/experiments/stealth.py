@@ -49,7 +49,7 @@ from typing import Any, Callable
 import numpy as np
 import pandas as pd
 
-from quadformer.config import KNOWLEDGE, MODELS, SimConfig
+from quadformer.config import KNOWLEDGE, MAX_HEADINGS, MODELS, SimConfig
 from quadformer.report.stealth import write_stealth_report
 
 HORIZONS = (10.0, 30.0, 60.0, 120.0)
@@ -77,6 +77,9 @@ class StealthPlan:
     #: the GPS policies flown: "none" (GPS always fused: the deviation unseen), "resilient" (the
     #: detector's alarms drive the resilient policy in the loop: the deviation the attack reaches)
     policies: tuple[str, ...] = ("none",)
+    #: the axes the white and grey boxes search at each GPS step (``AttackConfig.headings``): 1 along
+    #: the attack's direction only; more, across the track too
+    headings: int = 1
 
     def __post_init__(self) -> None:
         if not self.detectors:
@@ -90,6 +93,9 @@ class StealthPlan:
             raise ValueError(f"stealth: knowledge {bad[0]!r}; choose from {', '.join(KNOWLEDGE)}")
         if any(not 0.0 < m <= 1.0 for m in self.margins):
             raise ValueError(f"stealth: margins must be in (0, 1], got {self.margins}")
+        if not (isinstance(self.headings, int) and 1 <= self.headings <= MAX_HEADINGS):
+            raise ValueError(f"stealth: headings must be a whole number from 1 to {MAX_HEADINGS}, "
+                             f"got {self.headings!r}")
         if self.flights < 1 or not self.horizons or min(self.horizons) <= 0:
             raise ValueError("stealth: at least one flight and positive horizons")
 
@@ -126,6 +132,8 @@ def stealth_config(detector: str, plan: StealthPlan, knowledge: str, margin: flo
               "onset": (plan.onset, plan.onset), "rate": (plan.rate, plan.rate), "accel": (plan.accel, plan.accel)}
     if knowledge in ("white", "grey"):
         attack["margin"] = margin
+        if plan.headings > 1:
+            attack["headings"] = plan.headings
     if knowledge == "grey":
         if surrogate is None:
             raise ValueError(f"stealth: a grey-box attack on {detector} needs its surrogate (fit_surrogate)")
@@ -323,7 +331,8 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
                              "margin": margin, "policy": policy, "threshold": float(det.threshold_),
                              "summary": summary,
                              "flights": rows, "seconds": round(time.perf_counter() - t0, 1),
-                             **({"surrogate": surrogate} if knowledge == "grey" else {})})
+                             **({"surrogate": surrogate} if knowledge == "grey" else {}),
+                             **({"headings": plan.headings} if knowledge != "black" and plan.headings > 1 else {})})
                 T = max(plan.horizons)
                 if policy == "resilient":
                     said = (f"resilient GPS: deviation reached by {T:g} s: median "

@@ -20,8 +20,10 @@ from quadformer.report.html import img, page, png, table, versions
 
 
 def attacker(run: dict[str, Any]) -> str:
-    """A run's attacker as the tables name it: its knowledge, and the white box's margin."""
-    return run["knowledge"] + (f" {run['margin']:g}" if run["margin"] else "")
+    """A run's attacker as the tables name it: its knowledge, the white box's margin, and the axes
+    it searched where more than one."""
+    return (run["knowledge"] + (f" {run['margin']:g}" if run["margin"] else "")
+            + (f", {run['headings']} headings" if run.get("headings", 1) > 1 else ""))
 
 
 def runs_under(results: dict[str, Any], policy: str) -> list[dict[str, Any]]:
