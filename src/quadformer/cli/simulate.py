@@ -45,6 +45,9 @@ def simulate(
                                             "black: an accelerating drift at --accel, no score). See docs/stealth.md."),
     margin: Optional[float] = typer.Option(None, help="Stealthy, white or grey box: the score kept at or under "
                                            "margin x the threshold of the detector it runs, in (0, 1] (default 0.9)."),
+    headings: Optional[int] = typer.Option(None, help="Stealthy, white or grey box: the axes it searches each GPS "
+                                           "step (default 1: along its direction; more: across the track too, the "
+                                           "push that leaves the fix farthest from the truth)."),
     surrogate: Optional[str] = typer.Option(None, help="Stealthy, grey box: the detector the attacker runs in place "
                                             "of the vehicle's, the same method fitted on its own flights (a model "
                                             "file from quadformer fit, or a shipped name)."),
@@ -98,7 +101,7 @@ def simulate(
            "duration": pair("--attack-duration", attack_duration), "magnitude": pair("--magnitude", magnitude),
            "rate": pair("--rate", rate), "accel": pair("--accel", accel), "onset_step": onset_step, "axes": axes,
            "mix": mix.split(",") if mix is not None else None, "detector": attack_detector,
-           "knowledge": knowledge, "margin": margin, "surrogate": surrogate}
+           "knowledge": knowledge, "margin": margin, "surrogate": surrogate, "headings": headings}
     fitted = None
     if noise_from:
         from quadformer.logs import LogError, read_log
