@@ -78,6 +78,10 @@ TABLES: dict[str, dict[str, Any]] = {
                         "command": "quadformer benchmark --profile stealth --methods "
                                    "magbaro-cusum,magbaro-cusum-ref --knowledge white,black --policies none "
                                    "--out runs/stealth-magbaro"},
+    "stealth-vio-headings": {"source": "results/stealth-vio-headings/results.json", "kind": "stealth",
+                             "command": "quadformer benchmark --profile stealth --methods vio-quadformer,vio-cusum "
+                                        "--knowledge white --policies none --headings 4 "
+                                        "--out runs/stealth-vio-headings"},
     "stealth-magbaro-more": {"source": "results/stealth-magbaro-more/results.json", "kind": "stealth",
                              "command": "quadformer benchmark --profile stealth --methods "
                                         "magbaro-chi2,magbaro-quadformer --knowledge white,black --policies none "
