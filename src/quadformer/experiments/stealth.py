@@ -104,14 +104,16 @@ class StealthPlan:
         return self.onset + max(self.horizons)
 
 
-#: the profiles of ``quadformer benchmark --profile``: the shipped sets' detectors (the learned
-#: default, the classical tests and the reference test of each; the autopilot sets' tests, on the
-#: innovations the simulated filter logs as that autopilot), and a small one
+#: the profiles of ``quadformer benchmark --profile``: every shipped detector of every set (the
+#: autopilot sets' tests on the innovations the simulated filter logs as that autopilot), and a
+#: small one
 PROFILES = {
-    "stealth": StealthPlan(detectors=("vio-quadformer", "vio-cusum", "vio-chi2", "vio-cusum-ref",
+    "stealth": StealthPlan(detectors=("vio-quadformer", "vio-cusum", "vio-chi2", "vio-cusum-ref", "vio-sprt",
+                                      "vio-bht", "vio-chi2-vref", "vio-cusum-vref",
                                       "magbaro-glr", "magbaro-quadformer", "magbaro-cusum", "magbaro-chi2",
-                                      "magbaro-cusum-ref", "px4-cusum", "px4-chi2", "ardupilot-glr",
-                                      "ardupilot-cusum", "ardupilot-chi2"), knowledge=("white", "grey", "black"),
+                                      "magbaro-cusum-ref", "magbaro-cusum-vref", "px4-cusum", "px4-chi2",
+                                      "ardupilot-glr", "ardupilot-cusum", "ardupilot-chi2"),
+                           knowledge=("white", "grey", "black"),
                            margins=(0.5, 0.8), flights=3, policies=("none", "resilient")),
     "stealth-quick": StealthPlan(detectors=("vio-cusum", "magbaro-cusum"), flights=2, horizons=(10.0, 30.0)),
 }
