@@ -82,6 +82,10 @@ TABLES: dict[str, dict[str, Any]] = {
                              "command": "quadformer benchmark --profile stealth --methods vio-quadformer,vio-cusum "
                                         "--knowledge white --policies none --headings 4 "
                                         "--out runs/stealth-vio-headings"},
+    "stealth-rest": {"source": "results/stealth-rest/results.json", "kind": "stealth",
+                     "command": "quadformer benchmark --profile stealth --methods "
+                                "vio-sprt,vio-bht,vio-chi2-vref,vio-cusum-vref,magbaro-cusum-vref "
+                                "--knowledge white,black --policies none --out runs/stealth-rest"},
     "stealth-magbaro-more": {"source": "results/stealth-magbaro-more/results.json", "kind": "stealth",
                              "command": "quadformer benchmark --profile stealth --methods "
                                         "magbaro-chi2,magbaro-quadformer --knowledge white,black --policies none "
