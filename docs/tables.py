@@ -43,6 +43,19 @@ ROOT = DOCS.parent
 #:                  "command": "quadformer benchmark --profile paper --out runs/paper-now"},
 QUICK = {"source": "results/quick-stress/results.json",
          "command": "quadformer benchmark --profile quick --stress --out runs/quick-stress"}
+#: the attackers of the stealth runs that fly the white and black boxes with GPS always fused
+WHITE_BLACK = "--knowledge white,black --policies none"
+
+
+def stealth_run(out: str, detectors: str, options: str = "", kind: str = "stealth", **spec) -> dict:
+    """A stealth table's source: the run written to ``runs/{out}`` (its results committed under
+    ``results/{out}``) by ``benchmark --profile stealth --methods DETECTORS OPTIONS``; ``spec``: the
+    table kind's own fields (e.g. ``methods``, the rows shown)."""
+    command = " ".join(["quadformer benchmark --profile stealth --methods", detectors, *([options] if options else []),
+                        f"--out runs/{out}"])
+    return {"source": f"results/{out}/results.json", "kind": kind, "command": command, **spec}
+
+
 FIELD_SHIPPED = {"source": "results/field-shipped/results.json",
                  "command": "quadformer benchmark --profile field --shipped magbaro --logs ../shared/data/real-flights "
                             "--manifest ../shared/data/real-flights/MANIFEST.csv --out runs/field-epochs"}
@@ -63,48 +76,25 @@ TABLES: dict[str, dict[str, Any]] = {
             "command": "quadformer zoo build"},
     "zoo-vio": {"source": "../src/quadformer/detectors/pretrained/models/index.json", "kind": "zoo-configs",
                 "set": "vio", "command": "quadformer zoo build"},
-    "stealth-vio": {"source": "results/stealth-vio/results.json", "kind": "stealth",
-                    "command": "quadformer benchmark --profile stealth --methods "
-                               "vio-quadformer,vio-cusum,vio-chi2,vio-cusum-ref --out runs/stealth-vio"},
-    "stealth-summary-vio": {"source": "results/stealth-vio/results.json", "kind": "stealth-summary", "horizon": 60,
-                            "command": "quadformer benchmark --profile stealth --methods "
-                                       "vio-quadformer,vio-cusum,vio-chi2,vio-cusum-ref --out runs/stealth-vio"},
-    "stealth-magbaro-glr": {"source": "results/stealth-magbaro-glr/results.json", "kind": "stealth",
-                            "command": "quadformer benchmark --profile stealth --methods magbaro-glr "
-                                       "--knowledge white,black --policies none --out runs/stealth-magbaro-glr"},
+    "stealth-vio": stealth_run("stealth-vio", "vio-quadformer,vio-cusum,vio-chi2,vio-cusum-ref"),
+    "stealth-summary-vio": stealth_run("stealth-vio", "vio-quadformer,vio-cusum,vio-chi2,vio-cusum-ref",
+                                       kind="stealth-summary", horizon=60),
+    "stealth-magbaro-glr": stealth_run("stealth-magbaro-glr", "magbaro-glr", WHITE_BLACK),
     # glr's run is the table above
-    "stealth-magbaro": {"source": "results/stealth-magbaro/results.json", "kind": "stealth",
-                        "methods": ["magbaro-cusum", "magbaro-cusum-ref"],
-                        "command": "quadformer benchmark --profile stealth --methods "
-                                   "magbaro-cusum,magbaro-cusum-ref --knowledge white,black --policies none "
-                                   "--out runs/stealth-magbaro"},
-    "stealth-vio-headings": {"source": "results/stealth-vio-headings/results.json", "kind": "stealth",
-                             "command": "quadformer benchmark --profile stealth --methods vio-quadformer,vio-cusum "
-                                        "--knowledge white --policies none --headings 4 "
-                                        "--out runs/stealth-vio-headings"},
-    "stealth-rest": {"source": "results/stealth-rest/results.json", "kind": "stealth",
-                     "command": "quadformer benchmark --profile stealth --methods "
-                                "vio-sprt,vio-bht,vio-chi2-vref,vio-cusum-vref,magbaro-cusum-vref "
-                                "--knowledge white,black --policies none --out runs/stealth-rest"},
-    "stealth-magbaro-more": {"source": "results/stealth-magbaro-more/results.json", "kind": "stealth",
-                             "command": "quadformer benchmark --profile stealth --methods "
-                                        "magbaro-chi2,magbaro-quadformer --knowledge white,black --policies none "
-                                        "--out runs/stealth-magbaro-more"},
-    "stealth-autopilot": {"source": "results/stealth-autopilot/results.json", "kind": "stealth",
-                          "command": "quadformer benchmark --profile stealth --methods "
-                                     "px4-cusum,px4-chi2,ardupilot-glr,ardupilot-cusum,ardupilot-chi2 "
-                                     "--knowledge white,black --policies none --out runs/stealth-autopilot"},
-    "stealth-grey-vio": {"source": "results/stealth-grey-vio/results.json", "kind": "stealth",
-                         "command": "quadformer benchmark --profile stealth --methods "
-                                    "vio-cusum,vio-chi2,vio-cusum-ref,vio-quadformer --knowledge grey "
-                                    "--out runs/stealth-grey-vio"},
-    "stealth-grey-magbaro": {"source": "results/stealth-grey/results.json", "kind": "stealth",
-                             "command": "quadformer benchmark --profile stealth --methods magbaro-glr,magbaro-cusum "
-                                        "--knowledge grey --out runs/stealth-grey"},
-    "stealth-resilient-vio": {"source": "results/stealth-resilient-vio/results.json", "kind": "stealth-resilient",
-                              "command": "quadformer benchmark --profile stealth --methods "
-                                         "vio-quadformer,vio-cusum,vio-chi2,vio-cusum-ref --knowledge white,black "
-                                         "--policies resilient --out runs/stealth-resilient-vio"},
+    "stealth-magbaro": stealth_run("stealth-magbaro", "magbaro-cusum,magbaro-cusum-ref", WHITE_BLACK,
+                                   methods=["magbaro-cusum", "magbaro-cusum-ref"]),
+    "stealth-vio-headings": stealth_run("stealth-vio-headings", "vio-quadformer,vio-cusum",
+                                        "--knowledge white --policies none --headings 4"),
+    "stealth-rest": stealth_run("stealth-rest", "vio-sprt,vio-bht,vio-chi2-vref,vio-cusum-vref,magbaro-cusum-vref",
+                                WHITE_BLACK),
+    "stealth-magbaro-more": stealth_run("stealth-magbaro-more", "magbaro-chi2,magbaro-quadformer", WHITE_BLACK),
+    "stealth-autopilot": stealth_run("stealth-autopilot",
+                                     "px4-cusum,px4-chi2,ardupilot-glr,ardupilot-cusum,ardupilot-chi2", WHITE_BLACK),
+    "stealth-grey-vio": stealth_run("stealth-grey-vio", "vio-cusum,vio-chi2,vio-cusum-ref,vio-quadformer",
+                                    "--knowledge grey"),
+    "stealth-grey-magbaro": stealth_run("stealth-grey", "magbaro-glr,magbaro-cusum", "--knowledge grey"),
+    "stealth-resilient-vio": stealth_run("stealth-resilient-vio", "vio-quadformer,vio-cusum,vio-chi2,vio-cusum-ref",
+                                         "--knowledge white,black --policies resilient", kind="stealth-resilient"),
     "field": {"source": "results/field/results.json", "kind": "field",
               "command": "quadformer benchmark --profile field --logs ../shared/data/real-flights "
                          "--manifest ../shared/data/real-flights/MANIFEST.csv --out runs/field"},

@@ -74,8 +74,7 @@ class StealthyAttacker:
         self.headings = 1 if knowledge == "black" else headings
         self.offset = np.zeros(B)          # m along u
         self.speed = np.zeros(B)           # m/s along u, at the last fix
-        self.offset_h = np.zeros((B, 3))   # with several headings: the offset (m) and its velocity (m/s), ENU
-        self.velocity_h = np.zeros((B, 3))
+        self.offset_h = np.zeros((B, 3))   # with several headings: the offset (m), ENU
         # what a trial copy of the stream shares with it: the detector and its model (deepcopy's memo)
         det = getattr(stream, "detector", None)
         self._shared = {} if det is None else {id(det): det, **{id(v): v for v in vars(det).values()}}
@@ -97,21 +96,16 @@ class StealthyAttacker:
         if not active.any():
             return pos, vel, active, np.zeros((B, 3))
         cap = np.where(active, self.attack.rate, 0.0)
+        if self.knowledge != "black" and rows is None:
+            raise ValueError(f"a {self.knowledge}-box attacker scores its candidate fixes: pass rows")
         if self.headings > 1:
-            if rows is None:
-                raise ValueError(f"a {self.knowledge}-box attacker scores its candidate fixes: pass rows")
             v = np.where(active[:, None], self._headings(pos, vel, cap, rows), 0.0)
             self.offset_h = np.where(active[:, None], self.offset_h + v * self.dt, self.offset_h)
-            self.velocity_h = v
-            self.offset = np.linalg.norm(self.offset_h[:, :2], axis=1)
-            self.speed = np.linalg.norm(v[:, :2], axis=1)
             d_pos = np.where(active[:, None], self.offset_h, 0.0)
             return pos + torch.from_numpy(d_pos), vel + torch.from_numpy(v), active, d_pos
         if self.knowledge == "black":
             speed = np.minimum(self.speed + np.where(active, self.attack.accel, 0.0) * self.dt, cap)
         else:
-            if rows is None:
-                raise ValueError(f"a {self.knowledge}-box attacker scores its candidate fixes: pass rows")
             speed = self._white(pos, vel, cap, rows)
         speed = np.where(active, speed, 0.0)
         self.offset = np.where(active, self.offset + speed * self.dt, self.offset)

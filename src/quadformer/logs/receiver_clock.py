@@ -34,15 +34,15 @@ from __future__ import annotations
 import numpy as np
 
 from quadformer.estimator.latency import LATENCY_GRID, pick_latency, robust_std
+from quadformer.sensors.receiver_epochs import LOW_QUANTILE, NO_JITTER_S   # the lag taken as the epochs' offset;
+                                                                         # stamps this close to them are kept
 
 __all__ = ["fix_epochs", "latency", "velocity_steps", "week_seconds"]
 
 WEEK_S = 604800.0
 MIN_FIXES = 20             # fixes with a time of week needed to fit the epochs
 PAIR_S = 30.0              # s of time of week between the fixes whose slopes make the fit's slope
-LOW_QUANTILE = 0.02        # the lag behind the fitted line taken as the epochs' offset
 MAX_SHIFT_S = 0.5          # s, the most a fix may move from its stamp
-NO_JITTER_S = 1e-3         # s, stamps closer than this to their epochs are kept as they are
 MAX_SLOPE_ERR = 0.15       # the two clocks' rates may differ by this fraction at most
 
 

@@ -92,12 +92,10 @@ class ReceiverEpochs:
         """The time to fuse the fix stamped ``t`` (s, the autopilot's clock) at."""
         t = float(t)
         if self.stamps and t - self.stamps[-1] > WINDOW_S:     # nothing left to count on: a fresh window
-            self.stamps.clear()
-            self.counts.clear()
-            self.line = None
+            self._empty()
         if self.stamps:
             n = self._count(t)
-            if self.stamps and t - self.stamps[-1] > 0:
+            if t > self.stamps[-1]:
                 self.intervals.append(t - self.stamps[-1])
             if n is None:
                 self._restart()
@@ -131,11 +129,14 @@ class ReceiverEpochs:
             self.stamps.popleft()
             self.counts.popleft()
 
-    def _restart(self) -> None:
+    def _empty(self) -> None:
         self.stamps.clear()
         self.counts.clear()
-        self.intervals.clear()
         self.line = None
+
+    def _restart(self) -> None:
+        self._empty()
+        self.intervals.clear()
         self.allowance = 0.0
         self.restarts += 1
 
