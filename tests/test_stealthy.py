@@ -236,6 +236,9 @@ def test_under_the_resilient_policy_an_alarm_takes_gps_out_of_the_loop_and_stops
     (["--data", "somewhere"], "--profile stealth flies each shipped detector's own simulation"),
     (["--profile", "stealth-slow"], "the stealth profiles are stealth, stealth-quick"),
     (["--methods", "vio-cusum", "--headings", "9"], "--headings: stealth: headings must be a whole number from 1 to 8"),
+    (["--methods", "vio-cusum", "--rehearse", "fast"], "--rehearse: could not convert string to float"),
+    (["--methods", "vio-cusum", "--rehearse", "0.1,-1"], "--rehearse: stealth: rehearse takes positive"),
+    (["--methods", "vio-cusum", "--rehearse", "0.1", "--headings", "2"], "--headings: stealth: a rehearsed plan"),
 ])
 def test_stealth_benchmark_refuses_what_it_cannot_fly(tmp_path, args, message):
     full = ["benchmark", "--out", str(tmp_path / "run"), *(["--profile", "stealth"] if "--profile" not in args else []),
@@ -275,3 +278,47 @@ def test_a_white_box_searching_across_the_track_keeps_a_cusum_under_its_threshol
 def test_impossible_headings_are_refused(attack, message):
     with pytest.raises(ConfigError, match=message):
         AttackConfig(kind="stealthy", detector="vio-cusum", fraction=1.0, **attack)
+
+
+def test_a_white_box_with_a_plan_keeps_its_pace_and_the_cusum_under_its_threshold():
+    """A plan of 0.5 m/s^2: the push's speed grows by at most 0.05 m/s a fix (10 Hz), and is held
+    back where the score would pass the bound; the defender's CUSUM never alarms."""
+    det, flights = stealthy("vio-cusum", margin=0.7, plan_accel=0.5)
+    assert det.decision_function(flights).max() <= det.threshold_
+    for _, g in flights.groupby("flight_id"):
+        g = g[g.t >= ONSET - 1e-9]
+        d = np.hypot(g.atk_d_x, g.atk_d_y).to_numpy()
+        fixes = np.flatnonzero(np.r_[True, np.diff(d) != 0])          # the rows a new fix changed the offset
+        speed = np.diff(np.r_[0.0, d[fixes]]) / 0.1
+        assert np.diff(np.r_[0.0, speed]).max() <= 0.05 + 1e-9
+        assert d[-1] > 1.0                                            # it still moved: 12 s of attack
+    _, fastest = stealthy("vio-cusum", margin=0.7)
+    assert not np.allclose(offset(flights, 18.0), offset(fastest, 18.0))   # the plan changed the attack
+
+
+@pytest.mark.parametrize("attack, message", [
+    ({"plan_accel": 0.0}, "attack.plan_accel: must be a positive acceleration"),
+    ({"plan_accel": float("nan")}, "attack.plan_accel: must be a positive acceleration"),
+    ({"plan_accel": 0.1, "knowledge": "black"}, "only a white or grey box follows a plan"),
+    ({"plan_accel": 0.1, "headings": 2}, "with it, headings must be 1"),
+])
+def test_impossible_plans_are_refused(attack, message):
+    with pytest.raises(ConfigError, match=message):
+        AttackConfig(kind="stealthy", detector="vio-cusum", fraction=1.0, **attack)
+
+
+def test_a_rehearsing_attacker_flies_the_plan_that_went_farthest_unseen_on_its_own_flights(tmp_path):
+    from quadformer.experiments.stealth import REHEARSAL_FLIGHTS, StealthPlan, run_stealth
+
+    plan = StealthPlan(detectors=("vio-chi2",), knowledge=("white",), margins=(0.9,), flights=1, horizons=(6.0,),
+                       onset=4.0, rehearse=(0.2,))
+    run, = run_stealth(plan, tmp_path, echo=lambda s: None)["runs"]
+    r = run["rehearsal"]
+    assert [x["accel"] for x in r["tried"]] == [None, 0.2] and r["flights"] == REHEARSAL_FLIGHTS
+    assert r["seed"] != plan.seed                                    # its own flights, not those it attacks
+    best = max(r["tried"], key=lambda x: x["deviation_median"])
+    assert r["accel"] == best["accel"]
+    # a plan of 0.2 m/s^2 moves the fix 3.7 m at the most in 6 s (1.7 m of deviation measured); the
+    # fastest push, chi2 without memory, moves it 7.3 m under the bound (3.4 m of deviation): farther
+    assert r["tried"][1]["deviation_median"] < 3.7 and r["accel"] is None
+    assert run["flights"][0]["offset_end"] > 3.7                     # flown as the fastest push

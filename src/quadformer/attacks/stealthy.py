@@ -23,6 +23,13 @@ estimate, is steered by -s u.
 - ``black`` box: no score; the offset accelerates in at ``accel`` up to ``rate`` m/s, the
   slow drift an attacker without access to the detector would choose.
 
+With a plan (``plan_accel`` a) the white and grey boxes follow it under their score: the push's
+speed grows at most a m/s each second, from the speed last sent. At each GPS step the plan's speed
+is tried first and sent when its score is at or under the bound; else the search above runs on
+speeds up to it. A slow plan keeps the score low where the fastest push keeps it at the bound: an
+attacker that rehearses plans on its own flights (``experiments.stealth.rehearse``) picks the one
+that goes farthest unseen, the fastest push (no plan) among them.
+
 With ``headings`` H > 1 the white and grey boxes search across the track too: at each GPS step the
 speed grid on each of H axes (the direction turned by pi h / H about the vertical, both ways), the
 push that leaves the fix farthest from the truth with the score at or under the bound (ties to
@@ -57,7 +64,7 @@ class StealthyAttacker:
     detector's alarm threshold."""
 
     def __init__(self, attack: AttackBatch, knowledge: str, margin: float, rate_hz: float, stream=None,
-                 threshold: float | None = None, headings: int = 1):
+                 threshold: float | None = None, headings: int = 1, plan_accel: float | None = None):
         if knowledge not in KNOWLEDGE:
             raise ValueError(f"knowledge: {knowledge!r}; choose from {', '.join(KNOWLEDGE)}")
         if not 0.0 < margin <= 1.0:
@@ -72,6 +79,11 @@ class StealthyAttacker:
         if not (isinstance(headings, int) and headings >= 1):
             raise ValueError(f"headings: a whole number of at least 1, got {headings!r}")
         self.headings = 1 if knowledge == "black" else headings
+        if plan_accel is not None and not (knowledge != "black" and self.headings == 1 and np.isfinite(plan_accel)
+                                           and plan_accel > 0):
+            raise ValueError(f"plan_accel: a positive acceleration for a white or grey box along one heading, "
+                             f"got {plan_accel!r}")
+        self.plan_accel = None if plan_accel is None else float(plan_accel)
         self.offset = np.zeros(B)          # m along u
         self.speed = np.zeros(B)           # m/s along u, at the last fix
         self.offset_h = np.zeros((B, 3))   # with several headings: the offset (m), ENU
@@ -106,7 +118,8 @@ class StealthyAttacker:
         if self.knowledge == "black":
             speed = np.minimum(self.speed + np.where(active, self.attack.accel, 0.0) * self.dt, cap)
         else:
-            speed = self._white(pos, vel, cap, rows)
+            top = cap if self.plan_accel is None else np.minimum(cap, self.speed + self.plan_accel * self.dt)
+            speed = self._white(pos, vel, cap, rows, np.where(active, top, 0.0))
         speed = np.where(active, speed, 0.0)
         self.offset = np.where(active, self.offset + speed * self.dt, self.offset)
         self.speed = speed
@@ -183,15 +196,24 @@ class StealthyAttacker:
         (a fresh memo each time: deepcopy fills it with the copies it makes)."""
         return copy.deepcopy(self.stream, dict(self._shared))
 
-    def _white(self, pos, vel, cap, rows) -> np.ndarray:
+    def _white(self, pos, vel, cap, rows, top) -> np.ndarray:
+        """The fastest speed in [-cap, top] whose score is at or under the bound: ``top`` first, then
+        the grid over the range and bisection; where none passes, the speed of the lowest score."""
         bound = self.bound
-        scores = np.stack([self._score(pos, vel, f * cap, rows) for f in GRID])        # (G, B)
+        top_score = self._score(pos, vel, top, rows)
+        if (top_score <= bound).all():
+            return top
+        def at(f):                               # a grid share in [-1, 1] as a speed in [-cap, top]
+            f = np.asarray(f)
+            return f * cap if self.plan_accel is None else -cap + 0.5 * (f + 1.0) * (top + cap)
+
+        scores = np.stack([self._score(pos, vel, at(f), rows) for f in GRID[:-1]] + [top_score])    # (G, B)
         ok = scores <= bound
         G = len(GRID)
         best = np.where(ok.any(0), G - 1 - np.argmax(ok[::-1], 0), np.argmin(scores, 0))
-        lo = GRID[best] * cap
+        lo = at(GRID[best])
         refine = ok.any(0) & (best < G - 1)
-        hi = GRID[np.minimum(best + 1, G - 1)] * cap
+        hi = at(GRID[np.minimum(best + 1, G - 1)])
         for _ in range(REFINE if refine.any() else 0):
             mid = 0.5 * (lo + hi)
             good = self._score(pos, vel, np.where(refine, mid, lo), rows) <= bound
@@ -199,14 +221,14 @@ class StealthyAttacker:
             hi = np.where(refine & ~good, mid, hi)
         caught = ~ok.any(0) & (cap > 0)
         if caught.any():
-            lo = np.where(caught, self._lowest(pos, vel, cap, rows, np.argmin(scores, 0)), lo)
+            lo = np.where(caught, self._lowest(pos, vel, at, rows, np.argmin(scores, 0)), lo)
         return lo
 
-    def _lowest(self, pos, vel, cap, rows, best: np.ndarray) -> np.ndarray:
+    def _lowest(self, pos, vel, at, rows, best: np.ndarray) -> np.ndarray:
         """The speed of the lowest score between the grid's neighbours of its lowest, ``best``
-        (golden-section search, ``REFINE`` + 2 steps)."""
+        (golden-section search, ``REFINE`` + 2 steps); ``at`` maps a grid share to a speed."""
         G, phi = len(GRID), (np.sqrt(5.0) - 1.0) / 2.0
-        a, b = GRID[np.maximum(best - 1, 0)] * cap, GRID[np.minimum(best + 1, G - 1)] * cap
+        a, b = at(GRID[np.maximum(best - 1, 0)]), at(GRID[np.minimum(best + 1, G - 1)])
         c, d = b - phi * (b - a), a + phi * (b - a)
         fc, fd = self._score(pos, vel, c, rows), self._score(pos, vel, d, rows)
         for _ in range(REFINE + 2):

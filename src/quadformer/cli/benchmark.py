@@ -59,6 +59,10 @@ def benchmark(
     headings: Optional[int] = typer.Option(None, help="Stealth profiles: the axes the white and grey boxes search "
                                            "each GPS step (default 1: along the attack's direction; more: across "
                                            "the track too, that many times the probes)."),
+    rehearse: Optional[str] = typer.Option(None, help="Stealth profiles: the plans' accelerations (m/s^2, "
+                                           "comma-separated) the white and grey boxes rehearse on their own flights "
+                                           "beside the fastest push, flying the one that went farthest unseen; "
+                                           "'none': the fastest push, unrehearsed (default: the profile's)."),
     quiet: bool = typer.Option(False, help="No progress bars."),
 ) -> None:
     """Simulate (or reuse) the profile's configurations, tune and evaluate methods, write tables and a
@@ -66,10 +70,10 @@ def benchmark(
     if profile == "field" or logs or manifest is not None:
         return _field(profile, logs, manifest, methods, data, configs, out, seed, flights, injections, shipped)
     if profile.startswith("stealth"):
-        return _stealth(profile, methods, data, configs, out, seed, knowledge, policies, headings)
-    if knowledge is not None or policies is not None or headings is not None:
-        fail("--knowledge, --policies and --headings belong to the stealth profiles (--profile stealth or "
-             "stealth-quick)")
+        return _stealth(profile, methods, data, configs, out, seed, knowledge, policies, headings, rehearse)
+    if knowledge is not None or policies is not None or headings is not None or rehearse is not None:
+        fail("--knowledge, --policies, --headings and --rehearse belong to the stealth profiles (--profile "
+             "stealth or stealth-quick)")
     if shipped is not None:
         fail("--shipped belongs to --profile field (the demo scores the shipped detectors on simulated flights)")
     from quadformer.dataset import DatasetError
@@ -115,7 +119,8 @@ def benchmark(
     typer.echo(f"report:  {(out / 'report.html').resolve()}")
 
 
-def _stealth(profile, methods, data, configs, out, seed, knowledge=None, policies=None, headings=None) -> None:
+def _stealth(profile, methods, data, configs, out, seed, knowledge=None, policies=None, headings=None,
+             rehearse=None) -> None:
     import dataclasses
 
     from quadformer.detectors import pretrained
@@ -142,6 +147,13 @@ def _stealth(profile, methods, data, configs, out, seed, knowledge=None, policie
                 plan = dataclasses.replace(plan, **{field: tuple(k.strip() for k in value.split(",") if k.strip())})
             except ValueError as e:
                 fail(f"{option}: {e}")
+    if rehearse is not None:
+        try:
+            accels = () if rehearse.strip().lower() == "none" else tuple(
+                float(a) for a in rehearse.split(",") if a.strip())
+            plan = dataclasses.replace(plan, rehearse=accels)
+        except ValueError as e:
+            fail(f"--rehearse: {e} (give accelerations in m/s^2, e.g. 0.02,0.05,0.2, or none)")
     try:
         plan = dataclasses.replace(plan, seed=seed, **({} if headings is None else {"headings": headings}))
     except ValueError as e:

@@ -48,6 +48,10 @@ def simulate(
     headings: Optional[int] = typer.Option(None, help="Stealthy, white or grey box: the axes it searches each GPS "
                                            "step (default 1: along its direction; more: across the track too, the "
                                            "push that leaves the fix farthest from the truth)."),
+    plan_accel: Optional[float] = typer.Option(None, "--plan-accel", help="Stealthy, white or grey box: follow a "
+                                               "plan, the push's speed growing at most this much a second (m/s^2), "
+                                               "held back where the score would pass the bound (default: no plan, "
+                                               "the fastest push under the bound each step)."),
     surrogate: Optional[str] = typer.Option(None, help="Stealthy, grey box: the detector the attacker runs in place "
                                             "of the vehicle's, the same method fitted on its own flights (a model "
                                             "file from quadformer fit, or a shipped name)."),
@@ -101,7 +105,8 @@ def simulate(
            "duration": pair("--attack-duration", attack_duration), "magnitude": pair("--magnitude", magnitude),
            "rate": pair("--rate", rate), "accel": pair("--accel", accel), "onset_step": onset_step, "axes": axes,
            "mix": mix.split(",") if mix is not None else None, "detector": attack_detector,
-           "knowledge": knowledge, "margin": margin, "surrogate": surrogate, "headings": headings}
+           "knowledge": knowledge, "margin": margin, "surrogate": surrogate, "headings": headings,
+           "plan_accel": plan_accel}
     fitted = None
     if noise_from:
         from quadformer.logs import LogError, read_log

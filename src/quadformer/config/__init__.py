@@ -11,6 +11,7 @@ The vocabularies and the field checks are in ``config.base``, the sensors' confi
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field, fields
 from typing import Any, Mapping
 
@@ -71,7 +72,7 @@ _KIND_GENERIC = {"accel": (0.05, 0.5), "capture_s": (2.0, 2.0), "lock_loss_s": (
 HORIZONTAL_KINDS = ("ramp", "drift", "capture", STEALTH)
 #: the fields only a stealthy attack takes (None in every other configuration, and then left out of
 #: its dict: ``unset_kind_fields``)
-STEALTH_FIELDS = ("detector", "knowledge", "margin", "surrogate", "headings")
+STEALTH_FIELDS = ("detector", "knowledge", "margin", "surrogate", "headings", "plan_accel")
 #: the most headings a white or grey box searches at each GPS step
 MAX_HEADINGS = 8
 
@@ -109,6 +110,9 @@ class AttackConfig:
     headings: int | None = None        # stealthy, white or grey box: the axes it searches each GPS step, evenly
                                        # spread from its direction (None: 1, along it only); with more, the
                                        # push that moves the fix farthest from the truth, in any of them
+    plan_accel: float | None = None    # stealthy, white or grey box: its plan, m/s^2: the offset's speed grows at
+                                       # most this much a second (the fastest push under the bound, at most the
+                                       # plan's speed); None: no limit (the fastest push under the bound)
 
     def __post_init__(self) -> None:
         _require(self.kind in ATTACK_CHOICES, "attack.kind",
@@ -197,6 +201,14 @@ class AttackConfig:
                      f"must be a whole number from 1 to {MAX_HEADINGS} (the axes searched), got {self.headings!r}")
             _require(knowledge != "black", "attack.headings",
                      "only a white or grey box searches headings (a black box has no score to search on)")
+        if self.plan_accel is not None:
+            _require(isinstance(self.plan_accel, (int, float)) and not isinstance(self.plan_accel, bool)
+                     and math.isfinite(self.plan_accel) and self.plan_accel > 0, "attack.plan_accel",
+                     f"must be a positive acceleration (m/s^2), got {self.plan_accel!r}")
+            _require(knowledge != "black", "attack.plan_accel",
+                     "only a white or grey box follows a plan under its score (a black box drifts at attack.accel)")
+            _require((self.headings or 1) == 1, "attack.plan_accel",
+                     "a plan runs along the attack's direction: with it, headings must be 1")
         object.__setattr__(self, "knowledge", knowledge)
         object.__setattr__(self, "margin", float(margin))
 

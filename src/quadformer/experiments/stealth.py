@@ -12,6 +12,9 @@ attacked from ``onset`` to its end by a stealthy attacker (``attacks.stealthy``)
   ``SURROGATE_FLIGHTS`` clean flights of its own (the other airframe, other seeds) and alarmed at
   their false-alarm-budget threshold. It knows the method, not the vehicle's calibration; the
   learned detectors are not attacked so (the attacker would train a network of its own);
+- with ``rehearse`` (accelerations, m/s^2), the white and grey boxes plan: before the attack each
+  rehearses the fastest push (no plan) and a plan at each of those accelerations (``rehearse``) on
+  ``REHEARSAL_FLIGHTS`` flights of its own, and flies the one that went farthest unseen;
 - ``black`` box: no score; the fix drifts in at ``accel`` m/s^2 up to ``rate`` (flown once per
   simulation, scored by each detector of it): the slow shape an attacker without the detector
   would choose, and the fixed shape the white box is compared with.
@@ -61,6 +64,11 @@ POLICIES = ("none", "resilient")
 SURROGATE_FLIGHTS = 6
 #: added to the plan's seed for the attacker's own flights (none of them is a flight it attacks)
 SURROGATE_SEED = 7919
+#: the flights an attacker rehearses each of its plans on, and the seed added for them
+REHEARSAL_FLIGHTS = 2
+REHEARSAL_SEED = 104729
+#: the plans the full profile's white and grey boxes rehearse (m/s^2): the black box's 0.05 among them
+REHEARSE = (0.02, 0.05, 0.2)
 
 
 @dataclass(frozen=True)
@@ -80,6 +88,9 @@ class StealthPlan:
     #: the axes the white and grey boxes search at each GPS step (``AttackConfig.headings``): 1 along
     #: the attack's direction only; more, across the track too
     headings: int = 1
+    #: the plans' accelerations (m/s^2) the white and grey boxes rehearse beside the fastest push
+    #: (``rehearse``); empty: they fly the fastest push, unrehearsed
+    rehearse: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if not self.detectors:
@@ -96,6 +107,11 @@ class StealthPlan:
         if not (isinstance(self.headings, int) and 1 <= self.headings <= MAX_HEADINGS):
             raise ValueError(f"stealth: headings must be a whole number from 1 to {MAX_HEADINGS}, "
                              f"got {self.headings!r}")
+        if any(not (np.isfinite(a) and a > 0) for a in self.rehearse):
+            raise ValueError(f"stealth: rehearse takes positive accelerations (m/s^2), got {self.rehearse!r}")
+        if self.rehearse and self.headings > 1:
+            raise ValueError("stealth: a rehearsed plan runs along the attack's direction: headings must be 1 "
+                             "(or rehearse nothing)")
         if self.flights < 1 or not self.horizons or min(self.horizons) <= 0:
             raise ValueError("stealth: at least one flight and positive horizons")
 
@@ -114,16 +130,17 @@ PROFILES = {
                                       "magbaro-cusum-ref", "magbaro-cusum-vref", "px4-cusum", "px4-chi2",
                                       "ardupilot-glr", "ardupilot-cusum", "ardupilot-chi2"),
                            knowledge=("white", "grey", "black"),
-                           margins=(0.5, 0.8), flights=3, policies=("none", "resilient")),
+                           margins=(0.5, 0.8), flights=3, policies=("none", "resilient"), rehearse=REHEARSE),
     "stealth-quick": StealthPlan(detectors=("vio-cusum", "magbaro-cusum"), flights=2, horizons=(10.0, 30.0)),
 }
 
 
 def stealth_config(detector: str, plan: StealthPlan, knowledge: str, margin: float | None,
-                   det=None, surrogate: Path | None = None) -> SimConfig:
+                   det=None, surrogate: Path | None = None, plan_accel: float | None = None) -> SimConfig:
     """The flights a detector is attacked on: its calibration's simulation, every flight attacked.
     ``det``: the shipped detector ``detector`` already loaded (else it is loaded here);
-    ``surrogate``: the grey box's model file (``fit_surrogate``)."""
+    ``surrogate``: the grey box's model file (``fit_surrogate``); ``plan_accel``: the white or grey
+    box's plan (``rehearse``; None: the fastest push)."""
     if det is None:
         from quadformer.detectors import pretrained
 
@@ -136,6 +153,8 @@ def stealth_config(detector: str, plan: StealthPlan, knowledge: str, margin: flo
         attack["margin"] = margin
         if plan.headings > 1:
             attack["headings"] = plan.headings
+        if plan_accel is not None:
+            attack["plan_accel"] = plan_accel
     if knowledge == "grey":
         if surrogate is None:
             raise ValueError(f"stealth: a grey-box attack on {detector} needs its surrogate (fit_surrogate)")
@@ -188,6 +207,46 @@ def fit_surrogate(det, plan: StealthPlan, path: Path) -> dict[str, Any]:
     sur.save(path)
     return {"file": path.name, "threshold": float(sur.threshold_), "model": cfg.model, "seed": cfg.seed,
             "flights_fit": int(half), "flights_threshold": int(len(ids) - half)}
+
+
+def rehearse(det, name: str, plan: StealthPlan, knowledge: str, margin: float,
+             surrogate: Path | None = None) -> dict[str, Any]:
+    """The plan a white or grey box flies against ``det`` (the shipped detector ``name``): the
+    fastest push and a plan at each of ``plan.rehearse``'s accelerations, each flown on
+    ``REHEARSAL_FLIGHTS`` flights of the attacker's own, and judged by the median over them of the
+    deviation unseen by the last horizon. The white box rehearses on the vehicle's simulation
+    (other seeds) against the detector itself; the grey box on its surrogate's (the other airframe,
+    ``surrogate_config``) against its surrogate at the surrogate's threshold: it never sees the
+    vehicle's. Returns ``{"accel": the chosen (None: the fastest push), "tried": [...]}``."""
+    from quadformer.simulation import simulate
+
+    T = max(plan.horizons)
+    seed = plan.seed + REHEARSAL_SEED
+    if knowledge == "grey":
+        if surrogate is None:
+            raise ValueError(f"stealth: a grey-box rehearsal against {name} needs its surrogate (fit_surrogate)")
+        from quadformer.detectors.registry import load
+
+        judge = load(surrogate)
+        sim = surrogate_config(det, plan).to_dict()
+        target = str(surrogate)
+    elif knowledge == "white":
+        judge, sim, target = det, calibration_sim(det, name), name
+    else:
+        raise ValueError(f"stealth: only a white or grey box rehearses a plan, not {knowledge!r}")
+    tried = []
+    for accel in (None, *plan.rehearse):
+        attack = {"kind": "stealthy", "detector": target, "knowledge": "white", "margin": margin, "fraction": 1.0,
+                  "onset": (plan.onset, plan.onset), "rate": (plan.rate, plan.rate),
+                  "accel": (plan.accel, plan.accel), **({} if accel is None else {"plan_accel": accel})}
+        cfg = SimConfig.from_dict({**sim, "flights": REHEARSAL_FLIGHTS, "batch_size": REHEARSAL_FLIGHTS,
+                                   "duration": plan.duration, "seed": seed, "attack": attack})
+        flights = simulate(cfg).flights
+        rows = envelope(flights, judge.decision_function(flights), float(judge.threshold_), plan.onset, (T,))
+        tried.append({"accel": accel, "deviation_median": float(np.median([r[f"deviation_{T:g}"] for r in rows])),
+                      "hidden": float(np.mean([r[f"hidden_{T:g}"] for r in rows]))})
+    best = max(tried, key=lambda r: r["deviation_median"])        # ties: the first, the fastest push
+    return {"accel": best["accel"], "flights": REHEARSAL_FLIGHTS, "seed": seed, "horizon": T, "tried": tried}
 
 
 def envelope(flights: pd.DataFrame, scores: np.ndarray, threshold: float, onset: float,
@@ -258,6 +317,10 @@ def physical_bound(cfg: SimConfig, horizons: tuple[float, ...], z: float = BOUND
     return out
 
 
+def _plan_name(accel: float | None) -> str:
+    return "fastest push" if accel is None else f"plan {accel:g} m/s^2"
+
+
 def summarise(rows: list[dict[str, Any]], horizons: tuple[float, ...]) -> dict[str, Any]:
     out: dict[str, Any] = {"flights": len(rows)}
     for T in horizons:
@@ -293,7 +356,7 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
     for name in plan.detectors:
         det = pretrained.load(name)
         entry = pretrained.resolve(name)
-        surrogate = None
+        surrogate, rehearsals = None, {}
         for knowledge in plan.knowledge:
             if knowledge == "grey" and surrogate is None:
                 if learned(det):
@@ -309,8 +372,21 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
                      f"{float(det.threshold_):.4g} ({time.perf_counter() - t0:.0f} s)")
             for margin, policy in [(m, p) for m in (plan.margins if knowledge in ("white", "grey") else (None,))
                                    for p in plan.policies]:
+                planned = None
+                if plan.rehearse and knowledge in ("white", "grey"):
+                    if (knowledge, margin) not in rehearsals:
+                        t0 = time.perf_counter()
+                        rehearsals[knowledge, margin] = rehearse(det, name, plan, knowledge, margin,
+                                                                 surrogate_path if knowledge == "grey" else None)
+                        r = rehearsals[knowledge, margin]
+                        echo(f"stealth: {name:20s} {knowledge:5s} margin {margin:g}  rehearsed: " + ", ".join(
+                            f"{_plan_name(x['accel'])} {x['deviation_median']:.1f} m" for x in r["tried"])
+                            + f" unseen by {r['horizon']:g} s; flies {_plan_name(r['accel'])} "
+                            f"({time.perf_counter() - t0:.0f} s)")
+                    planned = rehearsals[knowledge, margin]
                 cfg = stealth_config(name, plan, knowledge, margin, det,
-                                     surrogate_path if knowledge == "grey" else None)
+                                     surrogate_path if knowledge == "grey" else None,
+                                     None if planned is None else planned["accel"])
                 key = cfg.to_dict()
                 key["attack"].pop("detector")
                 key = repr(key)
@@ -334,6 +410,7 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
                              "summary": summary,
                              "flights": rows, "seconds": round(time.perf_counter() - t0, 1),
                              **({"surrogate": surrogate} if knowledge == "grey" else {}),
+                             **({"rehearsal": planned} if planned is not None else {}),
                              **({"headings": plan.headings} if knowledge != "black" and plan.headings > 1 else {})})
                 T = max(plan.horizons)
                 if policy == "resilient":
@@ -354,6 +431,6 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
     return results
 
 
-__all__ = ["BOUND_Z", "HORIZONS", "POLICIES", "PROFILES", "SURROGATE_FLIGHTS", "StealthPlan", "envelope",
-           "fit_surrogate", "learned", "physical_bound", "run_stealth", "stealth_config", "summarise",
-           "surrogate_config"]
+__all__ = ["BOUND_Z", "HORIZONS", "POLICIES", "PROFILES", "REHEARSAL_FLIGHTS", "REHEARSAL_SEED", "SURROGATE_FLIGHTS",
+           "StealthPlan", "envelope", "fit_surrogate", "learned", "physical_bound", "rehearse", "run_stealth",
+           "stealth_config", "summarise", "surrogate_config"]

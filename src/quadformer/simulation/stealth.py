@@ -98,7 +98,7 @@ def stealthy_attacker(cfg: SimConfig, attacks: AttackBatch, detector=None) -> St
         det = surrogate_detector(cfg, det)
         return StealthyAttacker(attacks, "grey", a.margin, cfg.gps.rate_hz,
                                 stream=_stream(cfg, det, len(attacks.kind), "attack.surrogate"),
-                                threshold=float(det.threshold_), headings=a.headings or 1)
+                                threshold=float(det.threshold_), headings=a.headings or 1, plan_accel=a.plan_accel)
     stream = _stream(cfg, det, len(attacks.kind))
     return StealthyAttacker(attacks, "white", a.margin, cfg.gps.rate_hz, stream=stream,
-                            threshold=float(det.threshold_), headings=a.headings or 1)
+                            threshold=float(det.threshold_), headings=a.headings or 1, plan_accel=a.plan_accel)
