@@ -47,10 +47,14 @@ QUICK = {"source": "results/quick-stress/results.json",
 WHITE_BLACK = "--knowledge white,black --policies none"
 
 
-def stealth_run(out: str, detectors: str, options: str = "", kind: str = "stealth", **spec) -> dict:
+def stealth_run(out: str, detectors: str, options: str = "", kind: str = "stealth", rehearsed: bool = False,
+                **spec) -> dict:
     """A stealth table's source: the run written to ``runs/{out}`` (its results committed under
     ``results/{out}``) by ``benchmark --profile stealth --methods DETECTORS OPTIONS``; ``spec``: the
-    table kind's own fields (e.g. ``methods``, the rows shown)."""
+    table kind's own fields (e.g. ``methods``, the rows shown). ``rehearsed``: the white and grey
+    boxes rehearsed their plans (the profile's default); else the run flew the fastest push,
+    unrehearsed (``--rehearse none``)."""
+    options = " ".join([*([options] if options else []), *([] if rehearsed else ["--rehearse none"])])
     command = " ".join(["quadformer benchmark --profile stealth --methods", detectors, *([options] if options else []),
                         f"--out runs/{out}"])
     return {"source": f"results/{out}/results.json", "kind": kind, "command": command, **spec}
@@ -88,6 +92,8 @@ TABLES: dict[str, dict[str, Any]] = {
     "stealth-rest": stealth_run("stealth-rest", "vio-sprt,vio-bht,vio-chi2-vref,vio-cusum-vref,magbaro-cusum-vref",
                                 WHITE_BLACK),
     "stealth-magbaro-more": stealth_run("stealth-magbaro-more", "magbaro-chi2,magbaro-quadformer", WHITE_BLACK),
+    "stealth-planned": stealth_run("stealth-planned", "vio-sprt,vio-bht", WHITE_BLACK, rehearsed=True),
+    "stealth-planned-more": stealth_run("stealth-planned-more", "vio-cusum,vio-chi2", WHITE_BLACK, rehearsed=True),
     "stealth-autopilot": stealth_run("stealth-autopilot",
                                      "px4-cusum,px4-chi2,ardupilot-glr,ardupilot-cusum,ardupilot-chi2", WHITE_BLACK),
     "stealth-grey-vio": stealth_run("stealth-grey-vio", "vio-cusum,vio-chi2,vio-cusum-ref,vio-quadformer",

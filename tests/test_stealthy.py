@@ -127,7 +127,7 @@ def test_grey_box_surrogate_is_fitted_on_the_attackers_own_flights(tmp_path):
 
     det = pretrained.load("vio-cusum")
     plan = StealthPlan(detectors=("vio-cusum", "vio-quadformer"), knowledge=("grey",), flights=1,
-                       horizons=(2.0, 4.0), onset=4.0, margins=(0.5,))
+                       horizons=(2.0, 4.0), onset=4.0, margins=(0.5,), rehearse=(0.5,))
     cfg = surrogate_config(det, plan)
     vehicle = det.calibration_["sim_config"]
     assert cfg.model != vehicle["model"] and cfg.seed != plan.seed and cfg.attack.kind == "none"
@@ -140,6 +140,8 @@ def test_grey_box_surrogate_is_fitted_on_the_attackers_own_flights(tmp_path):
     res = run_stealth(plan, tmp_path / "run", echo=lambda s: None)
     assert [(r["detector"], r["knowledge"]) for r in res["runs"]] == [("vio-cusum", "grey")]
     assert res["runs"][0]["surrogate"]["model"] == cfg.model
+    tried = res["runs"][0]["rehearsal"]["tried"]          # rehearsed against its surrogate, on its own flights
+    assert [x["accel"] for x in tried] == [None, 0.5] and all(x["deviation_median"] > 0 for x in tried)
     assert res["not_run"] == [{"detector": "vio-quadformer", "knowledge": "grey",
                                "reason": "a network: the attacker would train its own"}]
 
@@ -172,6 +174,11 @@ def test_envelope_is_the_largest_deviation_before_the_first_alarm_per_horizon():
     assert row["reached_10"] == pytest.approx(2.7)                               # up to t = 19, alarm or not
     assert row["deviation_at_alarm"] == pytest.approx(1.5)
     assert row["fused_after_onset"] == pytest.approx(5 / 11)                     # t = 10 to 14 of 10 to 20
+    assert row["at_threshold"] == 0.0
+    # a score held at a ceiling its threshold sits on never alarms: the steps held there are counted
+    held = np.where(t >= 12.0, 4.5, 0.0)
+    (row,) = envelope(flights, held, threshold=4.5, onset=10.0, horizons=(10.0,))
+    assert row["first_alarm_s"] is None and row["at_threshold"] == pytest.approx(9 / 11)
 
 
 def test_physical_bound_grows_with_time_and_is_far_wider_without_a_camera():

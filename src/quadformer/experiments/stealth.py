@@ -67,6 +67,9 @@ SURROGATE_SEED = 7919
 #: the flights an attacker rehearses each of its plans on, and the seed added for them
 REHEARSAL_FLIGHTS = 2
 REHEARSAL_SEED = 104729
+#: the share of an attack's steps scored at the threshold itself from which a run is said to ride
+#: the detector's ceiling (``envelope``'s ``at_threshold``)
+CEILING_SHARE = 0.05
 #: the plans the full profile's white and grey boxes rehearse (m/s^2): the black box's 0.05 among them
 REHEARSE = (0.02, 0.05, 0.2)
 
@@ -255,7 +258,9 @@ def envelope(flights: pd.DataFrame, scores: np.ndarray, threshold: float, onset:
     horizon the largest deviation before it (and whether none came by then) and the largest
     reached, alarm or not (``reached``: under the resilient policy, what the attack achieves
     with the defence acting); with a ``gps_fused`` column, the share of fixes fused after the
-    onset."""
+    onset. ``at_threshold``: the share of the steps after the onset whose score is the threshold
+    itself: a score held at a ceiling that its threshold was calibrated on never passes it (the
+    detector cannot alarm there, whatever the attack)."""
     out = []
     scores = np.asarray(scores, dtype=float)
     if len(scores) != len(flights):
@@ -271,7 +276,8 @@ def envelope(flights: pd.DataFrame, scores: np.ndarray, threshold: float, onset:
         row: dict[str, Any] = {"flight": int(fid), "alarm_before_onset": bool((s[~after] > threshold).any()),
                                "first_alarm_s": None if t_alarm is None else t_alarm - onset,
                                "deviation_at_alarm": None if t_alarm is None else float(dev[alarm[0]]),
-                               "offset_end": float(np.hypot(g.atk_d_x, g.atk_d_y).to_numpy()[-1])}
+                               "offset_end": float(np.hypot(g.atk_d_x, g.atk_d_y).to_numpy()[-1]),
+                               "at_threshold": float(np.mean(s[after] == threshold)) if after.any() else 0.0}
         for T in horizons:
             within = after & (t < onset + T)
             inside = within & (t < (np.inf if t_alarm is None else t_alarm))
@@ -337,6 +343,7 @@ def summarise(rows: list[dict[str, Any]], horizons: tuple[float, ...]) -> dict[s
     out["alarmed"] = len(alarmed)
     out["deviation_at_alarm_median"] = float(np.median(alarmed)) if alarmed else None
     out["alarm_before_onset"] = int(sum(r["alarm_before_onset"] for r in rows))
+    out["at_threshold"] = float(np.mean([r.get("at_threshold", 0.0) for r in rows])) if rows else 0.0
     return out
 
 
@@ -420,6 +427,9 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
                 else:
                     said = (f"deviation unseen by {T:g} s: median {summary[f'deviation_median_{T:g}']:.1f} m, worst "
                             f"{summary[f'deviation_worst_{T:g}']:.1f} m; hidden {summary[f'hidden_{T:g}']:.0%}")
+                if summary["at_threshold"] >= CEILING_SHARE:
+                    said += (f"; the score sat at its threshold on {summary['at_threshold']:.0%} of the attack's steps "
+                             "(a ceiling: it cannot alarm there)")
                 echo(f"stealth: {name:20s} {knowledge:5s}" + (f" margin {margin:g}" if margin else " " * 11)
                      + f"  {said} (bound {bounds[set_name][f'{T:g}']:.1f} m; {time.perf_counter() - t0:.0f} s)")
     results = {"benchmark": "stealth", "plan": asdict(plan), "bound_z": BOUND_Z, "bounds": bounds, "runs": runs,
@@ -431,6 +441,6 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
     return results
 
 
-__all__ = ["BOUND_Z", "HORIZONS", "POLICIES", "PROFILES", "REHEARSAL_FLIGHTS", "REHEARSAL_SEED", "SURROGATE_FLIGHTS",
-           "StealthPlan", "envelope", "fit_surrogate", "learned", "physical_bound", "rehearse", "run_stealth",
-           "stealth_config", "summarise", "surrogate_config"]
+__all__ = ["BOUND_Z", "CEILING_SHARE", "HORIZONS", "POLICIES", "PROFILES", "REHEARSAL_FLIGHTS", "REHEARSAL_SEED",
+           "SURROGATE_FLIGHTS", "StealthPlan", "envelope", "fit_surrogate", "learned", "physical_bound", "rehearse",
+           "run_stealth", "stealth_config", "summarise", "surrogate_config"]
