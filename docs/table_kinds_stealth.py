@@ -19,11 +19,13 @@ from table_kinds import TableError, markdown, pick_methods
 
 
 def _attacker(run: dict[str, Any]) -> str:
-    """A stealth run's attacker: its knowledge, the white and grey box's margin, and the threshold
-    of the grey box's own surrogate."""
-    own = run.get("surrogate")
+    """A stealth run's attacker: its knowledge, the white and grey box's margin, the plan it
+    rehearsed and flew, and the threshold of the grey box's own surrogate."""
+    own, plan = run.get("surrogate"), run.get("rehearsal")
     return (run["knowledge"] + (f" {run['margin']:g}" if run["margin"] else "")
             + (f", {run['headings']} headings" if run.get("headings", 1) > 1 else "")
+            + ("" if plan is None else ", rehearsed: " + ("fastest push" if plan["accel"] is None
+                                                          else f"plan {plan['accel']:g} m/s^2"))
             + (f" (own threshold {own['threshold']:.3g}, the vehicle's {run['threshold']:.3g})" if own else ""))
 
 
