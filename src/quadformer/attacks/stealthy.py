@@ -203,6 +203,7 @@ class StealthyAttacker:
         top_score = self._score(pos, vel, top, rows)
         if (top_score <= bound).all():
             return top
+
         def at(f):                               # a grid share in [-1, 1] as a speed in [-cap, top]
             f = np.asarray(f)
             return f * cap if self.plan_accel is None else -cap + 0.5 * (f + 1.0) * (top + cap)
