@@ -53,7 +53,7 @@ import numpy as np
 import pandas as pd
 
 from quadformer.config import KNOWLEDGE, MAX_HEADINGS, MODELS, SimConfig
-from quadformer.report.stealth import write_stealth_report
+from quadformer.report.stealth import plan_name, write_stealth_report
 
 HORIZONS = (10.0, 30.0, 60.0, 120.0)
 #: the bound's standard deviations: one-sided, a false alarm in about 740 independent tests
@@ -323,10 +323,6 @@ def physical_bound(cfg: SimConfig, horizons: tuple[float, ...], z: float = BOUND
     return out
 
 
-def _plan_name(accel: float | None) -> str:
-    return "fastest push" if accel is None else f"plan {accel:g} m/s^2"
-
-
 def summarise(rows: list[dict[str, Any]], horizons: tuple[float, ...]) -> dict[str, Any]:
     out: dict[str, Any] = {"flights": len(rows)}
     for T in horizons:
@@ -387,8 +383,8 @@ def run_stealth(plan: StealthPlan, out: Path, echo: Callable[[str], None] = prin
                                                                  surrogate_path if knowledge == "grey" else None)
                         r = rehearsals[knowledge, margin]
                         echo(f"stealth: {name:20s} {knowledge:5s} margin {margin:g}  rehearsed: " + ", ".join(
-                            f"{_plan_name(x['accel'])} {x['deviation_median']:.1f} m" for x in r["tried"])
-                            + f" unseen by {r['horizon']:g} s; flies {_plan_name(r['accel'])} "
+                            f"{plan_name(x['accel'])} {x['deviation_median']:.1f} m" for x in r["tried"])
+                            + f" unseen by {r['horizon']:g} s; flies {plan_name(r['accel'])} "
                             f"({time.perf_counter() - t0:.0f} s)")
                     planned = rehearsals[knowledge, margin]
                 cfg = stealth_config(name, plan, knowledge, margin, det,

@@ -19,14 +19,18 @@ from quadformer.io import atomic_write_text
 from quadformer.report.html import img, page, png, table, versions
 
 
+def plan_name(accel: float | None) -> str:
+    """A white or grey box's plan as the tables and the output name it (None: no plan)."""
+    return "fastest push" if accel is None else f"plan {accel:g} m/s^2"
+
+
 def attacker(run: dict[str, Any]) -> str:
     """A run's attacker as the tables name it: its knowledge, the white box's margin, the axes it
     searched where more than one, and the plan it rehearsed and flew where it rehearsed."""
     plan = run.get("rehearsal")
     return (run["knowledge"] + (f" {run['margin']:g}" if run["margin"] else "")
             + (f", {run['headings']} headings" if run.get("headings", 1) > 1 else "")
-            + ("" if plan is None else ", rehearsed: " + ("fastest push" if plan["accel"] is None
-                                                          else f"plan {plan['accel']:g} m/s^2")))
+            + ("" if plan is None else f", rehearsed: {plan_name(plan['accel'])}"))
 
 
 def runs_under(results: dict[str, Any], policy: str) -> list[dict[str, Any]]:
