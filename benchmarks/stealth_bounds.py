@@ -1,6 +1,6 @@
 """The stealth benchmark's physical bound of a shipped set under other sensors: what bounds it.
 
-``experiments.stealth.physical_bound`` propagates the filter's GPS-free position uncertainty from
+``experiments.stealth_envelope.physical_bound`` propagates the filter's GPS-free position uncertainty from
 its start, with the configuration the set's detectors were trained on. This prints it for the
 set as shipped and with the parts that bound it changed one at a time: the filter's starting
 tilt uncertainty (``ekf.init_att_std_deg``), and an IMU with a datasheet's noise and bias instead
@@ -28,7 +28,7 @@ def main() -> None:
 
     from quadformer.config import SimConfig
     from quadformer.detectors import pretrained
-    from quadformer.experiments.stealth import physical_bound
+    from quadformer.experiments.stealth_envelope import physical_bound
 
     shipped = pretrained.sets()
     if args.set not in shipped:

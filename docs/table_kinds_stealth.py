@@ -17,6 +17,8 @@ from typing import Any
 
 from table_kinds import TableError, markdown, pick_methods
 
+from quadformer.report.stealth import plan_name
+
 
 def _attacker(run: dict[str, Any]) -> str:
     """A stealth run's attacker: its knowledge, the white and grey box's margin, the plan it
@@ -24,8 +26,7 @@ def _attacker(run: dict[str, Any]) -> str:
     own, plan = run.get("surrogate"), run.get("rehearsal")
     return (run["knowledge"] + (f" {run['margin']:g}" if run["margin"] else "")
             + (f", {run['headings']} headings" if run.get("headings", 1) > 1 else "")
-            + ("" if plan is None else ", rehearsed: " + ("fastest push" if plan["accel"] is None
-                                                          else f"plan {plan['accel']:g} m/s^2"))
+            + ("" if plan is None else f", rehearsed: {plan_name(plan['accel'])}")
             + (f" (own threshold {own['threshold']:.3g}, the vehicle's {run['threshold']:.3g})" if own else ""))
 
 

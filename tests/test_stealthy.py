@@ -159,7 +159,7 @@ def test_simulate_refuses_a_surrogate_of_another_method(tmp_path):
 def test_envelope_is_the_largest_deviation_before_the_first_alarm_per_horizon():
     import pandas as pd
 
-    from quadformer.experiments.stealth import envelope
+    from quadformer.experiments.stealth_envelope import envelope
 
     t = np.arange(0.0, 21.0)                            # one flight at 1 Hz, onset at 10 s
     flights = pd.DataFrame({"flight_id": 0, "t": t, "est_pos_x": 0.3 * np.maximum(t - 10.0, 0.0), "true_pos_x": 0.0,
@@ -182,7 +182,8 @@ def test_envelope_is_the_largest_deviation_before_the_first_alarm_per_horizon():
 
 
 def test_physical_bound_grows_with_time_and_is_far_wider_without_a_camera():
-    from quadformer.experiments.stealth import PROFILES, physical_bound, stealth_config
+    from quadformer.experiments.stealth import PROFILES, stealth_config
+    from quadformer.experiments.stealth_envelope import physical_bound
 
     plan = PROFILES["stealth"]
     vio = physical_bound(stealth_config("vio-cusum", plan, "black", None), (10.0, 60.0, 200.0))
