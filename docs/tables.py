@@ -154,7 +154,10 @@ def provenance_lines(res: dict[str, Any], spec: dict[str, Any]) -> str:
     names = [spec["set"]] if spec.get("set") in sets else list(sets)
     groups: dict[str, list[str]] = {}
     for n in names:
-        groups.setdefault(provenance_line({**res, "provenance": sets[n].get("provenance")}), []).append(n)
+        line = provenance_line({**res, "provenance": sets[n].get("provenance")})
+        for r in sets[n].get("rebuilt", []):        # a build of some of its methods since
+            line += f" Then {', '.join(r['methods'])} rebuilt: {provenance_line({'provenance': r['provenance']})}"
+        groups.setdefault(line, []).append(n)
     if len(groups) == 1:
         return next(iter(groups))
     return "\n".join(f"- {', '.join(ns)}: {line}" for line, ns in groups.items())

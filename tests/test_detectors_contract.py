@@ -193,16 +193,28 @@ def test_sprt_hand_case(data):
     train, y, _ = data
     det = make("sprt", inflation=2.0, alpha=0.01, beta=0.01).fit(train, y)
     llr = lambda z: -6 * np.log(2.0) + 0.5 * z * (1 - 1 / 4)   # noqa: E731
-    lo, hi = np.log(0.01 / 0.99), np.log(0.99 / 0.01)            # -4.595, 4.595
+    lo, hi = np.log(0.01 / 0.99), np.log(0.99 / 0.01)            # -4.595, Wald's B 4.595
     # llr(z) = -6 log 2 + 3 z / 8: z = 2 -> -3.41; 9 -> -0.78 (sum -4.19); 14 -> +1.09 (-3.10);
-    # 3 -> -3.03 (-6.13 <= lo: restart at 0); 30 -> +7.09 (held at hi); 0.5 -> -3.97 (0.63); 0 -> -4.16
+    # 3 -> -3.03 (-6.13 <= lo: restart at 0); 30 -> +7.09 (past B, not held); 0.5 -> -3.97 (3.12)
     s, expected = 0.0, []
     for z in Z:
         s = s + llr(z)
-        s = 0.0 if s <= lo else min(s, hi)
+        s = 0.0 if s <= lo else s
         expected.append(s)
-    assert expected[3] == 0.0 and expected[4] == pytest.approx(hi)
+    assert expected[3] == 0.0 and expected[4] > hi + 2 and expected[5] > 3
     assert det.decision_function(_nis(Z, det)) == pytest.approx(expected, abs=1e-12)
+
+
+@pytest.mark.parametrize("method, params, named", [
+    ("sprt", {"inflation": 1.0}, "inflation must lie in \\(1, inf\\), got 1.0"),
+    ("sprt", {"alpha": 0.0}, "alpha must lie in \\(0, 1\\)"),
+    ("bht", {"end_rate": 1.0}, "end_rate must lie in \\(0, 1\\)"),
+    ("bht", {"onset_rate": float("nan")}, "onset_rate must lie in \\(0, 1\\), got nan"),
+])
+def test_variance_inflation_parameters_refused_at_fit(data, method, params, named):
+    train, y, _ = data
+    with pytest.raises(ValueError, match=f"{method}: {named}"):
+        make(method, **params).fit(train, y)
 
 
 def test_bht_hand_case(data):
@@ -217,7 +229,11 @@ def test_bht_hand_case(data):
         post = prior * f1 / (prior * f1 + (1 - prior) * f0)
         expected.append(np.log(post / (1 - post)))
         p = post
-    assert det.decision_function(_nis(Z, det)) == pytest.approx(expected, rel=1e-9, abs=1e-9)
+    # a fix far off: its posterior is 1 in floating point, its log-odds past any fixed ceiling
+    prior = p * 0.95 + (1 - p) * 0.01
+    expected.append(np.log(prior / (1 - prior)) - 6 * np.log(3.0) + 0.5 * 400.0 * (1 - 1 / 9))
+    assert expected[-1] > 150
+    assert det.decision_function(_nis(Z + [400.0], det)) == pytest.approx(expected, rel=1e-9, abs=1e-9)
 
 
 def test_unknown_method_named():

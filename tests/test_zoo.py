@@ -218,3 +218,19 @@ def test_zoo_build_gives_the_same_files_twice(tmp_path):
     with pytest.raises(ValueError, match="field: .*nope.json: no such file"):     # before any work
         build(tmp_path / "c", cache, sets=["px4"], field=tmp_path / "nope.json")
     assert not (tmp_path / "c").exists()
+    # one method rebuilt, the set's other detector kept: the same files, the rebuild recorded
+    c = build(tmp_path / "a", cache, sets=["px4"], methods=["chi2"], flights=10, duration=20.0, progress=False,
+              echo=lambda s: None)
+    assert {k: v["files"] for k, v in c["detectors"].items()} == {k: v["files"] for k, v in a["detectors"].items()}
+    assert list(c["detectors"]) == ["px4-cusum", "px4-chi2"] and c["sets"]["px4"]["default"] == default
+    assert [r["methods"] for r in c["sets"]["px4"]["rebuilt"]] == [["chi2"]]
+    assert c["sets"]["px4"]["provenance"] == a["sets"]["px4"]["provenance"]
+    with pytest.raises(ValueError, match="methods: sprt not in the px4 set; choose from cusum, chi2"):
+        build(tmp_path / "a", cache, sets=["px4"], methods=["sprt"])
+    with pytest.raises(ValueError, match="methods: name the sets"):
+        build(tmp_path / "a", cache, methods=["chi2"])
+    with pytest.raises(ValueError, match="px4-cusum was built from other flights than these"):
+        build(tmp_path / "a", cache, sets=["px4"], methods=["chi2"], flights=11, duration=20.0, progress=False)
+    with pytest.raises(ValueError, match="methods: no px4 set in .* to keep"):
+        build(tmp_path / "d", cache, sets=["px4"], methods=["chi2"], flights=10, duration=20.0)
+    assert pretrained.index(tmp_path / "a")["sets"]["px4"]["rebuilt"][0]["methods"] == ["chi2"]

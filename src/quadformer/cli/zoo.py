@@ -108,6 +108,8 @@ def zoo_build(
                                        "detectors, replaced once everything is written)."),
     cache: Path = typer.Option(Path("runs/cache"), help="Dataset cache directory."),
     sets: Optional[str] = typer.Option(None, help="Comma-separated sets to build (default: all)."),
+    methods: Optional[str] = typer.Option(None, help="Comma-separated methods to rebuild in --sets, keeping the "
+                                          "sets' other detectors (built from the same flights)."),
     flights: Optional[int] = typer.Option(None, help="Flights per configuration (default: each recipe's)."),
     seed: Optional[int] = typer.Option(None, help="The zoo's seed (default 1000; the benchmarks test on 0-99, "
                                        "the demo on 2000)."),
@@ -123,7 +125,8 @@ def zoo_build(
 
     try:
         doc = build(out, cache, sets=[s.strip() for s in sets.split(",")] if sets else None, flights=flights,
-                    seed=ZOO_SEED if seed is None else seed, progress=not quiet, echo=typer.echo, field=field)
+                    seed=ZOO_SEED if seed is None else seed, progress=not quiet, echo=typer.echo, field=field,
+                    methods=[m.strip() for m in methods.split(",") if m.strip()] if methods is not None else None)
     except ValueError as e:
         fail(str(e))
     except OSError as e:      # an installed package's folder may not be writable

@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 from scipy import stats
+from scipy.special import expit
 
 from quadformer.detectors.base import Detector, check_residues, flight_slices
 from quadformer.detectors.registry import register
@@ -183,6 +184,13 @@ class _VarianceInflation(_Recursive):
     log f1/f0 = -6 log s + z (1 - 1/s^2) / 2.
     """
 
+    def fit(self, X: pd.DataFrame, y: np.ndarray | None = None):
+        for k, v in self.get_params().items():      # inflation above 1, the rates and errors in (0, 1)
+            lo, hi = (1.0, np.inf) if k == "inflation" else (0.0, 1.0)
+            if not lo < v < hi:
+                raise ValueError(f"{self.name}: {k} must lie in ({lo:g}, {hi:g}), got {v!r}")
+        return super().fit(X, y)
+
     def _llr(self, z: np.ndarray) -> np.ndarray:
         s = self.inflation
         return -self.dof * np.log(s) + 0.5 * z * (1.0 - 1.0 / s**2)
@@ -190,11 +198,15 @@ class _VarianceInflation(_Recursive):
 
 @register("sprt")
 class SPRT(_VarianceInflation):
-    """Wald's sequential probability ratio test, restarted after each decision.
+    """Wald's sequential probability ratio test, restarted each time it accepts "no attack".
 
-    The cumulative log-likelihood ratio L is restarted at 0 when it falls below
-    A = log(beta / (1 - alpha)) (H0 accepted) and held at B = log((1 - beta) / alpha) once it
-    reaches it (H1 decided, until the evidence turns). Score: L.
+    The cumulative log-likelihood ratio L is restarted at 0 when it falls to
+    A = log(beta / (1 - alpha)) (H0 accepted) and otherwise goes on accumulating, past Wald's
+    B = log((1 - beta) / alpha) too: the alarm threshold on L is calibrated like every other
+    method's (B is where Wald's test would stop), and a score held at B would put every threshold
+    a false-alarm budget asks for at the score's ceiling, where it can never alarm. Restarted at
+    H0 and never stopped at H1, the test is Page's CUSUM on the log-likelihood ratio (a sequence
+    of SPRTs) with a floor at A instead of 0. Score: L.
     """
     param_grid = {"inflation": [1.5, 2.0, 3.0, 5.0]}
 
@@ -205,9 +217,8 @@ class SPRT(_VarianceInflation):
 
     def _step(self, state, z):
         lo = np.log(self.beta / (1 - self.alpha))
-        hi = np.log((1 - self.beta) / self.alpha)
         s = state + self._llr(z)
-        s = np.where(s <= lo, 0.0, np.minimum(s, hi))
+        s = np.where(s <= lo, 0.0, s)
         return s, s
 
 
@@ -216,7 +227,10 @@ class BHT(_VarianceInflation):
     """Bayesian hypothesis testing: posterior of "under attack" in a two-state chain.
 
     Prior: an attack starts at each step with probability ``onset_rate`` and, once on, ends
-    with probability ``end_rate``. Likelihoods as in the SPRT. Score: posterior log-odds.
+    with probability ``end_rate``. Likelihoods as in the SPRT. Score: posterior log-odds,
+    unclipped: the prior's log-odds stay within logit(onset_rate) and logit(1 - end_rate), so the
+    score is this step's log-likelihood ratio above a bounded memory (a ceiling on it would
+    put the threshold a false-alarm budget asks for at the ceiling, where it can never alarm).
     """
     param_grid = {"inflation": [1.5, 2.0, 3.0, 5.0], "onset_rate": [1e-3, 1e-2]}
 
@@ -229,11 +243,9 @@ class BHT(_VarianceInflation):
         return np.full(n, np.log(self.onset_rate / (1 - self.onset_rate)))
 
     def _step(self, state, z):
-        p = 1.0 / (1.0 + np.exp(-state))                      # posterior of the previous step
+        p = expit(state)                                      # posterior of the previous step
         prior = p * (1 - self.end_rate) + (1 - p) * self.onset_rate
-        prior = np.clip(prior, 1e-12, 1 - 1e-12)
         logodds = np.log(prior) - np.log1p(-prior) + self._llr(z)
-        logodds = np.clip(logodds, -50.0, 50.0)
         return logodds, logodds
 
 

@@ -23,6 +23,7 @@ versions and the tuning times; the checksums cover the detector files only).
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -124,13 +125,18 @@ def _rates(c: SimConfig) -> dict[str, float]:
     return r
 
 
-def _kept(out: Path, rebuilt: set[str]) -> dict[str, Any]:
-    """The sets of an existing zoo at ``out`` that a partial build does not rebuild (their
-    index entries; their files are copied over by the caller), none when there is no zoo."""
+def _kept(out: Path, rebuilt: set[str], methods: list[str] | None = None) -> dict[str, Any]:
+    """What a partial build keeps of an existing zoo at ``out`` (its index entries; their files
+    are copied over by the caller), none when there is no zoo: the sets it does not rebuild, and
+    with ``methods`` the rebuilt sets' entries and their other methods' detectors too."""
     try:
         doc = pretrained.index(out)
     except pretrained.ZooError:
         return {"sets": {}, "detectors": {}}
+    if methods:
+        return {"sets": dict(doc["sets"]),
+                "detectors": {k: v for k, v in doc["detectors"].items()
+                              if v["set"] not in rebuilt or v["method"] not in methods}}
     return {"sets": {k: v for k, v in doc["sets"].items() if k not in rebuilt},
             "detectors": {k: v for k, v in doc["detectors"].items() if v["set"] not in rebuilt}}
 
@@ -187,7 +193,7 @@ def attach_field(doc: dict[str, Any], path: Path) -> str:
 def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: list[str] | None = None,
           flights: int | None = None, seed: int = ZOO_SEED, progress: bool = True, workers: int | None = None,
           echo: Callable[[str], None] = print, field: Path | None = None,
-          duration: float = 60.0) -> dict[str, Any]:
+          duration: float = 60.0, methods: list[str] | None = None) -> dict[str, Any]:
     """Build the recipes' detectors (``sets``: some of them, the others kept as they are in
     ``out``; ``flights`` per configuration instead of the recipes'; another ``seed``) into
     ``out`` (default: the package's ``detectors/pretrained/models``), replacing it once
@@ -197,6 +203,12 @@ def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: l
     its method with the highest point-wise F1 on the validation flights at its false-alarm-budget
     threshold (the threshold a fielded detector alarms at: F1 there weighs how soon and how long an
     attack is flagged, and the false alarms the budget leaves), the recipe's order breaking ties.
+
+    ``methods``: rebuild only these methods of ``sets`` (each must be in every chosen set's
+    recipe); the sets' other detectors are kept, and must have been built from the very flights
+    the rebuild simulates (same seed, flights and duration), else ValueError. The set's default
+    is chosen again from the kept cards' validation figures and the rebuilt ones', and the set's
+    entry records the rebuild (``rebuilt``: the methods and the command) beside its first build.
 
     ``duration``: seconds per simulated flight (the recipes' 60 s; shorter for a quick trial).
     ``field``: the results.json of a field run on the set's detectors (``benchmark --profile
@@ -212,6 +224,14 @@ def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: l
     unknown = sorted(set(sets or ()) - set(known))
     if unknown:
         raise ValueError(f"sets: unknown {', '.join(unknown)}; choose from {', '.join(known)}")
+    if methods is not None:
+        if not sets:
+            raise ValueError("methods: name the sets whose methods to rebuild (--sets)")
+        for r in chosen:
+            odd = sorted(set(methods) - set(r.methods))
+            if odd or not methods:
+                raise ValueError(f"methods: {', '.join(odd) or 'none given'} not in the {r.set} set; "
+                                 f"choose from {', '.join(r.methods)}")
     if flights is not None and flights < 10:
         raise ValueError(f"flights: at least 10 per configuration (each part of the split needs flights), "
                          f"got {flights}")
@@ -220,7 +240,12 @@ def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: l
     if field is not None:
         read_field(field)          # a bad file fails before the build, not after it
     set_threads(THREADS)
-    kept = _kept(out, {r.set for r in chosen}) if sets is not None else {"sets": {}, "detectors": {}}
+    kept = _kept(out, {r.set for r in chosen}, methods) if sets is not None else {"sets": {}, "detectors": {}}
+    if methods is not None:
+        for r in chosen:
+            if r.set not in kept["sets"]:
+                raise ValueError(f"methods: no {r.set} set in {out} to keep the other methods of; "
+                                 f"build the whole set (--sets {r.set} without --methods)")
     doc: dict[str, Any] = {"format": pretrained.FORMAT, "format_version": pretrained.FORMAT_VERSION,
                            "seed": seed, "sets": {}, "detectors": {},
                            "provenance": provenance({"zoo": seed}, None)}
@@ -230,14 +255,21 @@ def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: l
             for f in entry["files"]:
                 shutil.copy2(out / f, tmp / f)
         for r in RECIPES:
-            if r.set in kept["sets"]:
-                doc["sets"][r.set] = kept["sets"][r.set]
-                doc["detectors"].update({k: v for k, v in kept["detectors"].items() if v["set"] == r.set})
-            elif r in chosen:
+            others = {k: v for k, v in kept["detectors"].items() if v["set"] == r.set}
+            if r in chosen:
                 doc["sets"][r.set], built = _build_set(r, tmp, cache_dir, flights, seed, progress, workers, echo,
-                                                       duration)
-                doc["sets"][r.set]["provenance"] = doc["provenance"]    # a kept set keeps its own
-                doc["detectors"].update(built)
+                                                       duration, methods, others)
+                if methods is None:
+                    doc["sets"][r.set]["provenance"] = doc["provenance"]    # a kept set keeps its own
+                else:
+                    old = kept["sets"][r.set]
+                    doc["sets"][r.set].update(provenance=old.get("provenance"), rebuilt=[
+                        *old.get("rebuilt", []), {"methods": list(methods), "provenance": doc["provenance"]}])
+                merged = {**others, **built}
+                doc["detectors"].update({f"{r.set}-{m}": merged[f"{r.set}-{m}"] for m in r.methods})
+            elif r.set in kept["sets"]:
+                doc["sets"][r.set] = kept["sets"][r.set]
+                doc["detectors"].update(others)
         if field is not None:
             echo(f"field figures of the {attach_field(doc, field)} set from {field}")
         doc["build_seconds"] = round(time.perf_counter() - t_all, 1)
@@ -246,16 +278,29 @@ def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: l
 
 
 def _build_set(r: Recipe, tmp: Path, cache_dir: Path, flights: int | None, seed: int, progress: bool,
-               workers: int | None, echo: Callable[[str], None],
-               duration: float = 60.0) -> tuple[dict[str, Any], dict[str, Any]]:
-    """One recipe's detectors written into ``tmp``: (the set's index entry, its detectors' entries)."""
+               workers: int | None, echo: Callable[[str], None], duration: float = 60.0,
+               methods: list[str] | None = None,
+               others: dict[str, Any] | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """One recipe's detectors written into ``tmp``: (the set's index entry, its detectors' entries).
+    ``methods``: only these, the set's ``others`` (kept entries) built from the same flights."""
     configs = r.configs(flights or r.flights, seed, duration)
+    sim_doc = _simulation_doc(configs)
+    as_read = json.loads(json.dumps(sim_doc))          # as a kept card reads back (lists, not tuples)
+    missing = [m for m in r.methods if methods is not None and m not in methods and f"{r.set}-{m}" not in others]
+    if missing:
+        raise ValueError(f"methods: the {r.set} set has no {', '.join(missing)} to keep; rebuild the whole set "
+                         f"(--sets {r.set} without --methods)")
+    for name, e in (others or {}).items():
+        if methods is not None and e["card"]["training"]["simulation"] != as_read:
+            raise ValueError(f"methods: {name} was built from other flights than these (seed, flights or "
+                             f"duration differ); rebuild the whole set (--sets {r.set} without --methods)")
     echo(f"{r.set}: simulating {sum(c.flights for _, c in configs)} flights ({len(configs)} configuration(s))")
     paths = ensure_configs(configs, cache_dir, progress=progress, workers=workers)
     parts, y_train, counts, sim = pooled_splits(paths)
     rate = float(configs[0][1].gps.rate_hz)
-    built, picks = {}, {}
-    for m in r.methods:
+    built = {}
+    picks = {e["method"]: e["card"]["training"]["validation_at_budget"]["f1"] or 0.0 for e in (others or {}).values()}
+    for m in (r.methods if methods is None else [m for m in r.methods if m in methods]):
         name = f"{r.set}-{m}"
         t0 = time.perf_counter()
         tuned = tune(m, parts["train"], y_train, parts["val"], gps_rate_hz=rate, budget_per_hour=BUDGET_PER_HOUR)
@@ -278,7 +323,7 @@ def _build_set(r: Recipe, tmp: Path, cache_dir: Path, flights: int | None, seed:
         test = parts["test"]
         card = {
             "method": m, "set": r.set, "sensors": r.sensors, "residues": r.residues, "about": r.about,
-            "training": {"simulation": _simulation_doc(configs), "split": {
+            "training": {"simulation": sim_doc, "split": {
                 "rule": "by flight within each configuration, 60/20/20 stratified by attacked, pooled",
                 "split_seed": SPLIT_SEED, "label_fraction": LABEL_FRACTION, **counts},
                 "budget": "full (the method's default epochs and windows)", "params": tuned.params,
