@@ -107,6 +107,8 @@ TABLES: dict[str, dict[str, Any]] = {
                                      "px4-cusum,px4-chi2,ardupilot-glr,ardupilot-cusum,ardupilot-chi2", WHITE_BLACK),
     "stealth-grey-vio": stealth_run("stealth-grey-vio", "vio-cusum,vio-chi2,vio-cusum-ref,vio-quadformer",
                                     "--knowledge grey"),
+    "stealth-grey-sequential": stealth_run("stealth-grey-sequential", "vio-sprt,vio-bht",
+                                           "--knowledge grey --policies none"),
     "stealth-grey-magbaro": stealth_run("stealth-grey", "magbaro-glr,magbaro-cusum", "--knowledge grey"),
     "stealth-resilient-vio": stealth_run("stealth-resilient-vio", "vio-quadformer,vio-cusum,vio-chi2,vio-cusum-ref",
                                          "--knowledge white,black --policies resilient", kind="stealth-resilient"),
