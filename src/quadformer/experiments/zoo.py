@@ -230,8 +230,8 @@ def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: l
         for r in chosen:
             odd = sorted(set(methods) - set(r.methods))
             if odd or not methods:
-                raise ValueError(f"methods: {', '.join(odd) or 'none given'} not in the {r.set} set; "
-                                 f"choose from {', '.join(r.methods)}")
+                raise ValueError(f"methods: {', '.join(odd) + ' not in the ' + r.set + ' set' if odd else 'none given'}"
+                                 f"; choose from {', '.join(r.methods)}")
     if flights is not None and flights < 10:
         raise ValueError(f"flights: at least 10 per configuration (each part of the split needs flights), "
                          f"got {flights}")
@@ -286,11 +286,12 @@ def _build_set(r: Recipe, tmp: Path, cache_dir: Path, flights: int | None, seed:
     configs = r.configs(flights or r.flights, seed, duration)
     sim_doc = _simulation_doc(configs)
     as_read = json.loads(json.dumps(sim_doc))          # as a kept card reads back (lists, not tuples)
+    others = others or {}
     missing = [m for m in r.methods if methods is not None and m not in methods and f"{r.set}-{m}" not in others]
     if missing:
         raise ValueError(f"methods: the {r.set} set has no {', '.join(missing)} to keep; rebuild the whole set "
                          f"(--sets {r.set} without --methods)")
-    for name, e in (others or {}).items():
+    for name, e in others.items():
         if methods is not None and e["card"]["training"]["simulation"] != as_read:
             raise ValueError(f"methods: {name} was built from other flights than these (seed, flights or "
                              f"duration differ); rebuild the whole set (--sets {r.set} without --methods)")
@@ -299,7 +300,7 @@ def _build_set(r: Recipe, tmp: Path, cache_dir: Path, flights: int | None, seed:
     parts, y_train, counts, sim = pooled_splits(paths)
     rate = float(configs[0][1].gps.rate_hz)
     built = {}
-    picks = {e["method"]: e["card"]["training"]["validation_at_budget"]["f1"] or 0.0 for e in (others or {}).values()}
+    picks = {e["method"]: e["card"]["training"]["validation_at_budget"]["f1"] or 0.0 for e in others.values()}
     for m in (r.methods if methods is None else [m for m in r.methods if m in methods]):
         name = f"{r.set}-{m}"
         t0 = time.perf_counter()
