@@ -277,6 +277,19 @@ def build(out: Path | None = None, cache_dir: Path = Path("runs/cache"), sets: l
     return doc
 
 
+def _check_kept(r: Recipe, methods: list[str], others: dict[str, Any], sim_doc: list[dict[str, Any]]) -> None:
+    """A rebuild of ``methods`` keeps the set's ``others``: each other method of the recipe must be
+    there, built from the flights ``sim_doc`` records, else ValueError."""
+    missing = [m for m in r.methods if m not in methods and f"{r.set}-{m}" not in others]
+    if missing:
+        raise ValueError(f"methods: the {r.set} set has no {', '.join(missing)} to keep; rebuild the whole set "
+                         f"(--sets {r.set} without --methods)")
+    for name, e in others.items():
+        if e["card"]["training"]["simulation"] != sim_doc:
+            raise ValueError(f"methods: {name} was built from other flights than these (seed, flights or "
+                             f"duration differ); rebuild the whole set (--sets {r.set} without --methods)")
+
+
 def _build_set(r: Recipe, tmp: Path, cache_dir: Path, flights: int | None, seed: int, progress: bool,
                workers: int | None, echo: Callable[[str], None], duration: float = 60.0,
                methods: list[str] | None = None,
@@ -285,16 +298,9 @@ def _build_set(r: Recipe, tmp: Path, cache_dir: Path, flights: int | None, seed:
     ``methods``: only these, the set's ``others`` (kept entries) built from the same flights."""
     configs = r.configs(flights or r.flights, seed, duration)
     sim_doc = _simulation_doc(configs)
-    as_read = json.loads(json.dumps(sim_doc))          # as a kept card reads back (lists, not tuples)
     others = others or {}
-    missing = [m for m in r.methods if methods is not None and m not in methods and f"{r.set}-{m}" not in others]
-    if missing:
-        raise ValueError(f"methods: the {r.set} set has no {', '.join(missing)} to keep; rebuild the whole set "
-                         f"(--sets {r.set} without --methods)")
-    for name, e in others.items():
-        if methods is not None and e["card"]["training"]["simulation"] != as_read:
-            raise ValueError(f"methods: {name} was built from other flights than these (seed, flights or "
-                             f"duration differ); rebuild the whole set (--sets {r.set} without --methods)")
+    if methods is not None:
+        _check_kept(r, methods, others, json.loads(json.dumps(sim_doc)))   # as a card reads back: lists
     echo(f"{r.set}: simulating {sum(c.flights for _, c in configs)} flights ({len(configs)} configuration(s))")
     paths = ensure_configs(configs, cache_dir, progress=progress, workers=workers)
     parts, y_train, counts, sim = pooled_splits(paths)
