@@ -251,6 +251,7 @@ def table_field(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
     methods = pick_methods(list(dict.fromkeys(r["method"] for r in res["false_alarms"])), spec.get("methods"), name)
     kinds = [k for k in spec.get("kinds", ("bias", "ramp")) if any(r["kind"] == k for r in res["injection"])]
     floor = any("recall_floor" in r for r in res["injection"])
+    tail = any("recall_tail" in r for r in res["injection"])
     settled = any("recall_settled" in r for r in res["injection"])
     digits = spec.get("digits", 2)
     rows = []
@@ -271,6 +272,9 @@ def table_field(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
                 if floor:
                     n = as_float(r.get("floor_injected"))
                     parts.append("-" if not n or n != n else f"{fmt(r.get('recall_floor'), digits)} ({int(n)})")
+                if tail:
+                    n = as_float(r.get("tail_injected"))
+                    parts.append("-" if not n or n != n else f"{fmt(r.get('recall_tail'), digits)} ({int(n)})")
                 if settled:
                     n = as_float(r.get("settled_injected"))
                     parts.append("-" if not n or n != n else f"{fmt(r.get('recall_settled'), digits)} ({int(n)})")
@@ -284,9 +288,17 @@ def table_field(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
         what, target = FIELD_KINDS.get(kind, (kind, "the target"))
         head.append(f"injected {what}: recall / recall >= {target} / "
                     + ("recall at or above the target and the log's floor (spoofs) / " if floor else "")
+                    + ("the same at the floor with the log's tails (spoofs) / " if tail else "")
                     + ("recall of those begun after 30 s in the air (spoofs) / " if settled else "")
                     + "median delay")
     return markdown(head, rows)
+
+
+def _tail(value: Any, dof: Any, unit: str) -> str:
+    v, d = as_float(value), as_float(dof)
+    if v is None or v != v:
+        return "-"
+    return f"{v:.2f} {unit} ({'Gaussian' if d == float('inf') else fmt(d, 1)})"
 
 
 def table_floors(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
@@ -294,15 +306,20 @@ def table_floors(res: dict[str, Any], spec: dict[str, Any], name: str) -> str:
     if not floors:
         raise TableError(f"table {name!r}: the field run has no physical floors (run it again)")
     rows = []
+    tails = any("offset_tail_m" in f for f in floors.values())
     for log, f in floors.items():
         if "reason" in f:
-            rows.append([log, f["vehicle"], "-", "-", f["reason"]])
+            rows.append([log, f["vehicle"], "-", "-", *(["-", "-"] if tails else []), f["reason"]])
             continue
+        with_tails = [_tail(f.get("offset_tail_m"), f.get("tail_dof_pos"), "m"),
+                      _tail(f.get("drift_tail_ms"), f.get("tail_dof_vel"), "m/s")] if tails else []
         rows.append([log, f["vehicle"], f"{f['offset_m']:.2f} m ({f['sigma_pos_m']:.3f} m)",
-                     f"{f['drift_ms']:.2f} m/s ({f['sigma_vel_ms']:.3f} m/s)",
+                     f"{f['drift_ms']:.2f} m/s ({f['sigma_vel_ms']:.3f} m/s)", *with_tails,
                      f"{f['intervals']} intervals at {f['gps_rate_hz']:.1f} Hz"])
     head = ["clean log", "vehicle", "offset floor (robust std of one interval's position step)",
-            "drift floor (robust std of one interval's velocity step against the IMU)", "on"]
+            "drift floor (robust std of one interval's velocity step against the IMU)",
+            *(["offset floor with the log's tails (Student-t dof)", "drift floor with the log's tails (Student-t dof)"]
+              if tails else []), "on"]
     return markdown(head, rows)
 
 

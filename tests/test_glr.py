@@ -223,6 +223,20 @@ def test_the_floor_of_a_log_the_project_writes(tmp_path):
     # one interval's chi-square test at 1 alarm per hour: about 5.6 standard deviations
     assert f1.drift_ms / f1.sigma_vel_ms == pytest.approx(5.6, abs=0.4)
     assert detection_floor(log.__class__(**{**log.__dict__, "attitude": None})) is None
+    # the simulator's noise is Gaussian: the floors with the log's own tails are near the Gaussian's
+    assert f1.drift_ms <= f1.drift_tail_ms <= 1.5 * f1.drift_ms
+
+
+def test_a_heavier_tail_raises_the_floor():
+    from quadformer.logs.noise import tail_floor
+
+    rng = np.random.default_rng(7)
+    gauss, dof = tail_floor(rng.standard_normal((1500, 2)), 1.0, 5.0)
+    assert gauss == pytest.approx(5.6, abs=0.4) and dof > 20          # a chi-square test's 5.6 std
+    heavy = rng.standard_normal((1500, 2)) / np.sqrt(rng.chisquare(5, 1500) / 5)[:, None]
+    floor, dof = tail_floor(heavy / np.median(np.abs(heavy)) * 0.6745, 1.0, 5.0)
+    assert 3.5 <= dof <= 8 and floor > 2 * gauss                       # Student-t, 5 dof
+    assert all(np.isnan(tail_floor(rng.standard_normal((10, 2)), 1.0, 5.0)))   # too few intervals
 
 
 # -- vehicle profiles -----------------------------------------------------------------------

@@ -121,6 +121,9 @@ def inject(plan: FieldPlan, fl: FieldLog, li: int, config: FilterConfig) -> list
 #: which of a log's physical floors (``logs.noise.DetectionFloor``) an injection's size is judged
 #: against: an offset's (m) or a drift's (m/s); an accelerating drift has no step to see
 FLOOR_OF = {"bias": "offset_m", "capture": "offset_m", "ramp": "drift_ms", "drift": "drift_ms"}
+#: the same with the log's own tails (``DetectionFloor.offset_tail_m``, ``drift_tail_ms``)
+TAIL_FLOOR_OF = {"bias": "offset_tail_m", "capture": "offset_tail_m", "ramp": "drift_tail_ms",
+                 "drift": "drift_tail_ms"}
 
 
 def air_before(fl: FieldLog, segment: int, t: float) -> float:
@@ -140,7 +143,8 @@ def injected_events(fl: FieldLog, injected: list[Injected], method: str, dets: d
     """One row per injected spoof and threshold: detected (a spoofing alert raised in air between the
     onset and the end), delay, offset at detection, the seconds in the air before the onset
     (``air_before_s``), and the log's physical floor for the spoof's kind (``floor``: the log's
-    ``DetectionFloor`` as a dict; NaN where none applies)."""
+    ``DetectionFloor`` as a dict; NaN where none applies), Gaussian and with the log's tails
+    (``floor_tail``)."""
     rows_out = []
     for inj in injected:
         before = air_before(fl, inj.segment, inj.onset)
@@ -151,11 +155,12 @@ def injected_events(fl: FieldLog, injected: list[Injected], method: str, dets: d
                    and inj.onset <= a.start_s < inj.end]
             delay = (min(hit) - inj.onset) if hit else None
             offset = None if delay is None else _offset_at(inj, min(hit), delay)
-            key = FLOOR_OF.get(inj.kind)
+            key, tail = FLOOR_OF.get(inj.kind), TAIL_FLOOR_OF.get(inj.kind)
             rows_out.append({"log": fl.path.name, "segment": inj.segment, "kind": inj.kind, "size": inj.size,
                              "method": method, "threshold": thr_name, "detected": bool(hit),
                              "delay_s": delay, "offset_at_detection_m": offset, "air_before_s": before,
-                             "floor": float((floor or {}).get(key, float("nan"))) if key else float("nan")})
+                             "floor": float((floor or {}).get(key, float("nan"))) if key else float("nan"),
+                             "floor_tail": float((floor or {}).get(tail, float("nan"))) if tail else float("nan")})
     return rows_out
 
 

@@ -67,7 +67,8 @@ def injection_summary(df: pd.DataFrame) -> pd.DataFrame:
     targets' sizes (offsets >= 2 m, drifts >= 0.2 m/s), ``recall_floor`` on those at or above both
     the targets' size and the log's physical floor (the ``floor`` column, where the rows have it),
     with the median delay of those detected (``floor_delay_median_s``) and the share detected within
-    3 s (``recall_floor_3s``); ``recall_settled`` on the spoofs that began after ``SETTLED_AIR_S`` in
+    3 s (``recall_floor_3s``); ``recall_tail`` likewise against the floor with the log's own tails
+    (``floor_tail``, ``tail_injected``); ``recall_settled`` on the spoofs that began after ``SETTLED_AIR_S`` in
     the air (the rows' ``air_before_s``), when a detector that normalises itself in the air has
     calibrated (``glr``: its windows, reference and ``calib_min_s``), beside ``recall_early`` on
     those before."""
@@ -98,6 +99,11 @@ def injection_summary(df: pd.DataFrame) -> pd.DataFrame:
                         "recall_floor_3s": float((at["delay_s"].fillna(np.inf) <= 3.0).mean()) if len(at)
                         else float("nan"),
                         "floor_delay_median_s": float(np.median(fd)) if len(fd) else float("nan")})
+        if "floor_tail" in g.columns and g["floor_tail"].notna().any():
+            floor = g["floor_tail"].to_numpy(dtype=float)
+            at = g[np.isfinite(floor) & (g["size"].to_numpy(dtype=float) >= np.fmax(floor, target))]
+            row.update({"tail_injected": len(at),
+                        "recall_tail": float(at["detected"].mean()) if len(at) else float("nan")})
         out.append(row)
     return pd.DataFrame(out)
 
