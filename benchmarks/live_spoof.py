@@ -16,7 +16,9 @@ shape typing. Optionally a spoof is injected into the GPS before it is sent
 
 The last line printed is one JSON object: the alerts raised (kind, phase, reason, time on the
 log's clock, type), the spoofing alerts raised in the air (on a clean run: its false alarms), and
-with a spoof the time from its onset to the first spoofing alert in the air after it.
+with a spoof the time from its onset to the first spoofing alert in the air after it (a fix is
+scored at its epoch, its read delay before its stamp: an alert up to half a receiver period
+before the onset is the onset fix's, and counted as at the onset).
 """
 
 from __future__ import annotations
@@ -193,12 +195,16 @@ def main() -> None:
                          **{f: (float(getattr(attack, f)[0]) if np.isfinite(getattr(attack, f)[0]) else None)
                             for f in fields}}
         onset, stop = float(attack.onset[0]), float(attack.end[0])
-        after = [a["t_s"] for a in in_air if onset <= a["t_s"] < stop]
-        out["spoofing_alerts_in_air_before_onset"] = sum(a["t_s"] < onset for a in in_air)
-        out["first_spoofing_in_air_after_onset_s"] = (min(after) - onset) if after else None
-        near = fixes[(fixes.t >= onset) & (fixes.t <= onset + 10.0)]
+        # the monitor fuses a fix at its epoch, its read delay (tens of ms) before the stamp the spoof's
+        # onset is counted on: the onset's fix may be scored up to that much before the onset
+        ts = fixes["t"].to_numpy(dtype=float)
+        from_t = onset - 0.5 * (float(np.median(np.diff(ts))) if len(ts) > 1 else 0.0)
+        after = [a["t_s"] for a in in_air if from_t <= a["t_s"] < stop]
+        out["spoofing_alerts_in_air_before_onset"] = sum(a["t_s"] < from_t for a in in_air)
+        out["first_spoofing_in_air_after_onset_s"] = (max(0.0, min(after) - onset)) if after else None
+        near = fixes[(fixes.t >= from_t) & (fixes.t <= onset + 10.0)]
         out["largest_score_10s_after_onset"] = float(near["score"].max()) if len(near) else None
-        before = fixes[(fixes.t < onset) & (fixes.phase == "air")]
+        before = fixes[(fixes.t < from_t) & (fixes.phase == "air")]
         out["largest_score_in_air_before_onset"] = float(before["score"].max()) if len(before) else None
     print(json.dumps(out))
 
