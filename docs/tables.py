@@ -68,7 +68,7 @@ def stealth_run(out: str, detectors: str, options: str = "", kind: str = "stealt
 
 FIELD_SHIPPED = {"source": "results/field-shipped/results.json",
                  "command": "quadformer benchmark --profile field --shipped magbaro --logs ../shared/data/real-flights "
-                            "--manifest ../shared/data/real-flights/MANIFEST.csv --out runs/field-epochs"}
+                            "--manifest ../shared/data/real-flights/MANIFEST.csv --out runs/field-tails"}
 FIELD_INJECTED = ("bias", "ramp", "drift", "drift-accel", "capture")
 MIXED = {"source": "results/mixed/results.json", "command": "quadformer benchmark --profile mixed --out runs/mixed",
          "caveat": HELD_SPRT}
