@@ -421,3 +421,18 @@ def test_calibrate_sets_the_threshold_from_a_vehicles_clean_logs_at_a_false_alar
     one = runner.invoke(app, ["calibrate", "--clean", str(EVENTS), "--model", str(models["chi2"]), "--residues",
                               "autopilot", "--out", str(tmp_path / "x.json")])
     assert one.exit_code == 2 and "at least 2" in one.output and not (tmp_path / "x.json").exists()
+
+
+def test_logs_info_gives_the_physical_floor():
+    from quadformer.logs.noise import detection_floor
+    from quadformer.logs.replay import in_air
+
+    assert "physical floor" not in runner.invoke(app, ["logs", "info", str(COPTER)]).output
+    res = runner.invoke(app, ["logs", "info", str(COPTER), "--floor"])
+    assert res.exit_code == 0, res.output
+    log = read_log(COPTER)
+    f = detection_floor(log, in_air(log, log.gps["t"].to_numpy()) > 0.5)
+    assert f"consistent drift {f.drift_ms:.2f} m/s ({f.drift_tail_ms:.2f} m/s with its tails)" in res.output
+    assert f"over {f.intervals} GPS intervals in the air" in res.output
+    res = runner.invoke(app, ["logs", "info", str(EVENTS), "--floor"])   # no attitude in the air: said, no crash
+    assert res.exit_code == 0 and "physical floor: not computed" in res.output

@@ -129,9 +129,12 @@ EVENTS_SHOWN = 12   # events listed by `logs info`, the first by time
 def logs_info(
     log: Path = typer.Argument(..., help="A flight log."),
     format: Optional[str] = typer.Option(None, help="Force a reader: px4, ardupilot, tlog or ros."),
+    floor: bool = typer.Option(False, "--floor", help="Also the log's physical floor: the smallest GPS offset and "
+                                                      "consistent drift its own noise lets a detector see at 1 false "
+                                                      "alarm per in-air hour (a few seconds more)."),
 ) -> None:
     """What a log holds: streams with their rates, the autopilot's events, segments, origin and the reader's
-    notes."""
+    notes; with --floor, the smallest offset and drift its own noise lets a detector see."""
     import numpy as np
 
     from quadformer.logs import LogError, read_log
@@ -160,6 +163,23 @@ def logs_info(
             typer.echo(f"    ... {len(ev) - EVENTS_SHOWN} more")
     for n in fl.notes:
         typer.echo(f"  note: {n}")
+    if floor:
+        typer.echo(f"  {_floor_line(fl)}")
+
+
+def _floor_line(fl) -> str:
+    """The log's physical floor at 1 false alarm per in-air hour (``logs.noise.detection_floor``), or why not."""
+    from quadformer.logs.noise import detection_floor
+    from quadformer.logs.replay import in_air
+
+    f = None if fl.gps is None else detection_floor(fl, in_air(fl, fl.gps["t"].to_numpy()) > 0.5)
+    if f is None:
+        return ("physical floor: not computed (it needs GPS fixes, the IMU and the autopilot's attitude over at "
+                "least 30 GPS intervals in the air)")
+    return (f"physical floor at {f.per_hour:g} false alarm per in-air hour, over {f.intervals} GPS intervals in the "
+            f"air at {f.gps_rate_hz:.1f} Hz: offset {f.offset_m:.2f} m ({f.offset_tail_m:.2f} m with this log's "
+            f"tails), consistent drift {f.drift_ms:.2f} m/s ({f.drift_tail_ms:.2f} m/s with its tails); a spoof "
+            "or GPS trouble in the log raises it")
 
 
 def logs_import(
