@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from quadformer.estimator.latency import robust_std
+
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real-flights"
 CLEAN = ("BeastAyyG_sample.bin", "erlerobot_pxf_copter_10-11-2014_105.BIN", "erlerobot_pxf_copter_8-10-2014_11.BIN",
          "joeydouglas_2014-10-18_20-04-24.bin", "joeydouglas_2014-10-18_20-44-05.bin",
@@ -40,10 +42,6 @@ TAUS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0)      # s, the receiver's velocit
 LATENCIES = (0.0, 0.1, 0.2, 0.3, 0.4)               # s, the receiver's latency
 DRAG_AVERAGE_S = 5.0
 DRAG_MIN_CORR = 0.3     # the body-x force's correlation with the body-x velocity below which drag is unread
-
-
-def robust_std(x: np.ndarray) -> float:
-    return float(1.4826 * np.median(np.abs(x - np.median(x))))
 
 
 def world_velocity(log) -> tuple[np.ndarray, np.ndarray]:

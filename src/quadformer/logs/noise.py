@@ -299,7 +299,7 @@ TAIL_MAX_DOF = 100.0
 
 
 def tail_floor(z: np.ndarray, per_hour: float, rate_hz: float,
-                prob: float = FLOOR_PROBABILITY) -> tuple[float, float]:
+               prob: float = FLOOR_PROBABILITY) -> tuple[float, float]:
     """(floor in units of the robust std, degrees of freedom) of one interval's 2-d residual ``z``
     (n, 2; already divided by its robust std) with its own tails: a bivariate Student-t (a Gaussian
     whose variance is scaled by one chi-square draw per interval, shared by both axes) whose scale
@@ -354,7 +354,7 @@ def detection_floor(log: FlightLog, in_air: np.ndarray | None = None, per_hour: 
 
     Real residuals have heavier tails than a Gaussian of their robust std: on the shared clean
     logs the largest of one flight's few hundred to 1500 intervals is 5 to 9 robust stds, where a
-    Gaussian's would be about 4. ``offset_tail_m`` and ``drift_tail_ms`` are the floors with the
+    Gaussian's would be 3.5 to 4. ``offset_tail_m`` and ``drift_tail_ms`` are the floors with the
     log's own tails (``tail_floor``: a Student-t fitted to the residuals), which a detector with
     no false alarm at the budget cannot go below either; they extrapolate the fitted tail to the
     budget's per-interval chance, far beyond the log's own count of intervals, and are as good as

@@ -90,22 +90,29 @@ def injection_summary(df: pd.DataFrame) -> pd.DataFrame:
             row.update({"settled_injected": int(late.sum()),
                         "recall_settled": float(g["detected"][late].mean()) if late.any() else float("nan"),
                         "recall_early": float(g["detected"][~late].mean()) if (~late).any() else float("nan")})
-        if "floor" in g.columns and g["floor"].notna().any():
-            floor = g["floor"].to_numpy(dtype=float)
-            at = g[np.isfinite(floor) & (g["size"].to_numpy(dtype=float) >= np.fmax(floor, target))]
+        at = _at_floor(g, "floor", target)
+        if at is not None:
             fd = at["delay_s"].dropna().to_numpy(dtype=float)
             row.update({"floor_injected": len(at),
                         "recall_floor": float(at["detected"].mean()) if len(at) else float("nan"),
                         "recall_floor_3s": float((at["delay_s"].fillna(np.inf) <= 3.0).mean()) if len(at)
                         else float("nan"),
                         "floor_delay_median_s": float(np.median(fd)) if len(fd) else float("nan")})
-        if "floor_tail" in g.columns and g["floor_tail"].notna().any():
-            floor = g["floor_tail"].to_numpy(dtype=float)
-            at = g[np.isfinite(floor) & (g["size"].to_numpy(dtype=float) >= np.fmax(floor, target))]
+        at = _at_floor(g, "floor_tail", target)
+        if at is not None:
             row.update({"tail_injected": len(at),
                         "recall_tail": float(at["detected"].mean()) if len(at) else float("nan")})
         out.append(row)
     return pd.DataFrame(out)
+
+
+def _at_floor(g: pd.DataFrame, column: str, target: float) -> pd.DataFrame | None:
+    """The rows of ``g`` whose size is at or above both ``target`` and their log's floor in ``column``;
+    None where no row has that floor."""
+    if column not in g.columns or not g[column].notna().any():
+        return None
+    floor = g[column].to_numpy(dtype=float)
+    return g[np.isfinite(floor) & (g["size"].to_numpy(dtype=float) >= np.fmax(floor, target))]
 
 
 def false_alarm_figure(fa: pd.DataFrame):
