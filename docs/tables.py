@@ -110,6 +110,8 @@ TABLES: dict[str, dict[str, Any]] = {
                                     "--knowledge grey"),
     "stealth-grey-sequential": stealth_run("stealth-grey-sequential", "vio-sprt,vio-bht",
                                            "--knowledge grey --policies none"),
+    "stealth-grey-vio-vref": stealth_run("stealth-grey-vio-vref", "vio-chi2-vref,vio-cusum-vref",
+                                         "--knowledge grey --policies none"),
     "stealth-grey-magbaro": stealth_run("stealth-grey", "magbaro-glr,magbaro-cusum", "--knowledge grey"),
     "stealth-grey-magbaro-rest": stealth_run("stealth-grey-magbaro-rest",
                                              "magbaro-chi2,magbaro-cusum-ref,magbaro-cusum-vref,magbaro-quadformer",
