@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from quadformer.estimator.latency import robust_std
+from quadformer.logs.receiver_clock import imu_velocity
 
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real-flights"
 CLEAN = ("BeastAyyG_sample.bin", "erlerobot_pxf_copter_10-11-2014_105.BIN", "erlerobot_pxf_copter_8-10-2014_11.BIN",
@@ -42,19 +43,6 @@ TAUS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0)      # s, the receiver's velocit
 LATENCIES = (0.0, 0.1, 0.2, 0.3, 0.4)               # s, the receiver's latency
 DRAG_AVERAGE_S = 5.0
 DRAG_MIN_CORR = 0.3     # the body-x force's correlation with the body-x velocity below which drag is unread
-
-
-def world_velocity(log) -> tuple[np.ndarray, np.ndarray]:
-    """(IMU times, the IMU's horizontal velocity integrated in the world through the autopilot's
-    attitude; its constant is arbitrary, only differences are used)."""
-    from quadformer.geometry.frames import quat_rotate
-
-    ti = log.imu["t"].to_numpy(dtype=float)
-    ta = log.attitude["t"].to_numpy(dtype=float)
-    q = log.attitude[["qx", "qy", "qz", "qw"]].to_numpy(dtype=float)
-    j = np.clip(np.searchsorted(ta, ti), 0, len(ta) - 1)
-    aw = quat_rotate(q[j], log.imu[["ax", "ay", "az"]].to_numpy(dtype=float))[:, :2]
-    return ti, np.concatenate([[np.zeros(2)], np.cumsum(0.5 * (aw[1:] + aw[:-1]) * np.diff(ti)[:, None], axis=0)])
 
 
 def lagged(ti: np.ndarray, v: np.ndarray, tau: float) -> np.ndarray:
@@ -79,7 +67,7 @@ def intervals(t: np.ndarray, air: np.ndarray, ti: np.ndarray) -> np.ndarray:
 def receiver_lag(log, air: np.ndarray) -> dict:
     t = log.gps["t"].to_numpy(dtype=float)
     v = log.gps[["vx", "vy"]].to_numpy(dtype=float)
-    ti, vi = world_velocity(log)
+    _, _, ti, vi = imu_velocity(log)
     ok = intervals(t, air, ti) & np.isfinite(v).all(axis=1)[1:] & np.isfinite(v).all(axis=1)[:-1]
     dv = np.diff(v, axis=0)[ok]
     best: dict[float, tuple[float, float, float]] = {}

@@ -122,8 +122,7 @@ def inject(plan: FieldPlan, fl: FieldLog, li: int, config: FilterConfig) -> list
 #: against: an offset's (m) or a drift's (m/s); an accelerating drift has no step to see
 FLOOR_OF = {"bias": "offset_m", "capture": "offset_m", "ramp": "drift_ms", "drift": "drift_ms"}
 #: the same with the log's own tails (``DetectionFloor.offset_tail_m``, ``drift_tail_ms``)
-TAIL_FLOOR_OF = {"bias": "offset_tail_m", "capture": "offset_tail_m", "ramp": "drift_tail_ms",
-                 "drift": "drift_tail_ms"}
+TAIL_FLOOR_OF = {k: v.replace("_", "_tail_", 1) for k, v in FLOOR_OF.items()}
 
 
 def air_before(fl: FieldLog, segment: int, t: float) -> float:

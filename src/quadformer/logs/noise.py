@@ -127,15 +127,14 @@ def interval_noise(log: FlightLog, air: np.ndarray | None = None) -> IntervalNoi
     and no white part shows (0 m, where the fixes against the autopilot's estimate read 0.16 m:
     that estimate's own jitter)."""
     from quadformer.estimator.latency import robust_std
-    from quadformer.logs.receiver_clock import latency, velocity_steps
+    from quadformer.logs.receiver_clock import latency_steps
     from quadformer.logs.replay import in_air
 
     if log.gps is None or len(log.gps) < 10:
         return None
     t = log.gps["t"].to_numpy(dtype=float)
     air = in_air(log, t) > 0.5 if air is None else np.asarray(air, bool)
-    delay, _ = latency(log, air)
-    e = velocity_steps(log, air, delay or 0.0, every=True)
+    delay, e = latency_steps(log, air, every=True)
     if e is None:
         return None
     step = float(np.median(np.diff(t)))
@@ -360,7 +359,7 @@ def detection_floor(log: FlightLog, in_air: np.ndarray | None = None, per_hour: 
     budget's per-interval chance, far beyond the log's own count of intervals, and are as good as
     that fit. None without GPS, IMU and the autopilot's attitude."""
     from quadformer.estimator.latency import robust_std
-    from quadformer.logs.receiver_clock import latency, velocity_steps
+    from quadformer.logs.receiver_clock import latency_steps
 
     g = log.gps
     if g is None or len(g) < 10:
@@ -369,8 +368,8 @@ def detection_floor(log: FlightLog, in_air: np.ndarray | None = None, per_hour: 
     p = g[["x", "y"]].to_numpy(dtype=float)
     v = g[["vx", "vy"]].to_numpy(dtype=float)
     air = np.ones(len(t), bool) if in_air is None else np.asarray(in_air, bool)
-    delay, sv = latency(log, air)
-    if sv is None:
+    _, e = latency_steps(log, air)
+    if e is None:
         return None
     dt = np.diff(t)
     step = float(np.median(dt))
@@ -379,9 +378,8 @@ def detection_floor(log: FlightLog, in_air: np.ndarray | None = None, per_hour: 
     c = _consistency(g)[ok]
     sp = robust_std(c)
     rate = 1.0 / step
-    e = velocity_steps(log, air, delay or 0.0)
+    sv = robust_std(e)
     pos_tail, pos_dof = tail_floor(c / sp, per_hour, rate) if sp > 0 else (float("nan"), float("nan"))
-    vel_tail, vel_dof = tail_floor(e / sv, per_hour, rate) if e is not None and sv > 0 else (float("nan"),
-                                                                                              float("nan"))
+    vel_tail, vel_dof = tail_floor(e / sv, per_hour, rate) if sv > 0 else (float("nan"), float("nan"))
     return DetectionFloor(_step_floor(sp, per_hour, rate), _step_floor(sv, per_hour, rate), sp, sv, rate,
                           int(ok.sum()), per_hour, pos_tail * sp, vel_tail * sv, pos_dof, vel_dof)

@@ -111,7 +111,7 @@ def fix_epochs(t: np.ndarray, tow: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
                  + (f"; {again} fixes read twice (the same time of week) dropped" if again else ""))
 
 
-def _integrated(log):
+def imu_velocity(log):
     """(fix times, fix horizontal velocities, IMU times, the IMU's horizontal velocity integrated
     in the world through the autopilot's attitude) of ``log``; None without the streams."""
     from quadformer.geometry.frames import quat_rotate
@@ -136,7 +136,7 @@ def velocity_steps(log, air: np.ndarray | None = None, delay: float = 0.0, _pre=
     the autopilot's attitude, integrated; gravity is vertical), (n, 2); None without GPS, IMU and
     the autopilot's attitude, or with fewer than 30 such intervals. ``every``: a row per interval
     of the log (fixes - 1), NaN where the interval is not one of those."""
-    pre = _integrated(log) if _pre is None else _pre
+    pre = imu_velocity(log) if _pre is None else _pre
     if pre is None:
         return None
     t, v, ti, cum = pre
@@ -154,11 +154,13 @@ def velocity_steps(log, air: np.ndarray | None = None, delay: float = 0.0, _pre=
     return e[ok]
 
 
-def latency(log, air: np.ndarray | None = None) -> tuple[float | None, float | None]:
-    """(latency s or None, the velocity residual's robust std at it, m/s; None without the data):
-    the receiver latency that the log's own IMU and GPS show (``estimator.latency``); the latency
-    None where it does not narrow the spread by ``MIN_GAIN``, the spread then that at 0."""
-    pre = _integrated(log)
+def latency_steps(log, air: np.ndarray | None = None,
+                  every: bool = False) -> tuple[float | None, np.ndarray | None]:
+    """(latency s or None, the velocity steps at it; None without the data): the receiver latency
+    that the log's own IMU and GPS show (``estimator.latency``; None where it does not narrow the
+    spread by ``MIN_GAIN``, the steps then those at 0) and ``velocity_steps`` there (``every``: a
+    row per interval), the IMU integrated once for both."""
+    pre = imu_velocity(log)
     spread = []
     for d in LATENCY_GRID:
         e = velocity_steps(log, air, float(d), pre)
@@ -166,6 +168,11 @@ def latency(log, air: np.ndarray | None = None) -> tuple[float | None, float | N
             return None, None
         spread.append(robust_std(e))
     best = pick_latency(spread)
-    if best is None:
-        return None, float(spread[0])
-    return best, robust_std(velocity_steps(log, air, best, pre))
+    return best, velocity_steps(log, air, best or 0.0, pre, every=every)
+
+
+def latency(log, air: np.ndarray | None = None) -> tuple[float | None, float | None]:
+    """(latency s or None, the velocity residual's robust std at it, m/s; None without the data):
+    ``latency_steps``' latency and its steps' spread."""
+    best, e = latency_steps(log, air)
+    return best, (None if e is None else robust_std(e))
