@@ -66,9 +66,16 @@ def stealth_run(out: str, detectors: str, options: str = "", kind: str = "stealt
     return {"source": f"results/{out}/results.json", "kind": kind, "command": command, **spec}
 
 
+def field_command(options: str, out: str) -> str:
+    """The command of a field run over the shared real flights: ``benchmark --profile field OPTIONS``
+    written to ``runs/{out}``."""
+    return " ".join(["quadformer benchmark --profile field", *([options] if options else []),
+                     "--logs ../shared/data/real-flights --manifest ../shared/data/real-flights/MANIFEST.csv",
+                     f"--out runs/{out}"])
+
+
 FIELD_SHIPPED = {"source": "results/field-shipped/results.json",
-                 "command": "quadformer benchmark --profile field --shipped magbaro --logs ../shared/data/real-flights "
-                            "--manifest ../shared/data/real-flights/MANIFEST.csv --out runs/field-tails"}
+                 "command": field_command("--shipped magbaro", "field-tails")}
 FIELD_INJECTED = ("bias", "ramp", "drift", "drift-accel", "capture")
 MIXED = {"source": "results/mixed/results.json", "command": "quadformer benchmark --profile mixed --out runs/mixed"}
 TABLES: dict[str, dict[str, Any]] = {
@@ -122,13 +129,10 @@ TABLES: dict[str, dict[str, Any]] = {
                                               "--knowledge white,black --policies resilient",
                                               kind="stealth-resilient"),
     "field-sequential": {"source": "results/field-sequential/results.json", "kind": "field", "kinds": FIELD_INJECTED,
-                         "command": "quadformer benchmark --profile field --methods sprt,bht --logs "
-                                    "../shared/data/real-flights --manifest ../shared/data/real-flights/MANIFEST.csv "
-                                    "--out runs/field-sequential"},
+                         "command": field_command("--methods sprt,bht", "field-sequential")},
     "field": {"source": "results/field/results.json", "kind": "field",
-              "caveat": HELD_SPRT + "; the rebuilt ones on today's set and plan are in the table below",
-              "command": "quadformer benchmark --profile field --logs ../shared/data/real-flights "
-                         "--manifest ../shared/data/real-flights/MANIFEST.csv --out runs/field"},
+              "caveat": HELD_SPRT + "; the rebuilt ones on the current set and plan are in the table below",
+              "command": field_command("", "field")},
 }
 
 #: the pages whose markers this script fills
